@@ -1,0 +1,716 @@
+"""Core data types shared by every stage.
+
+Conventions (see DESIGN.md): right-handed world in metres/seconds/kilograms, +y up, gravity -y.
+Cameras follow OpenGL: a camera looks down its local -z axis, +y up in the image. Gaussians store
+scales in metres (not log), quaternions as wxyz, opacities in [0, 1] and SH coefficients (N, K, 3)
+with the usual 3DGS DC convention rgb = 0.5 + C0 * sh[:, 0].
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from dataclasses import dataclass, field
+from typing import Iterable, Iterator, Optional, Sequence, Union
+
+import numpy as np
+import torch
+
+from .errors import InputError
+
+SH_C0 = 0.28209479177387814
+
+Vec3 = tuple[float, float, float]
+
+
+def _as_vec3(value, name: str) -> Vec3:
+    try:
+        v = tuple(float(x) for x in value)
+    except TypeError as exc:
+        raise InputError(f"{name} must be three numbers (x, y, z); got {value!r}") from exc
+    if len(v) != 3:
+        raise InputError(f"{name} must be three numbers (x, y, z); got {len(v)} values: {value!r}")
+    if not all(math.isfinite(x) for x in v):
+        raise InputError(f"{name} must be finite; got {v}. Replace NaN/Inf with a real value.")
+    return v  # type: ignore[return-value]
+
+
+# ----------------------------------------------------------------------------------------------
+# Gaussians
+# ----------------------------------------------------------------------------------------------
+
+
+def quat_to_rotmat(quats: torch.Tensor) -> torch.Tensor:
+    """wxyz quaternions (N,4), any norm, to rotation matrices (N,3,3)."""
+    q = torch.nn.functional.normalize(quats, dim=-1)
+    w, x, y, z = q.unbind(-1)
+    return torch.stack(
+        [
+            1 - 2 * (y * y + z * z), 2 * (x * y - w * z), 2 * (x * z + w * y),
+            2 * (x * y + w * z), 1 - 2 * (x * x + z * z), 2 * (y * z - w * x),
+            2 * (x * z - w * y), 2 * (y * z + w * x), 1 - 2 * (x * x + y * y),
+        ],
+        dim=-1,
+    ).reshape(q.shape[:-1] + (3, 3))
+
+
+def rotmat_to_quat(R: torch.Tensor) -> torch.Tensor:
+    """Rotation matrices (N,3,3) to unit wxyz quaternions (N,4) with w >= 0 (Shepperd's method)."""
+    R = R.reshape(-1, 3, 3)
+    m00, m11, m22 = R[:, 0, 0], R[:, 1, 1], R[:, 2, 2]
+    trace = m00 + m11 + m22
+    cands = torch.stack([trace, m00, m11, m22], dim=-1)
+    best = cands.argmax(dim=-1)
+    q = torch.empty(R.shape[0], 4, dtype=R.dtype, device=R.device)
+    # Each branch uses the largest diagonal term as the pivot, which keeps the sqrt well away from 0.
+    for k in range(4):
+        sel = best == k
+        if not bool(sel.any()):
+            continue
+        r = R[sel]
+        if k == 0:
+            s = torch.sqrt(1.0 + r[:, 0, 0] + r[:, 1, 1] + r[:, 2, 2]) * 2
+            q[sel] = torch.stack([0.25 * s, (r[:, 2, 1] - r[:, 1, 2]) / s,
+                                  (r[:, 0, 2] - r[:, 2, 0]) / s, (r[:, 1, 0] - r[:, 0, 1]) / s], -1)
+        elif k == 1:
+            s = torch.sqrt(1.0 + r[:, 0, 0] - r[:, 1, 1] - r[:, 2, 2]) * 2
+            q[sel] = torch.stack([(r[:, 2, 1] - r[:, 1, 2]) / s, 0.25 * s,
+                                  (r[:, 0, 1] + r[:, 1, 0]) / s, (r[:, 0, 2] + r[:, 2, 0]) / s], -1)
+        elif k == 2:
+            s = torch.sqrt(1.0 + r[:, 1, 1] - r[:, 0, 0] - r[:, 2, 2]) * 2
+            q[sel] = torch.stack([(r[:, 0, 2] - r[:, 2, 0]) / s, (r[:, 0, 1] + r[:, 1, 0]) / s,
+                                  0.25 * s, (r[:, 1, 2] + r[:, 2, 1]) / s], -1)
+        else:
+            s = torch.sqrt(1.0 + r[:, 2, 2] - r[:, 0, 0] - r[:, 1, 1]) * 2
+            q[sel] = torch.stack([(r[:, 1, 0] - r[:, 0, 1]) / s, (r[:, 0, 2] + r[:, 2, 0]) / s,
+                                  (r[:, 1, 2] + r[:, 2, 1]) / s, 0.25 * s], -1)
+    q = torch.where(q[:, :1] < 0, -q, q)
+    return torch.nn.functional.normalize(q, dim=-1)
+
+
+@dataclass
+class Gaussians:
+    """A set of 3D Gaussians.
+
+    ``covars`` (N,3,3), when set, overrides quats/scales as the shape of each Gaussian. The
+    simulator produces deformed Gaussians this way (Σ = F Σ₀ Fᵀ is not a rotation+scale of the
+    original axes in general); ``with_covariance_as_rotscale`` converts back when a file needs it.
+    ``object_ids`` (N,) int64 labels which object of a multi-object scene each Gaussian belongs to.
+    """
+
+    means: torch.Tensor
+    quats: torch.Tensor
+    scales: torch.Tensor
+    opacities: torch.Tensor
+    sh: torch.Tensor
+    covars: Optional[torch.Tensor] = None
+    object_ids: Optional[torch.Tensor] = None
+
+    def __post_init__(self) -> None:
+        n = self.means.shape[0]
+        checks = {
+            "means": (self.means, (n, 3)),
+            "quats": (self.quats, (n, 4)),
+            "scales": (self.scales, (n, 3)),
+            "opacities": (self.opacities, (n,)),
+        }
+        for name, (t, shape) in checks.items():
+            if tuple(t.shape) != shape:
+                raise InputError(f"Gaussians.{name} must have shape {shape}; got {tuple(t.shape)}")
+        if self.sh.ndim != 3 or self.sh.shape[0] != n or self.sh.shape[2] != 3:
+            raise InputError(f"Gaussians.sh must have shape ({n}, K, 3); got {tuple(self.sh.shape)}")
+        if self.covars is not None and tuple(self.covars.shape) != (n, 3, 3):
+            raise InputError(f"Gaussians.covars must have shape ({n}, 3, 3); got {tuple(self.covars.shape)}")
+        if self.object_ids is not None and tuple(self.object_ids.shape) != (n,):
+            raise InputError(f"Gaussians.object_ids must have shape ({n},); got {tuple(self.object_ids.shape)}")
+
+    # -- construction -----------------------------------------------------------------------
+    @classmethod
+    def from_rgb(
+        cls,
+        means: torch.Tensor,
+        rgb: torch.Tensor,
+        scales: torch.Tensor,
+        opacities: torch.Tensor,
+        quats: Optional[torch.Tensor] = None,
+    ) -> "Gaussians":
+        """Build degree-0 Gaussians from linear RGB in [0,1] (stored as SH DC)."""
+        n = means.shape[0]
+        if quats is None:
+            quats = torch.zeros(n, 4, dtype=means.dtype, device=means.device)
+            quats[:, 0] = 1.0
+        sh = ((rgb - 0.5) / SH_C0).reshape(n, 1, 3)
+        return cls(means=means, quats=quats, scales=scales, opacities=opacities, sh=sh)
+
+    # -- derived quantities -----------------------------------------------------------------
+    def __len__(self) -> int:
+        return int(self.means.shape[0])
+
+    @property
+    def device(self) -> torch.device:
+        return self.means.device
+
+    @property
+    def rgb(self) -> torch.Tensor:
+        """View-independent colour (N,3) from the SH DC term (not clamped, to keep gradients)."""
+        return 0.5 + SH_C0 * self.sh[:, 0, :]
+
+    def covariance(self) -> torch.Tensor:
+        """World-space covariance (N,3,3)."""
+        if self.covars is not None:
+            return self.covars
+        R = quat_to_rotmat(self.quats)
+        M = R * self.scales[:, None, :]
+        return M @ M.transpose(-1, -2)
+
+    def with_covariance_as_rotscale(self) -> "Gaussians":
+        """Replace ``covars`` by the eigen-decomposition Σ = R diag(s²) Rᵀ (for .ply export)."""
+        if self.covars is None:
+            return self
+        sym = 0.5 * (self.covars + self.covars.transpose(-1, -2))
+        evals, evecs = torch.linalg.eigh(sym.double())
+        evecs = evecs * torch.sign(torch.linalg.det(evecs))[:, None, None]  # proper rotation
+        scales = evals.clamp_min(1e-20).sqrt().to(self.means.dtype)
+        quats = rotmat_to_quat(evecs).to(self.means.dtype)
+        return dataclasses.replace(self, quats=quats, scales=scales, covars=None)
+
+    # -- container helpers -------------------------------------------------------------------
+    def _map(self, fn) -> "Gaussians":
+        return Gaussians(
+            means=fn(self.means),
+            quats=fn(self.quats),
+            scales=fn(self.scales),
+            opacities=fn(self.opacities),
+            sh=fn(self.sh),
+            covars=None if self.covars is None else fn(self.covars),
+            object_ids=None if self.object_ids is None else fn(self.object_ids),
+        )
+
+    def to(self, device) -> "Gaussians":
+        return self._map(lambda t: t.to(device))
+
+    def detach(self) -> "Gaussians":
+        return self._map(lambda t: t.detach())
+
+    def clone(self) -> "Gaussians":
+        return self._map(lambda t: t.clone())
+
+    def subset(self, index: torch.Tensor) -> "Gaussians":
+        return self._map(lambda t: t[index])
+
+    @staticmethod
+    def cat(items: Sequence["Gaussians"]) -> "Gaussians":
+        if not items:
+            raise InputError("Gaussians.cat needs at least one set of Gaussians")
+        k = max(g.sh.shape[1] for g in items)
+        sh = [torch.nn.functional.pad(g.sh, (0, 0, 0, k - g.sh.shape[1])) for g in items]
+        any_cov = any(g.covars is not None for g in items)
+        ids = None
+        if any(g.object_ids is not None for g in items):
+            ids = torch.cat([
+                g.object_ids if g.object_ids is not None
+                else torch.zeros(len(g), dtype=torch.int64, device=g.device) for g in items])
+        return Gaussians(
+            means=torch.cat([g.means for g in items]),
+            quats=torch.cat([g.quats for g in items]),
+            scales=torch.cat([g.scales for g in items]),
+            opacities=torch.cat([g.opacities for g in items]),
+            sh=torch.cat(sh),
+            covars=torch.cat([g.covariance() for g in items]) if any_cov else None,
+            object_ids=ids,
+        )
+
+    def validate(self, name: str = "Gaussians") -> None:
+        """Raise InputError if any value is non-finite or out of range."""
+        if len(self) == 0:
+            raise InputError(f"{name} is empty: the lift produced no Gaussians. Check that the mask "
+                             "covers the object (it may be empty or a few pixels).")
+        for field_name in ("means", "quats", "scales", "opacities", "sh"):
+            t = getattr(self, field_name)
+            if not bool(torch.isfinite(t).all()):
+                raise InputError(f"{name}.{field_name} contains NaN or Inf values")
+        if bool((self.scales <= 0).any()):
+            raise InputError(f"{name}.scales must be positive metres (not log-scales)")
+        if bool(((self.opacities < 0) | (self.opacities > 1)).any()):
+            raise InputError(f"{name}.opacities must lie in [0, 1] (not logits)")
+
+    def bounds(self) -> tuple[torch.Tensor, torch.Tensor]:
+        return self.means.min(dim=0).values, self.means.max(dim=0).values
+
+
+# ----------------------------------------------------------------------------------------------
+# Camera
+# ----------------------------------------------------------------------------------------------
+
+# OpenGL camera axes (x right, y up, looking down -z) to OpenCV axes (x right, y down, looking +z).
+_GL_TO_CV = torch.diag(torch.tensor([1.0, -1.0, -1.0, 1.0]))
+
+
+@dataclass
+class Camera:
+    """A pinhole camera: intrinsics in pixels and a camera-to-world pose in OpenGL convention."""
+
+    width: int
+    height: int
+    fx: float
+    fy: float
+    cx: float
+    cy: float
+    c2w: torch.Tensor = field(default_factory=lambda: torch.eye(4))
+    near: float = 0.01
+    far: float = 100.0
+
+    def __post_init__(self) -> None:
+        if int(self.width) < 1 or int(self.height) < 1:
+            raise InputError(f"Camera size must be at least 1x1 pixels; got {self.width}x{self.height}")
+        if not (self.fx > 0 and self.fy > 0):
+            raise InputError(f"Camera focal lengths must be positive; got fx={self.fx}, fy={self.fy}")
+        self.width = int(self.width)
+        self.height = int(self.height)
+        self.c2w = torch.as_tensor(self.c2w, dtype=torch.float32).reshape(4, 4).cpu()
+
+    @classmethod
+    def from_fov(cls, width: int, height: int, fov_y_deg: float, c2w=None, **kw) -> "Camera":
+        if not (0.5 <= fov_y_deg <= 170.0):
+            raise InputError(f"fov_y must be between 0.5 and 170 degrees; got {fov_y_deg}")
+        fy = 0.5 * height / math.tan(math.radians(fov_y_deg) / 2)
+        return cls(width, height, fy, fy, width / 2.0, height / 2.0,
+                   torch.eye(4) if c2w is None else c2w, **kw)
+
+    @classmethod
+    def look_at(cls, eye, target, up=(0.0, 1.0, 0.0), *, width: int, height: int,
+                fov_y_deg: float = 49.1, **kw) -> "Camera":
+        eye_t = torch.tensor(_as_vec3(eye, "eye"))
+        fwd = torch.tensor(_as_vec3(target, "target")) - eye_t
+        if float(fwd.norm()) < 1e-12:
+            raise InputError("Camera.look_at: eye and target coincide")
+        fwd = fwd / fwd.norm()
+        right = torch.linalg.cross(fwd, torch.tensor(_as_vec3(up, "up")))
+        if float(right.norm()) < 1e-9:
+            raise InputError("Camera.look_at: the up vector is parallel to the viewing direction")
+        right = right / right.norm()
+        true_up = torch.linalg.cross(right, fwd)
+        c2w = torch.eye(4)
+        c2w[:3, 0], c2w[:3, 1], c2w[:3, 2], c2w[:3, 3] = right, true_up, -fwd, eye_t
+        return cls.from_fov(width, height, fov_y_deg, c2w, **kw)
+
+    @property
+    def fov_y_deg(self) -> float:
+        return math.degrees(2 * math.atan(0.5 * self.height / self.fy))
+
+    @property
+    def position(self) -> torch.Tensor:
+        return self.c2w[:3, 3].clone()
+
+    def K(self) -> torch.Tensor:
+        return torch.tensor([[self.fx, 0.0, self.cx], [0.0, self.fy, self.cy], [0.0, 0.0, 1.0]])
+
+    def w2c_opencv(self) -> torch.Tensor:
+        """World-to-camera matrix in OpenCV axes (what gsplat and our rasterizer consume)."""
+        return torch.linalg.inv(self.c2w @ _GL_TO_CV)
+
+    def project(self, points: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """World points (N,3) to pixel coordinates (N,2) (pixel centres at +0.5) and depth z (N,)."""
+        w2c = self.w2c_opencv().to(points.device, points.dtype)
+        pc = points @ w2c[:3, :3].T + w2c[:3, 3]
+        z = pc[:, 2]
+        uv = torch.stack([self.fx * pc[:, 0] / z + self.cx, self.fy * pc[:, 1] / z + self.cy], dim=-1)
+        return uv, z
+
+    def unproject(self, uv: torch.Tensor, depth: torch.Tensor) -> torch.Tensor:
+        """Pixel coordinates (N,2) and camera depth z (N,) to world points (N,3)."""
+        x = (uv[:, 0] - self.cx) / self.fx * depth
+        y = (uv[:, 1] - self.cy) / self.fy * depth
+        pc = torch.stack([x, y, depth], dim=-1)
+        c2w = (self.c2w @ _GL_TO_CV).to(uv.device, uv.dtype)
+        return pc @ c2w[:3, :3].T + c2w[:3, 3]
+
+    def resized(self, width: int, height: int) -> "Camera":
+        """The same view at another resolution (intrinsics scaled)."""
+        sx, sy = width / self.width, height / self.height
+        return dataclasses.replace(self, width=width, height=height, fx=self.fx * sx, fy=self.fy * sy,
+                                   cx=self.cx * sx, cy=self.cy * sy, c2w=self.c2w.clone())
+
+    def to_dict(self) -> dict:
+        return {"width": self.width, "height": self.height, "fx": self.fx, "fy": self.fy,
+                "cx": self.cx, "cy": self.cy, "c2w": self.c2w.tolist(), "near": self.near, "far": self.far}
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "Camera":
+        return cls(**{**d, "c2w": torch.tensor(d["c2w"])})
+
+
+# ----------------------------------------------------------------------------------------------
+# Materials
+# ----------------------------------------------------------------------------------------------
+
+CONSTITUTIVE_MODELS = (
+    "fixed_corotated", "neo_hookean", "von_mises", "drucker_prager", "snow", "plasticine",
+    "fracture", "viscoplastic", "fluid", "rigid",
+)
+
+
+@dataclass
+class Material:
+    """Physical material in SI units. ``model`` selects the constitutive + return-mapping rule.
+
+    Only the fields a model uses matter; presets (``Material.preset``) carry sensible values.
+    """
+
+    name: str = "jelly"
+    model: str = "fixed_corotated"
+    E: float = 2.0e4  # Young's modulus, Pa
+    nu: float = 0.3  # Poisson's ratio
+    density: float = 1000.0  # kg/m^3
+    yield_stress: float = float("inf")  # Pa (von Mises / viscoplastic)
+    hardening: float = 0.0  # linear hardening modulus ratio (von Mises)
+    softening: float = 0.0  # yield stress lost per unit plastic strain (plasticine)
+    friction_angle: float = 30.0  # degrees (Drucker-Prager)
+    cohesion: float = 0.0  # Pa (Drucker-Prager)
+    viscosity: float = 0.0  # Pa*s (viscoplastic, fluid)
+    bulk_modulus: float = 0.0  # Pa (fluid)
+    gamma: float = 7.0  # fluid equation-of-state exponent
+    crit_compression: float = 2.5e-2  # snow theta_c
+    crit_stretch: float = 7.5e-3  # snow theta_s
+    hardening_xi: float = 10.0  # snow xi
+    fracture_stretch: float = 0.0  # principal stretch beyond which the material tears (fracture)
+    damping: float = 0.0  # mass-proportional velocity damping, 1/s (0 = physical)
+
+    @classmethod
+    def preset(cls, name: str, **overrides) -> "Material":
+        from .sim.materials import material_preset  # local import: sim depends on types
+
+        return material_preset(name, **overrides)
+
+    @property
+    def mu(self) -> float:
+        return self.E / (2.0 * (1.0 + self.nu))
+
+    @property
+    def lam(self) -> float:
+        return self.E * self.nu / ((1.0 + self.nu) * (1.0 - 2.0 * self.nu))
+
+    def wave_speed(self) -> float:
+        """P-wave speed sqrt((λ+2μ)/ρ), m/s: the elastic CFL limit uses it."""
+        stiff = self.lam + 2.0 * self.mu
+        if self.model == "fluid":
+            stiff = max(stiff, self.bulk_modulus * self.gamma)
+        return math.sqrt(stiff / self.density)
+
+    def validate(self) -> None:
+        if self.model not in CONSTITUTIVE_MODELS:
+            raise InputError(f"Material '{self.name}': unknown model '{self.model}'. "
+                             f"Choose one of: {', '.join(CONSTITUTIVE_MODELS)}")
+        for key in dataclasses.fields(self):
+            value = getattr(self, key.name)
+            if isinstance(value, float) and math.isnan(value):
+                raise InputError(f"Material '{self.name}': {key.name} is NaN; give a number")
+        if not (math.isfinite(self.E) and self.E > 0):
+            raise InputError(f"Material '{self.name}': Young's modulus E must be a finite positive "
+                             f"number of pascals (jelly ~1e4, rubber ~1e6, metal ~1e10); got {self.E}")
+        if not (0.0 <= self.nu < 0.5):
+            raise InputError(f"Material '{self.name}': Poisson's ratio nu must be in [0, 0.5) "
+                             f"(0.5 is perfectly incompressible and makes λ infinite); got {self.nu}")
+        if not (math.isfinite(self.density) and self.density > 0):
+            raise InputError(f"Material '{self.name}': density must be a finite positive kg/m³ value "
+                             f"(water 1000, steel 7850); got {self.density}")
+        if not (0.0 <= self.friction_angle < 90.0):
+            raise InputError(f"Material '{self.name}': friction_angle must be in [0, 90) degrees; "
+                             f"got {self.friction_angle}")
+        for key in ("yield_stress",):
+            if not getattr(self, key) > 0:
+                raise InputError(f"Material '{self.name}': {key} must be positive; got {getattr(self, key)}")
+        for key in ("hardening", "softening", "cohesion", "viscosity", "bulk_modulus", "damping",
+                    "fracture_stretch", "crit_compression", "crit_stretch", "hardening_xi"):
+            v = getattr(self, key)
+            if not (math.isfinite(v) and v >= 0):
+                raise InputError(f"Material '{self.name}': {key} must be a finite non-negative number; got {v}")
+
+
+# ----------------------------------------------------------------------------------------------
+# Physical conditions
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass(frozen=True)
+class Region:
+    """Which part of the object a condition acts on.
+
+    kind:
+      - "all": every particle (of ``object_id`` if set).
+      - "box": axis-aligned box ``lo``..``hi`` (metres, world).
+      - "sphere": ``center``, ``radius`` (metres, world).
+      - "image": particles whose projection in the input camera lies within ``radius_px`` of any of
+        ``points`` (pixel coordinates u, v in the input image), through the whole depth; or inside
+        ``mask`` (H, W) when given.
+    """
+
+    kind: str = "all"
+    lo: Optional[Vec3] = None
+    hi: Optional[Vec3] = None
+    center: Optional[Vec3] = None
+    radius: float = 0.0
+    points: tuple[tuple[float, float], ...] = ()
+    radius_px: float = 20.0
+    mask: Optional[np.ndarray] = field(default=None, compare=False, hash=False)
+    object_id: Optional[int] = None
+
+    def __post_init__(self) -> None:
+        kinds = ("all", "box", "sphere", "image")
+        if self.kind not in kinds:
+            raise InputError(f"Region kind must be one of {kinds}; got '{self.kind}'")
+        if self.kind == "box":
+            if self.lo is None or self.hi is None:
+                raise InputError("A box region needs lo=(x,y,z) and hi=(x,y,z)")
+            lo, hi = _as_vec3(self.lo, "box lo"), _as_vec3(self.hi, "box hi")
+            if any(a >= b for a, b in zip(lo, hi)):
+                raise InputError(f"Box region: every lo must be below hi; got lo={lo}, hi={hi}")
+        if self.kind == "sphere":
+            if self.center is None:
+                raise InputError("A sphere region needs center=(x,y,z)")
+            _as_vec3(self.center, "sphere center")
+            if not (math.isfinite(self.radius) and self.radius > 0):
+                raise InputError(f"Sphere region radius must be positive metres; got {self.radius}")
+        if self.kind == "image":
+            if not self.points and self.mask is None:
+                raise InputError("An image region needs points=[(u, v), ...] in pixels or a mask")
+            if not (math.isfinite(self.radius_px) and self.radius_px > 0):
+                raise InputError(f"Image region radius_px must be positive; got {self.radius_px}")
+
+    @classmethod
+    def whole(cls, object_id: Optional[int] = None) -> "Region":
+        return cls(kind="all", object_id=object_id)
+
+    @classmethod
+    def at_pixel(cls, u: float, v: float, radius_px: float = 20.0) -> "Region":
+        return cls(kind="image", points=((float(u), float(v)),), radius_px=float(radius_px))
+
+
+@dataclass(frozen=True)
+class Force:
+    """A total force (N) spread over the region's particles in proportion to their mass."""
+
+    vector: Vec3
+    region: Region = field(default_factory=Region)
+    t_start: float = 0.0
+    t_end: float = float("inf")
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "vector", _as_vec3(self.vector, "Force vector"))
+        _check_window(self.t_start, self.t_end, "Force")
+
+
+@dataclass(frozen=True)
+class Torque:
+    """A torque (N·m) about the region's centre of mass: net force zero, net torque exact."""
+
+    vector: Vec3
+    region: Region = field(default_factory=Region)
+    t_start: float = 0.0
+    t_end: float = float("inf")
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "vector", _as_vec3(self.vector, "Torque vector"))
+        _check_window(self.t_start, self.t_end, "Torque")
+
+
+@dataclass(frozen=True)
+class InitialVelocity:
+    """Initial linear velocity v (m/s) and angular velocity ω (rad/s, about the region's centre of mass)."""
+
+    velocity: Vec3 = (0.0, 0.0, 0.0)
+    angular_velocity: Vec3 = (0.0, 0.0, 0.0)
+    region: Region = field(default_factory=Region)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "velocity", _as_vec3(self.velocity, "InitialVelocity velocity"))
+        object.__setattr__(self, "angular_velocity",
+                           _as_vec3(self.angular_velocity, "InitialVelocity angular_velocity"))
+
+
+@dataclass(frozen=True)
+class Anchor:
+    """Particles of the region are held fixed (zero velocity)."""
+
+    region: Region = field(default_factory=Region)
+
+
+CONTACTS = ("sticky", "slip", "friction")
+
+
+@dataclass(frozen=True)
+class Ground:
+    """A horizontal ground plane y = height. contact: sticky, slip, or Coulomb friction μ."""
+
+    height: float = 0.0
+    contact: str = "friction"
+    friction: float = 0.5
+
+    def __post_init__(self) -> None:
+        if self.contact not in CONTACTS:
+            raise InputError(f"Ground contact must be one of {CONTACTS}; got '{self.contact}'")
+        if not math.isfinite(self.height):
+            raise InputError(f"Ground height must be finite; got {self.height}")
+        if not (math.isfinite(self.friction) and self.friction >= 0):
+            raise InputError(f"Ground friction μ must be a non-negative number; got {self.friction}")
+
+
+@dataclass(frozen=True)
+class Walls:
+    """The simulation box's side and top walls (the domain boundary). contact as for Ground."""
+
+    contact: str = "slip"
+    friction: float = 0.0
+
+    def __post_init__(self) -> None:
+        if self.contact not in CONTACTS:
+            raise InputError(f"Walls contact must be one of {CONTACTS}; got '{self.contact}'")
+        if not (math.isfinite(self.friction) and self.friction >= 0):
+            raise InputError(f"Walls friction μ must be a non-negative number; got {self.friction}")
+
+
+@dataclass(frozen=True)
+class Gravity:
+    vector: Vec3 = (0.0, -9.81, 0.0)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "vector", _as_vec3(self.vector, "Gravity vector"))
+
+
+Condition = Union[Force, Torque, InitialVelocity, Anchor, Ground, Walls, Gravity]
+CONDITION_TYPES = (Force, Torque, InitialVelocity, Anchor, Ground, Walls, Gravity)
+
+
+def _check_window(t0: float, t1: float, what: str) -> None:
+    if math.isnan(t0) or math.isnan(t1) or t0 < 0 or t1 <= t0:
+        raise InputError(f"{what}: the time window must satisfy 0 <= t_start < t_end; got "
+                         f"t_start={t0}, t_end={t1}")
+
+
+class Conditions:
+    """An ordered collection of physical conditions (what flows on a PM_CONDITIONS link)."""
+
+    def __init__(self, items: Iterable[Condition] = ()):
+        items = tuple(items)
+        for c in items:
+            if not isinstance(c, CONDITION_TYPES):
+                raise InputError(f"Not a physical condition: {c!r}")
+        self.items: tuple[Condition, ...] = items
+
+    def __iter__(self) -> Iterator[Condition]:
+        return iter(self.items)
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    def __add__(self, other) -> "Conditions":
+        if isinstance(other, Conditions):
+            return Conditions(self.items + other.items)
+        if isinstance(other, CONDITION_TYPES):
+            return Conditions(self.items + (other,))
+        return Conditions(self.items + tuple(other))
+
+    def __repr__(self) -> str:
+        return f"Conditions({list(self.items)!r})"
+
+    def of(self, kind) -> list:
+        return [c for c in self.items if isinstance(c, kind)]
+
+    def gravity(self) -> Vec3:
+        g = self.of(Gravity)
+        if len(g) > 1:
+            raise InputError("Only one Gravity condition may be given; remove the extra ones")
+        return g[0].vector if g else Gravity().vector
+
+    def ground(self) -> Optional[Ground]:
+        g = self.of(Ground)
+        if len(g) > 1:
+            raise InputError("Only one Ground condition may be given; remove the extra ones")
+        return g[0] if g else None
+
+    def walls(self) -> Walls:
+        w = self.of(Walls)
+        if len(w) > 1:
+            raise InputError("Only one Walls condition may be given; remove the extra ones")
+        return w[0] if w else Walls()
+
+
+# ----------------------------------------------------------------------------------------------
+# Simulation settings and results
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass
+class SimSettings:
+    """How to simulate. Times in seconds; ``grid_res`` cells across the object's largest extent."""
+
+    frames: int = 48
+    fps: float = 24.0
+    grid_res: int = 32
+    particles_per_cell: int = 8
+    cfl: float = 0.4
+    domain_margin: float = 1.0  # free space around the object, in object sizes, for it to move into
+    max_particles: int = 200_000
+    device: str = "auto"  # "cpu", "cuda", "cuda:N" or "auto"
+    rest_threshold: float = 0.0  # kinetic energy per kg (J/kg) below which a still scene stops substepping; 0 = off
+    seed: int = 0
+
+    def validate(self) -> None:
+        if not (isinstance(self.frames, int) and 1 <= self.frames <= 100_000):
+            raise InputError(f"frames must be an integer between 1 and 100000; got {self.frames}")
+        if not (math.isfinite(self.fps) and 0 < self.fps <= 1000):
+            raise InputError(f"fps must be in (0, 1000]; got {self.fps}")
+        if not (4 <= int(self.grid_res) <= 1024):
+            raise InputError(f"grid_res must be between 4 and 1024 cells; got {self.grid_res}")
+        if self.particles_per_cell not in (1, 8, 27, 64):
+            raise InputError(f"particles_per_cell must be 1, 8, 27 or 64 (n³ per cell); got {self.particles_per_cell}")
+        if not (0.01 <= self.cfl <= 1.0):
+            raise InputError(f"cfl must be in [0.01, 1]; 0.3-0.5 is typical; got {self.cfl}")
+        if not (0.0 <= self.domain_margin <= 20.0):
+            raise InputError(f"domain_margin must be in [0, 20] object sizes; got {self.domain_margin}")
+        if self.max_particles < 1:
+            raise InputError(f"max_particles must be positive; got {self.max_particles}")
+
+
+@dataclass
+class SimResult:
+    """The simulated trajectory.
+
+    Physics particles carry the state (positions ``x`` and deformation gradients ``F`` per frame);
+    each rendered Gaussian is bound to one particle and follows its local affine map:
+    x_g = x_p + F_p (X_g − X_p), Σ_g = F_p Σ_g⁰ F_pᵀ.
+    """
+
+    rest: Gaussians
+    times: torch.Tensor  # (T,)
+    x: torch.Tensor  # (T, P, 3) particle positions
+    F: torch.Tensor  # (T, P, 3, 3) deformation gradients
+    binding: torch.Tensor  # (N,) index of each Gaussian's particle
+    rest_particles: torch.Tensor  # (P, 3) particle rest positions
+    material: Material
+    stats: dict = field(default_factory=dict)
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.x.shape[0])
+
+    def gaussians_at(self, frame: int) -> Gaussians:
+        if not (-self.num_frames <= frame < self.num_frames):
+            raise InputError(f"frame {frame} is out of range: the simulation has {self.num_frames} frames")
+        p = self.binding
+        Fp = self.F[frame][p].to(self.rest.means.dtype)
+        offset = self.rest.means - self.rest_particles[p]
+        means = self.x[frame][p] + (Fp @ offset[:, :, None])[:, :, 0]
+        cov0 = self.rest.covariance()
+        covars = Fp @ cov0 @ Fp.transpose(-1, -2)
+        return dataclasses.replace(self.rest, means=means, covars=covars)
+
+
+@dataclass
+class FrameSet:
+    """Rendered frames: rgb (T,H,W,3) premultiplied by alpha, alpha (T,H,W), depth (T,H,W) (0 where empty)."""
+
+    rgb: torch.Tensor
+    alpha: torch.Tensor
+    depth: torch.Tensor
+    fps: float = 24.0
