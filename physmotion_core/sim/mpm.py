@@ -136,6 +136,7 @@ class MPMSolver:
             self.x = wp.array(x.astype(np.float32), dtype=wp.vec3)
             self.v = wp.array(np.zeros((n, 3), np.float32) if v0 is None else v0.astype(np.float32), dtype=wp.vec3)
             self.C = wp.zeros(n, dtype=wp.mat33)
+            self.rot = wp.array(np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1)), dtype=wp.quat)
             self.F = wp.array(np.tile(np.eye(3, dtype=np.float32), (n, 1, 1)), dtype=wp.mat33)
             self.mass = wp.array(mass, dtype=float)
             self.vol = wp.array(volume.astype(np.float32), dtype=float)
@@ -211,7 +212,7 @@ class MPMSolver:
         lo = self._node_lo
         span = tuple(int(s) for s in (self._node_hi - lo + 1))
         with wp.ScopedDevice(self.device):
-            wp.launch(K.p2g, dim=self.n, inputs=[self.x, self.v, self.C, self.F, self.mass, self.vol, self.mat_id,
+            wp.launch(K.p2g, dim=self.n, inputs=[self.x, self.v, self.C, self.F, self.rot, self.mass, self.vol, self.mat_id,
                                                  self.material_table, self.f_ext, self.grid, dt,
                                                  self.grid_m, self.grid_mv])
             gvec = wp.vec3(*self.gravity.astype(np.float32))

@@ -1,0 +1,38 @@
+"""PhysMotion for ComfyUI: physics-grounded image-to-video.
+
+ComfyUI imports this file. Each node module is imported on its own, so a missing optional
+dependency disables only that module's nodes (with the reason in the log), never the whole pack.
+"""
+
+from __future__ import annotations
+
+import importlib
+import logging
+import os
+import sys
+
+log = logging.getLogger("physmotion")
+
+_HERE = os.path.dirname(os.path.abspath(__file__))
+# The library ships inside the pack; make it importable as `physmotion_core` without pip.
+if _HERE not in sys.path:
+    sys.path.append(_HERE)
+
+NODE_MODULES = ("segment", "lift", "physics", "render")
+
+NODE_CLASS_MAPPINGS: dict = {}
+NODE_DISPLAY_NAME_MAPPINGS: dict = {}
+FAILED_MODULES: dict = {}
+WEB_DIRECTORY = "./web"
+
+for _name in NODE_MODULES:
+    try:
+        _mod = importlib.import_module(f".nodes.{_name}", __name__)
+    except Exception as _exc:  # noqa: BLE001 - report and keep loading the other modules
+        FAILED_MODULES[_name] = repr(_exc)
+        log.warning("PhysMotion: nodes in '%s' are unavailable: %s", _name, _exc)
+        continue
+    NODE_CLASS_MAPPINGS.update(getattr(_mod, "NODE_CLASS_MAPPINGS", {}))
+    NODE_DISPLAY_NAME_MAPPINGS.update(getattr(_mod, "NODE_DISPLAY_NAME_MAPPINGS", {}))
+
+__all__ = ["NODE_CLASS_MAPPINGS", "NODE_DISPLAY_NAME_MAPPINGS", "WEB_DIRECTORY"]

@@ -1,0 +1,1 @@
+"""Thin ComfyUI node classes; every algorithm lives in physmotion_core."""

@@ -1,0 +1,109 @@
+"""Glue between ComfyUI and physmotion_core. ComfyUI modules are imported lazily, so the node
+classes also load (and are tested) without ComfyUI."""
+
+from __future__ import annotations
+
+import logging
+import os
+import re
+from pathlib import Path
+from typing import Optional
+
+import torch
+
+log = logging.getLogger("physmotion.nodes")
+
+CATEGORY = "PhysMotion"
+
+
+def progress_callback():
+    """A physmotion progress callback driving ComfyUI's progress bar and honouring Cancel.
+
+    Outside ComfyUI it returns None (no progress, no interruption).
+    """
+    try:
+        import comfy.model_management as mm
+        import comfy.utils
+    except ImportError:
+        return None
+    bar: Optional[comfy.utils.ProgressBar] = None
+
+    def callback(done: int, total: int, preview=None) -> None:
+        nonlocal bar
+        mm.throw_exception_if_processing_interrupted()
+        if bar is None:
+            bar = comfy.utils.ProgressBar(total)
+        bar.update_absolute(done, total, preview)
+
+    return callback
+
+
+def torch_device() -> torch.device:
+    try:
+        import comfy.model_management as mm
+
+        return mm.get_torch_device()
+    except ImportError:
+        return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def sim_device(choice: str) -> str:
+    """'auto' follows ComfyUI's device (a CUDA device index) or falls back to the simulator's own choice."""
+    if choice != "auto":
+        return choice
+    dev = torch_device()
+    if dev.type == "cuda":
+        return f"cuda:{dev.index or 0}"
+    if dev.type == "cpu":
+        return "cpu"
+    return "auto"
+
+
+def output_directory() -> Path:
+    try:
+        import folder_paths
+
+        return Path(folder_paths.get_output_directory())
+    except ImportError:
+        return Path(os.environ.get("PHYSMOTION_OUTPUT_DIR", "output")).resolve()
+
+
+def output_path(prefix: str, extension: str) -> tuple[Path, str, str]:
+    """A new file ``<output>/<prefix>_NNNNN_.<ext>``; returns (path, filename, subfolder).
+
+    The prefix may contain sub-folders but never leaves the output directory.
+    """
+    root = output_directory().resolve()
+    prefix = (prefix or "PhysMotion").strip().replace("\\", "/")
+    target = (root / prefix).resolve()
+    if os.path.commonpath([root, target]) != str(root):
+        raise ValueError(f"filename_prefix '{prefix}' points outside the output folder; use a relative name")
+    folder, stem = target.parent, target.name or "PhysMotion"
+    folder.mkdir(parents=True, exist_ok=True)
+    pattern = re.compile(re.escape(stem) + r"_(\d{5})_\." + re.escape(extension) + "$")
+    taken = [int(m.group(1)) for p in folder.iterdir() if (m := pattern.match(p.name))]
+    counter = max(taken, default=0) + 1
+    filename = f"{stem}_{counter:05d}_.{extension}"
+    subfolder = os.path.relpath(folder, root)
+    return folder / filename, filename, "" if subfolder == "." else subfolder
+
+
+def first_image(image: torch.Tensor, name: str = "image") -> torch.Tensor:
+    """(H,W,3) from a ComfyUI IMAGE batch, warning when frames beyond the first are ignored."""
+    if image.ndim == 3:
+        image = image[None]
+    if image.ndim != 4 or image.shape[-1] not in (3, 4):
+        raise ValueError(f"{name} must be an IMAGE [B,H,W,3]; got shape {tuple(image.shape)}")
+    if image.shape[0] > 1:
+        log.warning("%s: a batch of %d images was given; using the first", name, image.shape[0])
+    return image[0, ..., :3].float().cpu()
+
+
+def first_mask(mask: Optional[torch.Tensor]) -> Optional[torch.Tensor]:
+    if mask is None:
+        return None
+    if mask.ndim == 3:
+        mask = mask[0]
+    if mask.ndim != 2:
+        raise ValueError(f"mask must be a MASK [B,H,W]; got shape {tuple(mask.shape)}")
+    return mask.float().cpu()

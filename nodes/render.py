@@ -1,0 +1,117 @@
+"""Rendering, blending and video output nodes."""
+
+from __future__ import annotations
+
+import torch
+
+from ._util import CATEGORY, first_image, log, output_path, progress_callback, torch_device
+
+
+class PhysMotionRender:
+    """Render every simulated frame through the input camera."""
+
+    @classmethod
+    def INPUT_TYPES(cls):
+        return {
+            "required": {
+                "simulation": ("PM_SIM", {"tooltip": "The simulated trajectory."}),
+                "camera": ("PM_CAMERA", {"tooltip": "The camera to render through (the lift's input camera)."}),
+                "width": ("INT", {"default": 0, "min": 0, "max": 8192, "step": 8,
+                                  "tooltip": "Output width in pixels; 0 = the camera's (the input image's)."}),
+                "height": ("INT", {"default": 0, "min": 0, "max": 8192, "step": 8,
+                                   "tooltip": "Output height in pixels; 0 = the camera's."}),
+            },
+        }
+
+    RETURN_TYPES = ("IMAGE", "MASK", "IMAGE")
+    RETURN_NAMES = ("rgb", "alpha", "depth")
+    OUTPUT_TOOLTIPS = ("The object's colour over black (premultiplied).", "Coverage of the object.",
+                       "Depth, near = bright, normalised over the clip (for previews and depth ControlNets).")
+    FUNCTION = "run"
+    CATEGORY = f"{CATEGORY}/render"
+
+    def run(self, simulation, camera, width, height):
+        from physmotion_core.render.frames import depth_to_image, render_frames
+
+        cam = camera
+        if width or height:
+            w = int(width) or round(camera.width * int(height) / camera.height)
+            h = int(height) or round(camera.height * int(width) / camera.width)
+            cam = camera.resized(w, h)
+        dev = torch_device()
+        frames = render_frames(simulation, cam, device=dev if dev.type == "cuda" else "cpu",
+                               progress=progress_callback())
+        return (frames.rgb, frames.alpha, depth_to_image(frames.depth, frames.alpha))
+
+
+class PhysMotionBlend:
+    """Composite the rendered object over the (inpainted) background in image space."""
+
+    @classmethod
+    def INPUT_TYPES(cls):
+        return {"required": {
+            "rgb": ("IMAGE", {"tooltip": "Rendered frames (premultiplied colour) from PhysMotion Render."}),
+            "alpha": ("MASK", {"tooltip": "Rendered coverage from PhysMotion Render."}),
+            "background": ("IMAGE", {"tooltip": "The inpainted background from PhysMotion Segment (one image, "
+                                                "or one per frame)."}),
+        }}
+
+    RETURN_TYPES = ("IMAGE",)
+    RETURN_NAMES = ("frames",)
+    FUNCTION = "run"
+    CATEGORY = f"{CATEGORY}/render"
+
+    def run(self, rgb, alpha, background):
+        from physmotion_core.blend import composite
+
+        bg = background if background.shape[0] == rgb.shape[0] else first_image(background, "background")
+        if bg.shape[-3:-1] != rgb.shape[1:3]:
+            log.warning("background %s resized to the frames' %s", tuple(bg.shape[-3:-1]), tuple(rgb.shape[1:3]))
+            b4 = bg if bg.ndim == 4 else bg[None]
+            bg = torch.nn.functional.interpolate(b4.permute(0, 3, 1, 2), size=tuple(rgb.shape[1:3]),
+                                                 mode="bilinear", align_corners=False).permute(0, 2, 3, 1)
+            if bg.shape[0] == 1:
+                bg = bg[0]
+        return (composite(rgb, alpha, bg),)
+
+
+class PhysMotionSaveVideo:
+    """Save frames as an H.264 mp4 in the output folder, with a preview in the node."""
+
+    @classmethod
+    def INPUT_TYPES(cls):
+        return {"required": {
+            "frames": ("IMAGE", {"tooltip": "The frames to save."}),
+            "fps": ("FLOAT", {"default": 24.0, "min": 1.0, "max": 1000.0, "step": 1.0,
+                              "tooltip": "Frame rate of the video."}),
+            "filename_prefix": ("STRING", {"default": "PhysMotion/video",
+                                           "tooltip": "File name prefix inside the output folder."}),
+            "crf": ("INT", {"default": 18, "min": 0, "max": 51,
+                            "tooltip": "H.264 quality: lower is better and larger (18 ≈ visually lossless)."}),
+        }}
+
+    RETURN_TYPES = ("STRING",)
+    RETURN_NAMES = ("video_path",)
+    OUTPUT_NODE = True
+    FUNCTION = "run"
+    CATEGORY = f"{CATEGORY}/io"
+
+    def run(self, frames, fps, filename_prefix, crf):
+        from physmotion_core.video import write_mp4
+
+        path, filename, subfolder = output_path(filename_prefix, "mp4")
+        write_mp4(path, frames, fps=float(fps), crf=int(crf))
+        preview = {"filename": filename, "subfolder": subfolder, "type": "output"}
+        return {"ui": {"images": [preview], "animated": (True,)}, "result": (str(path),)}
+
+
+NODE_CLASS_MAPPINGS = {
+    "PhysMotionRender": PhysMotionRender,
+    "PhysMotionBlend": PhysMotionBlend,
+    "PhysMotionSaveVideo": PhysMotionSaveVideo,
+}
+NODE_DISPLAY_NAME_MAPPINGS = {
+    "PhysMotionRender": "PhysMotion Render",
+    "PhysMotionBlend": "PhysMotion Blend over Background",
+    "PhysMotionSaveVideo": "PhysMotion Save Video (mp4)",
+}
