@@ -162,8 +162,9 @@ class PhysMotionMPMSimulate:
                                    "tooltip": "Number of output frames (frame 0 is the rest state)."}),
                 "fps": ("FLOAT", {"default": 24.0, "min": 1.0, "max": 1000.0, "step": 1.0,
                                   "tooltip": "Frames per second of the output."}),
-                "grid_res": ("INT", {"default": 32, "min": 4, "max": 512,
-                                     "tooltip": "Grid cells across the object's largest extent (cost ~ res³)."}),
+                "grid_res": ("INT", {"default": 0, "min": 0, "max": 512,
+                                     "tooltip": "Grid cells across the object's largest extent (cost ~ res³); "
+                                                "0 = auto (24 on CPU, 48 on CUDA)."}),
                 "particles_per_cell": ([8, 1, 27], {"default": 8, "tooltip": "Particles per grid cell (n³)."}),
                 "cfl": ("FLOAT", {"default": 0.4, "min": 0.05, "max": 1.0, "step": 0.05,
                                   "tooltip": "Fraction of the stability limit each time step uses."}),

@@ -50,7 +50,7 @@ def _build_parser() -> argparse.ArgumentParser:
                    help="time window of every --force in seconds (default 0,0.25)")
     g.add_argument("--frames", type=int, default=48, help="number of frames (default 48)")
     g.add_argument("--fps", type=float, default=24.0, help="frames per second (default 24)")
-    g.add_argument("--grid-res", type=int, default=None, help="MPM cells across the object (default 32)")
+    g.add_argument("--grid-res", type=int, default=None, help="MPM cells across the object (default: 24 on CPU, 48 on CUDA)")
     g.add_argument("--object-height", type=float, default=0.3, help="real height of the object in metres")
     g.add_argument("--ground", default="friction", choices=["friction", "slip", "sticky", "none"],
                    help="ground contact under the object (default: Coulomb friction)")

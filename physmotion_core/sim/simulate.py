@@ -13,7 +13,7 @@ import torch
 from ..errors import InputError
 from ..memory import device_available_bytes, fmt_bytes, host_available_bytes
 from ..progress import ProgressFn, Throttle
-from ..types import (Anchor, Camera, Conditions, Force, Gaussians, InitialVelocity, Material, SimResult,
+from ..types import (AUTO_GRID_RES, Anchor, Camera, Conditions, Force, Gaussians, InitialVelocity, Material, SimResult,
                      SimSettings, Torque)
 from .fill import fill_particles
 from .mpm import Domain, MPMSolver, estimate_bytes, resolve_device
@@ -77,7 +77,8 @@ def simulate(
     size = float(np.max(means.max(0) - means.min(0)))
     if not (size > 0):
         raise InputError("The Gaussians have zero extent; the object must have a size to simulate")
-    dx = size / settings.grid_res
+    grid_res = settings.grid_res or AUTO_GRID_RES["cuda" if device.startswith("cuda") else "cpu"]
+    dx = size / grid_res
     per_axis = round(settings.particles_per_cell ** (1 / 3))
     parts = fill_particles(gaussians, dx / per_axis, max_particles=settings.max_particles, seed=settings.seed)
     if parts.spacing > dx / per_axis * 1.001:
@@ -154,6 +155,7 @@ def simulate(
         "particles": int(x0.shape[0]),
         "particle_spacing": parts.spacing,
         "dx": dx,
+        "grid_res": grid_res,
         "grid_dims": list(domain.dims),
         "substeps": solver.substeps,
         "dt_min": solver.dt_min,
