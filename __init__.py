@@ -35,4 +35,23 @@ for _name in NODE_MODULES:
     NODE_CLASS_MAPPINGS.update(getattr(_mod, "NODE_CLASS_MAPPINGS", {}))
     NODE_DISPLAY_NAME_MAPPINGS.update(getattr(_mod, "NODE_DISPLAY_NAME_MAPPINGS", {}))
 
+
+
+def _install_example_image() -> None:
+    """Copy the bundled example photo into ComfyUI's input folder (once, never overwriting), so the
+    templates' LoadImage finds it."""
+    try:
+        import shutil
+
+        import folder_paths
+
+        target = os.path.join(folder_paths.get_input_directory(), "physmotion_coffee.png")
+        if not os.path.exists(target):
+            shutil.copyfile(os.path.join(_HERE, "examples", "coffee.png"), target)
+    except Exception as exc:  # noqa: BLE001 - outside ComfyUI, or a read-only input folder
+        log.debug("PhysMotion: example image not installed: %s", exc)
+
+
+_install_example_image()
+
 __all__ = ["NODE_CLASS_MAPPINGS", "NODE_DISPLAY_NAME_MAPPINGS", "WEB_DIRECTORY"]

@@ -38,6 +38,7 @@ class LoadImage:
     @classmethod
     def INPUT_TYPES(cls):
         files = sorted(p.name for p in cls.input_dir.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
+        files.append("physmotion_coffee.png")
         return {"required": {"image": (files, {"image_upload": True})}}
 
     RETURN_TYPES = ("IMAGE", "MASK")
@@ -47,7 +48,10 @@ class LoadImage:
     def load_image(self, image):
         from physmotion_core.image_io import load_image
 
-        rgb, alpha = load_image(self.input_dir / image)
+        path = self.input_dir / image
+        if not path.exists() and image == "physmotion_coffee.png":  # the pack copies it into input/
+            path = ROOT / "examples" / "coffee.png"
+        rgb, alpha = load_image(path)
         if alpha is None:
             mask = torch.zeros(64, 64)
         else:

@@ -17,13 +17,14 @@ from the silhouette the way sketch-based modelling tools inflate a drawn outline
 * Camera. The input camera sits at (0, y_cam, D) looking down −z; with ``on_ground`` its
   principal point is shifted down to the object's base line, so the base is level (see
   ``silhouette_lift``). D first makes the mask's pixel height equal ``object_height`` metres at z = 0 (D = object_height · f / mask_height_px), then is
-  refined by the few % that make the lifted solid itself exactly ``object_height`` tall (its back
-  bulges past the mid-plane outline by perspective); y_cam puts the lowest Gaussian on the ground
-  plane when ``on_ground``.
-* Surfaces. Each sampled pixel's front point lies on its own camera ray at z = +h, the back point
-  on the same ray at z = −h, so the front surface re-projects exactly onto the pixels it came
-  from. Rim Gaussians on the silhouette contour, elongated along the ray from −h to +h, close the
-  shell where front and back meet.
+  refined by the few % that make the lifted solid itself exactly ``object_height`` tall; y_cam
+  puts the lowest Gaussian on the ground plane when ``on_ground``.
+* Surfaces. Each sampled pixel's front point lies on its own camera ray at z = +h, so the front
+  surface re-projects exactly onto the pixels it came from. The back is the front's mirror image
+  in the mid-plane z = 0, so the solid is symmetric and an upright object does not lean
+  backwards by perspective. Rim Gaussians on the silhouette contour join each front point to its
+  mirror along z (split into footprint-sized pieces where the segment is long, e.g. the flat
+  base), closing the shell where front and back meet.
 * Sampling. Front splats on a pixel grid of stride k, back splats on the same grid (stride 2k
   away from the outline when the budget is tight: the back is never seen from the input view),
   rim splats every k-th contour pixel. k is the smallest stride that keeps the total within
@@ -68,7 +69,8 @@ log = logging.getLogger(__name__)
 FOOTPRINT = 0.6  # splat σ in units of the sampling stride (pixels): neighbours overlap and close
 NORMAL_FRACTION = 0.2  # thickness of a splat along the surface normal, relative to its footprint
 MAX_SLOPE = 40.0  # |∇h| cap: at the very rim the surface is vertical; keep splats bounded
-RIM_SPREAD = 0.7  # rim splat σ along the ray, as a fraction of the front-to-back half-distance
+RIM_SPREAD = 0.7  # rim splat σ along z, as a fraction of its piece's half-length
+RIM_PIECE = 3.0  # a rim piece spans at most this many footprints along z (3:1 elongated splats)
 MIN_MASK_PIXELS = 16
 
 LAYER_FRONT, LAYER_BACK, LAYER_RIM = 0, 1, 2
@@ -208,8 +210,15 @@ def _contour_pixels(contours: list[np.ndarray], stride: int) -> tuple[np.ndarray
     return allp[:, 1].astype(np.int64), allp[:, 0].astype(np.int64)
 
 
+def rim_piece_counts(h_px: np.ndarray, stride: int, f: float) -> np.ndarray:
+    """How many splats ``_rim_splats`` puts on a contour pixel of half-thickness ``h_px``."""
+    t_over_d = np.clip(1.0 - h_px / f, 1e-6, None)  # the front point's depth relative to D
+    return np.clip(np.ceil(2.0 * h_px / (RIM_PIECE * FOOTPRINT * stride * t_over_d)), 1, 4096).astype(np.int64)
+
+
 def choose_strides(mask: np.ndarray, max_gaussians: int, d: np.ndarray,
-                   contours: Optional[list[np.ndarray]] = None) -> tuple[int, int]:
+                   contours: Optional[list[np.ndarray]] = None, h: Optional[np.ndarray] = None,
+                   f: float = 1e9) -> tuple[int, int]:
     """(front stride, back stride) in pixels so that front + back + rim <= max_gaussians.
 
     Stride 1 everywhere when it fits. Otherwise the back is sampled twice as sparsely as the
@@ -222,7 +231,11 @@ def choose_strides(mask: np.ndarray, max_gaussians: int, d: np.ndarray,
     k = max(1, int(math.sqrt(n_px / max(1, max_gaussians))))  # the front alone needs at least this
     while True:
         n_front = len(_grid(mask, k)[0])
-        n_rim = sum((len(c) + k - 1) // k for c in contours)
+        if h is None:
+            n_rim = sum((len(c) + k - 1) // k for c in contours)
+        else:
+            rr, rc = _contour_pixels(contours, k)
+            n_rim = int(rim_piece_counts(h[rr, rc], k, f).sum())
         for kb in (k, 2 * k):
             n_back = len(_back_grid(mask, k, kb, d)[0])
             if n_front + n_back + n_rim <= max_gaussians:
@@ -357,21 +370,39 @@ def _surface_splats(rows, cols, prof: InflationProfile, sign: float, stride, f: 
 
 def _rim_splats(rows, cols, prof: InflationProfile, stride: int, f: float, cx: float, cy: float,
                 D: float, s: float):
+    """Splats closing the shell where the front meets its mirror image, the back.
+
+    At each sampled contour pixel the front point F = (x, y, +h) (on the pixel's ray) and the back
+    point B = (x, y, -h) are joined by a segment along z. Long segments (the flat base, where h
+    is large) are split into pieces of at most RIM_PIECE footprints, so every splat stays
+    small next to the simulation's particle spacing and deforms with its own neighbourhood.
+    Returns means, σ-scaled axes and, per splat, the index of its contour pixel.
+    """
     u = torch.as_tensor(cols, dtype=torch.float64) + 0.5
     v = torch.as_tensor(rows, dtype=torch.float64) + 0.5
     h = torch.as_tensor(prof.h[rows, cols], dtype=torch.float64) * s
+    t = D - h
     r = torch.stack([(u - cx) / f, -(v - cy) / f, -torch.ones_like(u)], dim=-1)
-    means = torch.stack([r[:, 0] * D, r[:, 1] * D, torch.zeros_like(u)], dim=-1)
-    # Along the contour: the image tangent (perpendicular to the edge direction) at depth D.
+    front = torch.stack([r[:, 0] * t, r[:, 1] * t, torch.zeros_like(u)], dim=-1)  # z set per piece
     eu = torch.as_tensor(prof.edge_u[rows, cols], dtype=torch.float64)
     ev = torch.as_tensor(prof.edge_v[rows, cols], dtype=torch.float64)
-    tangent = torch.stack([-ev * D / f, -eu * D / f, torch.zeros_like(u)], dim=-1)  # (u,v)->(x,-y)
+    tangent = torch.stack([-ev * t / f, -eu * t / f, torch.zeros_like(u)], dim=-1)  # (u,v)->(x,-y)
     foot = FOOTPRINT * stride
-    along_ray = RIM_SPREAD * h[:, None] * r  # front and back rim points are at t = D ∓ h on r
-    normal = torch.linalg.cross(tangent, r)
+    n_pieces = torch.from_numpy(rim_piece_counts(prof.h[rows, cols], stride, f))
+    owner = torch.repeat_interleave(torch.arange(len(u)), n_pieces)
+    first = torch.cumsum(n_pieces, 0) - n_pieces
+    k = torch.arange(len(owner)) - first[owner]  # index of each piece within its segment
+    length = 2.0 * h[owner] / n_pieces[owner]
+    z = -h[owner] + (k.double() + 0.5) * length
+    means = front[owner].clone()
+    means[:, 2] = z
+    ez = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64)
+    along = RIM_SPREAD * 0.5 * length[:, None] * ez + 1e-9 * ez  # σ ≈ 0.35 of the piece length
+    tan = foot * tangent[owner]
+    normal = torch.linalg.cross(tan, ez.expand_as(tan))
     normal = normal / normal.norm(dim=-1, keepdim=True).clamp_min(1e-30)
-    A = torch.stack([foot * tangent, along_ray, (NORMAL_FRACTION * foot * D / f) * normal], dim=-1)
-    return means, A
+    A = torch.stack([tan, along, (NORMAL_FRACTION * foot * t[owner] / f)[:, None] * normal], dim=-1)
+    return means, A, owner.numpy()
 
 
 def _get_rasterizer():
@@ -670,14 +701,20 @@ def silhouette_lift(image, mask, *, object_height: float = 0.3, fov_y_deg: float
     s = D / f  # metres per pixel on the mid-plane
 
     contours = _contours(m)
-    kf, kb = choose_strides(m, int(max_gaussians), prof.d, contours)
+    kf, kb = choose_strides(m, int(max_gaussians), prof.d, contours, prof.h, f)
     fr, fc = _grid(m, kf)
     br, bc, bstride = _back_grid(m, kf, kb, prof.d)
     rr, rc = _contour_pixels(contours, kf)
 
     means_f, A_f = _surface_splats(fr, fc, prof, +1.0, kf, f, cx, cy, D, s)
-    means_b, A_b = _surface_splats(br, bc, prof, -1.0, bstride, f, cx, cy, D, s)
-    means_r, A_r = _rim_splats(rr, rc, prof, kf, f, cx, cy, D, s)
+    # The back is the mirror image of the front surface in the mid-plane z = 0 (computed at the
+    # back's own samples): the solid is symmetric, so an upright object does not lean backwards
+    # by perspective, and its base is level.
+    means_b, A_b = _surface_splats(br, bc, prof, +1.0, bstride, f, cx, cy, D, s)
+    means_b[:, 2] = -means_b[:, 2]
+    A_b[:, 2, :] = -A_b[:, 2, :]
+    means_r, A_r, rim_owner = _rim_splats(rr, rc, prof, kf, f, cx, cy, D, s)
+    rr, rc = rr[rim_owner], rc[rim_owner]
     means = torch.cat([means_f, means_b, means_r])
     # Everything above is proportional to D (a similarity about the camera centre, which leaves
     # the image unchanged). The mid-plane rule makes the outline object_height tall at z = 0, but

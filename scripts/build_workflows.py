@@ -1,0 +1,47 @@
+"""Generate the UI-format templates in workflows/ from their API-format twins in workflows/api/.
+
+The API file is the single source of truth; run this after editing one:
+    .venv/bin/python scripts/build_workflows.py
+"""
+
+from __future__ import annotations
+
+import json
+import sys
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parent.parent
+sys.path.insert(0, str(ROOT))
+sys.path.insert(0, str(ROOT / "tests"))
+
+from comfy_harness import node_classes  # noqa: E402
+
+from physmotion_core.workflow import api_to_ui  # noqa: E402
+
+TITLES = {  # friendlier titles for the core nodes in the templates
+    "LoadImage": "Load the photo",
+}
+
+
+def schemas() -> dict:
+    out = {}
+    for name, cls in node_classes().items():
+        out[name] = {"input": cls.INPUT_TYPES(), "output": list(cls.RETURN_TYPES),
+                     "output_name": list(getattr(cls, "RETURN_NAMES", cls.RETURN_TYPES))}
+    return out
+
+
+def main() -> int:
+    sch = schemas()
+    for api_path in sorted((ROOT / "workflows" / "api").glob("*.json")):
+        prompt = json.loads(api_path.read_text())
+        titles = {nid: TITLES[n["class_type"]] for nid, n in prompt.items() if n["class_type"] in TITLES}
+        ui = api_to_ui(prompt, sch, titles)
+        out = ROOT / "workflows" / api_path.name
+        out.write_text(json.dumps(ui, indent=1) + "\n")
+        print(f"wrote {out.relative_to(ROOT)}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

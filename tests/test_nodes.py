@@ -1,0 +1,174 @@
+"""Node classes and shipped workflows, checked without ComfyUI (see comfy_harness)."""
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from comfy_harness import ROOT, input_spec, is_widget, load_pack, node_classes, run_prompt
+
+from physmotion_core.video import read_video
+from physmotion_core.workflow import api_to_ui, ui_to_api
+
+API_DIR = ROOT / "workflows" / "api"
+API_WORKFLOWS = sorted(API_DIR.glob("*.json"))
+LINK_TYPES_ANY = {"*"}
+
+
+def _ours():
+    return load_pack().NODE_CLASS_MAPPINGS
+
+
+def test_pack_loads_every_node_module():
+    pack = load_pack()
+    assert pack.FAILED_MODULES == {}
+    assert len(pack.NODE_CLASS_MAPPINGS) >= 12
+    assert set(pack.NODE_CLASS_MAPPINGS) == set(pack.NODE_DISPLAY_NAME_MAPPINGS)
+    assert pack.WEB_DIRECTORY == "./web"
+
+
+@pytest.mark.parametrize("name", sorted(load_pack().NODE_CLASS_MAPPINGS))
+def test_node_class_is_a_valid_classic_node(name):
+    cls = _ours()[name]
+    assert name.startswith("PhysMotion")
+    assert cls.CATEGORY.startswith("PhysMotion/")
+    assert callable(getattr(cls, cls.FUNCTION))
+    types = cls.INPUT_TYPES()
+    assert set(types) <= {"required", "optional", "hidden"}
+    assert isinstance(cls.RETURN_TYPES, tuple)
+    if hasattr(cls, "RETURN_NAMES"):
+        assert len(cls.RETURN_NAMES) == len(cls.RETURN_TYPES)
+    for rt in cls.RETURN_TYPES:
+        assert rt in ("IMAGE", "MASK", "STRING", "INT", "FLOAT") or rt.startswith("PM_"), rt
+    for section in ("required", "optional"):
+        for inp, spec in types.get(section, {}).items():
+            assert isinstance(spec, tuple) and 1 <= len(spec) <= 2, (inp, spec)
+            opts = spec[1] if len(spec) > 1 else {}
+            assert opts.get("tooltip"), f"{name}.{inp} has no tooltip"
+            kind = spec[0]
+            if isinstance(kind, list):
+                assert kind, f"{name}.{inp}: empty combo"
+                if "default" in opts:
+                    assert opts["default"] in kind
+            elif kind in ("INT", "FLOAT"):
+                lo, hi, d = opts.get("min", -np.inf), opts.get("max", np.inf), opts["default"]
+                assert lo <= d <= hi, (name, inp, lo, d, hi)
+                if kind == "INT":
+                    assert isinstance(d, int)
+            elif kind in ("STRING", "BOOLEAN"):
+                assert "default" in opts
+            else:
+                assert kind in ("IMAGE", "MASK") or kind.startswith("PM_"), (name, inp, kind)
+
+
+def _schemas():
+    return {n: {"input": c.INPUT_TYPES(), "output": list(c.RETURN_TYPES),
+                "output_name": list(getattr(c, "RETURN_NAMES", c.RETURN_TYPES))} for n, c in node_classes().items()}
+
+
+@pytest.mark.parametrize("path", API_WORKFLOWS, ids=lambda p: p.stem)
+def test_api_workflow_matches_the_node_classes(path):
+    prompt = json.loads(path.read_text())
+    classes = node_classes()
+    for nid, node in prompt.items():
+        assert node["class_type"] in classes, f"node {nid}: unknown class {node['class_type']}"
+        cls = classes[node["class_type"]]
+        spec = input_spec(cls)
+        required = cls.INPUT_TYPES().get("required", {})
+        missing = set(required) - set(node["inputs"])
+        assert not missing, f"node {nid} lacks required inputs {missing}"
+        for name, value in node["inputs"].items():
+            assert name in spec, f"node {nid}: unknown input {name}"
+            s = spec[name]
+            if isinstance(value, list):
+                src, slot = value
+                assert src in prompt, f"node {nid}.{name} links to missing node {src}"
+                src_cls = classes[prompt[src]["class_type"]]
+                assert 0 <= slot < len(src_cls.RETURN_TYPES)
+                assert src_cls.RETURN_TYPES[slot] == s[0], (nid, name, src_cls.RETURN_TYPES[slot], s[0])
+            else:
+                assert is_widget(s), f"node {nid}.{name} is a link input but holds a literal"
+                opts = s[1] if len(s) > 1 else {}
+                if isinstance(s[0], list):
+                    assert value in s[0], (nid, name, value)
+                elif s[0] in ("INT", "FLOAT"):
+                    assert opts.get("min", -np.inf) <= value <= opts.get("max", np.inf), (nid, name, value)
+
+
+@pytest.mark.parametrize("path", API_WORKFLOWS, ids=lambda p: p.stem)
+def test_ui_template_and_api_twin_describe_the_same_graph(path):
+    ui_path = ROOT / "workflows" / path.name
+    assert ui_path.exists(), f"no UI template for {path.name}: run scripts/build_workflows.py"
+    assert ui_path.with_suffix(".jpg").exists(), f"no thumbnail for {ui_path.name}"
+    api = json.loads(path.read_text())
+    ui = json.loads(ui_path.read_text())
+    assert ui_to_api(ui, _schemas()) == api
+    # And the template is exactly what the generator makes from the API file (no hand edits).
+    regenerated = api_to_ui(api, _schemas(), {n: "Load the photo" for n, v in api.items()
+                                              if v["class_type"] == "LoadImage"})
+    assert json.loads(json.dumps(regenerated)) == ui
+
+
+def test_workflow_conversion_detects_a_changed_link():
+    api = json.loads(API_WORKFLOWS[0].read_text())
+    ui = api_to_ui(api, _schemas())
+    ui["links"][0][2] = 1 - ui["links"][0][2] if ui["links"][0][2] in (0, 1) else 0
+    assert ui_to_api(ui, _schemas()) != api
+
+
+SMALL = {"3.max_gaussians": 6000, "7.frames": 8, "7.grid_res": 10, "10.filename_prefix": "test/push"}
+
+
+def test_push_a_jelly_runs_in_process(tmp_path, monkeypatch):
+    monkeypatch.setenv("PHYSMOTION_OUTPUT_DIR", str(tmp_path))
+    prompt = json.loads((API_DIR / "push_a_jelly.json").read_text())
+    out = run_prompt(prompt, SMALL)
+    frames = out["results"]["9"][0]
+    assert frames.shape == (8, 400, 600, 3)
+    assert float(frames.min()) >= 0 and float(frames.max()) <= 1
+    # The object moves: consecutive frames differ, and by more than encoding noise.
+    diffs = (frames[1:] - frames[:-1]).abs().mean(dim=(1, 2, 3))
+    assert bool((diffs > 1e-4).all()), diffs
+    # Frame 0 is the input photo where the object is (the render reproduces the foreground).
+    mask = out["results"]["2"][1][0] > 0.5
+    photo = out["results"]["1"][0][0]
+    err = (frames[0][mask] - photo[mask]).abs().mean()
+    assert float(err) < 0.05
+    # The save node wrote a playable mp4 and previews it; the .ply went to the output folder.
+    ui = out["ui"]["10"]
+    assert ui["animated"] == (True,)
+    video_path = tmp_path / ui["images"][0]["subfolder"] / ui["images"][0]["filename"]
+    video, fps = read_video(video_path)
+    assert video.shape == (8, 400, 600, 3) and fps == pytest.approx(24.0)
+    ply = tmp_path / out["results"]["11"][0]
+    assert ply.exists() and ply.stat().st_size > 1000
+
+
+def test_segment_node_handles_loadimage_masks():
+    from comfy_harness import LoadImage
+
+    seg = node_classes()["PhysMotionSegment"]()
+    image, _ = LoadImage().load_image("physmotion_coffee.png")
+    h, w = image.shape[1:3]
+    # An RGBA cut-out arrives as LoadImage's MASK = 1 - alpha: black on the object.
+    obj = torch.zeros(1, h, w)
+    obj[:, 100:300, 150:450] = 1.0
+    fg, mask, bg = seg.run(image, "auto", "auto", 5, mask=1.0 - obj)
+    assert torch.equal(mask, obj)
+    # A uniform 64x64 mask (no alpha) means "no mask": GrabCut runs instead.
+    fg, mask, bg = seg.run(image, "auto", "auto", 5, mask=torch.zeros(1, 64, 64))
+    assert mask.shape == (1, h, w) and 0.2 < float(mask.mean()) < 0.8
+    with pytest.raises(ValueError, match="no mask"):
+        seg.run(image, "mask", "auto", 5)
+
+
+def test_output_paths_never_leave_the_output_folder(tmp_path, monkeypatch):
+    monkeypatch.setenv("PHYSMOTION_OUTPUT_DIR", str(tmp_path))
+    save = node_classes()["PhysMotionSaveVideo"]()
+    with pytest.raises(ValueError, match="outside the output folder"):
+        save.run(torch.zeros(2, 8, 8, 3), 24.0, "../../escape", 18)
+    first = save.run(torch.zeros(2, 8, 8, 3), 24.0, "clips/a", 18)["result"][0]
+    second = save.run(torch.zeros(2, 8, 8, 3), 24.0, "clips/a", 18)["result"][0]
+    assert Path(first).parent == tmp_path / "clips" and first != second
