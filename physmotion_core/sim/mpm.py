@@ -5,6 +5,7 @@ from __future__ import annotations
 import logging
 import math
 import os
+import time
 from dataclasses import dataclass
 from typing import Optional, Sequence
 
@@ -114,6 +115,9 @@ class MPMSolver:
                                  f"simulator does not implement yet; available: {', '.join(IMPLEMENTED_MODELS)}")
         self.wp = wp = _warp()
         self.device = device
+        t0 = time.perf_counter()
+        wp.load_module(K, device=device)  # JIT-compiles on first use, then comes from Warp's cache
+        self.kernel_load_s = time.perf_counter() - t0
         self.domain = domain
         self.materials = list(materials)
         self.cfl = float(cfl)

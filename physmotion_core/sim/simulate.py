@@ -132,6 +132,7 @@ def simulate(
     tick = Throttle(progress, 0.2)
     tick(0, frames - 1)
     active = None
+    t_loop = time.perf_counter()
     for k in range(1, frames):
         t_frame = k * frame_dt
         while solver.t < t_frame - 1e-9:
@@ -147,6 +148,7 @@ def simulate(
         Fs[k] = torch.from_numpy(solver.deformation()[bound])
         tick(k, frames - 1)
 
+    loop_s = time.perf_counter() - t_loop
     remap = np.full(x0.shape[0], -1, np.int64)
     remap[bound] = np.arange(bound.shape[0])
     wall = time.perf_counter() - t_start
@@ -161,7 +163,9 @@ def simulate(
         "dt_min": solver.dt_min,
         "dt_max": solver.dt_max,
         "wall_time_s": wall,
-        "particle_substeps_per_s": x0.shape[0] * solver.substeps / max(wall, 1e-9),
+        "kernel_load_s": solver.kernel_load_s,
+        "stepping_s": loop_s,
+        "particle_substeps_per_s": x0.shape[0] * solver.substeps / max(loop_s, 1e-9),
     }
     log.info("simulated %d frames: %d particles, %d substeps, %.1fs", frames, x0.shape[0], solver.substeps, wall)
     return SimResult(

@@ -1,0 +1,1 @@
+/* PhysMotion front-end extensions (the force/torque picker lands here). */
