@@ -1,1 +1,0 @@
-/* PhysMotion front-end extensions (the force/torque picker lands here). */
