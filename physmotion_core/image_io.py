@@ -8,7 +8,6 @@ work (it reads PNG, JPEG, WebP and TIFF at 8 or 16 bits) so no extra imaging dep
 from __future__ import annotations
 
 import os
-import tempfile
 from pathlib import Path
 from typing import Optional, Union
 
@@ -17,6 +16,7 @@ import numpy as np
 import torch
 
 from .errors import InputError
+from .fsutil import atomic_output
 
 PathLike = Union[str, os.PathLike]
 
@@ -127,16 +127,6 @@ def save_image(path: PathLike, rgb, alpha=None) -> Path:
     ok, buf = cv2.imencode(ext, np.ascontiguousarray(arr))
     if not ok:
         raise InputError(f"Cannot encode an image as '{ext}' for '{p}'; use .png, .jpg, .webp or .tif")
-    p.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{p.stem}.", suffix=ext, dir=str(p.parent))
-    try:
-        with os.fdopen(fd, "wb") as f:
-            f.write(buf.tobytes())
-        os.replace(tmp, p)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
+    with atomic_output(p, suffix=ext) as tmp:
+        tmp.write_bytes(buf.tobytes())
     return p

@@ -9,13 +9,13 @@ from __future__ import annotations
 
 import os
 import re
-import tempfile
 from pathlib import Path
 
 import numpy as np
 import torch
 
 from .errors import InputError
+from .fsutil import atomic_output
 from .types import Gaussians
 
 _PLY_TYPES = {
@@ -61,17 +61,10 @@ def write_ply(path: str | os.PathLike, gaussians: Gaussians) -> Path:
     header += "comment written by physmotion (3DGS layout)\n"
     header += f"element vertex {n}\n" + "".join(f"property float {name}\n" for name in names) + "end_header\n"
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name + ".", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "wb") as fh:
+    with atomic_output(path) as tmp:
+        with open(tmp, "wb") as fh:
             fh.write(header.encode("ascii"))
             fh.write(data.tobytes())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
     return path
 
 

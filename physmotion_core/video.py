@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import os
-import tempfile
 from fractions import Fraction
 from pathlib import Path
 
@@ -11,6 +10,7 @@ import numpy as np
 import torch
 
 from .errors import InputError
+from .fsutil import atomic_output
 
 
 def _to_uint8_frames(frames) -> np.ndarray:
@@ -44,12 +44,9 @@ def write_mp4(path: str | os.PathLike, frames, fps: float = 24.0, crf: int = 18)
     if ph or pw:
         arr = np.pad(arr, ((0, 0), (0, ph), (0, pw), (0, 0)), mode="edge")
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.stem + ".", suffix=".tmp.mp4")
-    os.close(fd)
-    try:
-        rate = Fraction(fps).limit_denominator(1001)
-        with av.open(tmp, mode="w") as container:
+    rate = Fraction(fps).limit_denominator(1001)
+    with atomic_output(path, suffix=".tmp.mp4") as tmp:
+        with av.open(str(tmp), mode="w") as container:
             stream = container.add_stream("libx264", rate=rate)
             stream.width, stream.height = arr.shape[2], arr.shape[1]
             stream.pix_fmt = "yuv420p"
@@ -59,11 +56,6 @@ def write_mp4(path: str | os.PathLike, frames, fps: float = 24.0, crf: int = 18)
                     container.mux(packet)
             for packet in stream.encode():
                 container.mux(packet)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
     return path
 
 
