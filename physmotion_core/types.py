@@ -362,18 +362,18 @@ class Material:
     E: float = 2.0e4  # Young's modulus, Pa
     nu: float = 0.3  # Poisson's ratio
     density: float = 1000.0  # kg/m^3
-    yield_stress: float = float("inf")  # Pa (von Mises / viscoplastic)
-    hardening: float = 0.0  # linear hardening modulus ratio (von Mises)
-    softening: float = 0.0  # yield stress lost per unit plastic strain (plasticine)
-    friction_angle: float = 30.0  # degrees (Drucker-Prager)
-    cohesion: float = 0.0  # Pa (Drucker-Prager)
-    viscosity: float = 0.0  # Pa*s (viscoplastic, fluid)
-    bulk_modulus: float = 0.0  # Pa (fluid)
-    gamma: float = 7.0  # fluid equation-of-state exponent
+    yield_stress: float = float("inf")  # Pa, von Mises equivalent (metal, plasticine, viscoplastic)
+    hardening: float = 0.0  # Pa of yield stress gained per unit equivalent plastic strain (metal)
+    softening: float = 0.0  # Pa of yield stress lost per unit equivalent plastic strain (plasticine)
+    friction_angle: float = 30.0  # degrees (Drucker-Prager sand)
+    cohesion: float = 0.0  # Pa of tensile mean stress the sand can carry (Drucker-Prager)
+    viscosity: float = 0.0  # Pa*s (fluid: dynamic viscosity; viscoplastic: Perzyna plastic viscosity)
+    bulk_modulus: float = 0.0  # Pa (fluid equation of state)
+    gamma: float = 7.0  # fluid equation-of-state exponent (Tait)
     crit_compression: float = 2.5e-2  # snow theta_c
     crit_stretch: float = 7.5e-3  # snow theta_s
     hardening_xi: float = 10.0  # snow xi
-    fracture_stretch: float = 0.0  # principal stretch beyond which the material tears (fracture)
+    fracture_stretch: float = 0.0  # principal stretch beyond which the material tears (fracture model)
     damping: float = 0.0  # mass-proportional velocity damping, 1/s (0 = physical)
 
     @classmethod
@@ -391,11 +391,13 @@ class Material:
         return self.E * self.nu / ((1.0 + self.nu) * (1.0 - 2.0 * self.nu))
 
     def wave_speed(self) -> float:
-        """P-wave speed sqrt((λ+2μ)/ρ), m/s: the elastic CFL limit uses it."""
-        stiff = self.lam + 2.0 * self.mu
+        """Sound speed at rest, m/s (the CFL limit uses it): sqrt((λ+2μ)/ρ), or sqrt(Kγ/ρ) for a
+        fluid, 0 for a rigid body (its step is limited by its speed and acceleration only)."""
+        if self.model == "rigid":
+            return 0.0
         if self.model == "fluid":
-            stiff = max(stiff, self.bulk_modulus * self.gamma)
-        return math.sqrt(stiff / self.density)
+            return math.sqrt(self.bulk_modulus * self.gamma / self.density)
+        return math.sqrt((self.lam + 2.0 * self.mu) / self.density)
 
     def validate(self) -> None:
         if self.model not in CONSTITUTIVE_MODELS:
@@ -417,9 +419,20 @@ class Material:
         if not (0.0 <= self.friction_angle < 90.0):
             raise InputError(f"Material '{self.name}': friction_angle must be in [0, 90) degrees; "
                              f"got {self.friction_angle}")
-        for key in ("yield_stress",):
-            if not getattr(self, key) > 0:
-                raise InputError(f"Material '{self.name}': {key} must be positive; got {getattr(self, key)}")
+        if not self.yield_stress > 0:
+            raise InputError(f"Material '{self.name}': yield_stress must be positive Pa; got {self.yield_stress}")
+        if self.model in ("von_mises", "plasticine", "viscoplastic") and not math.isfinite(self.yield_stress):
+            raise InputError(f"Material '{self.name}': the {self.model} model needs a finite yield_stress in Pa "
+                             "(metal ~1e5-1e8, clay ~1e4, toothpaste ~100)")
+        if self.model == "fluid" and not self.bulk_modulus > 0:
+            raise InputError(f"Material '{self.name}': a fluid needs bulk_modulus > 0 Pa (water preset: 2e5)")
+        if self.model == "fracture" and not self.fracture_stretch > 1.0:
+            raise InputError(f"Material '{self.name}': fracture_stretch must be > 1 (the principal stretch at "
+                             f"which it tears, e.g. 1.1 = 10 %); got {self.fracture_stretch}")
+        if self.model == "snow" and not (0 < self.crit_compression < 1 and self.crit_stretch > 0):
+            raise InputError(f"Material '{self.name}': snow needs 0 < crit_compression < 1 and crit_stretch > 0")
+        if not (1.0 <= self.gamma <= 20.0):
+            raise InputError(f"Material '{self.name}': gamma must be in [1, 20] (water: 7); got {self.gamma}")
         for key in ("hardening", "softening", "cohesion", "viscosity", "bulk_modulus", "damping",
                     "fracture_stretch", "crit_compression", "crit_stretch", "hardening_xi"):
             v = getattr(self, key)
@@ -643,6 +656,8 @@ class Conditions:
 # Default resolution per device: Warp's CPU kernels are single-threaded, so the CPU default is sized
 # for a demo that finishes in about a minute; the GPU is where resolution lives.
 AUTO_GRID_RES = {"cpu": 24, "cuda": 48}
+# Quality presets scale the automatic resolution (grid_res = 0) and set particles per cell.
+QUALITY = {"draft": (0.67, 8), "standard": (1.0, 8), "high": (1.5, 8)}
 
 
 @dataclass
@@ -657,7 +672,9 @@ class SimSettings:
     domain_margin: float = 1.0  # free space around the object, in object sizes, for it to move into
     max_particles: int = 200_000
     device: str = "auto"  # "cpu", "cuda", "cuda:N" or "auto"
-    rest_threshold: float = 0.0  # kinetic energy per kg (J/kg) below which a still scene stops substepping; 0 = off
+    quality: str = "standard"  # draft / standard / high: scales the automatic grid_res (see QUALITY)
+    rest_speed: float = 2e-3  # m/s: a scene whose particles all stay slower than this for 3 frames, with
+    #                         no force still to come, stops substepping and repeats its state; 0 = off
     seed: int = 0
 
     def validate(self) -> None:
@@ -675,6 +692,28 @@ class SimSettings:
             raise InputError(f"domain_margin must be in [0, 20] object sizes; got {self.domain_margin}")
         if self.max_particles < 1:
             raise InputError(f"max_particles must be positive; got {self.max_particles}")
+        if self.quality not in QUALITY:
+            raise InputError(f"quality must be one of {tuple(QUALITY)}; got '{self.quality}'")
+        if not (math.isfinite(self.rest_speed) and self.rest_speed >= 0):
+            raise InputError(f"rest_speed must be a non-negative speed in m/s (0 turns rest detection off); "
+                             f"got {self.rest_speed}")
+
+    def resolved_grid_res(self, device: str) -> int:
+        if self.grid_res:
+            return int(self.grid_res)
+        scale, _ = QUALITY[self.quality]
+        return max(4, int(round(AUTO_GRID_RES["cuda" if device.startswith("cuda") else "cpu"] * scale)))
+
+
+MAX_SPLAT_STRETCH = 3.0
+
+
+def clamp_stretch(F: torch.Tensor, limit: float) -> torch.Tensor:
+    """F (…,3,3) with its singular values clamped to [1/limit, limit] (rotations unchanged)."""
+    U, S, Vh = torch.linalg.svd(F.double())
+    if bool(((S >= 1.0 / limit) & (S <= limit)).all()):
+        return F
+    return (U @ torch.diag_embed(S.clamp(1.0 / limit, limit)) @ Vh).to(F.dtype)
 
 
 @dataclass
@@ -692,18 +731,28 @@ class SimResult:
     F: torch.Tensor  # (T, P, 3, 3) deformation gradients
     binding: torch.Tensor  # (N,) index of each Gaussian's particle
     rest_particles: torch.Tensor  # (P, 3) particle rest positions
-    material: Material
+    material: Material  # the first object's material (all of them in ``materials``)
     stats: dict = field(default_factory=dict)
+    materials: list = field(default_factory=list)
+    plastic: Optional[torch.Tensor] = None  # (T, P) per-particle plastic state of the recorded particles
+    particle_object: Optional[torch.Tensor] = None  # (P,) object id of each recorded particle
 
     @property
     def num_frames(self) -> int:
         return int(self.x.shape[0])
 
     def gaussians_at(self, frame: int) -> Gaussians:
+        """The Gaussians at ``frame``: each follows its particle's position and deformation.
+
+        F here is the *elastic* deformation gradient (plastic models store F_E after their return
+        mapping, fluids and torn material an isotropic one), so flowing sand or honey moves its
+        splats without smearing them. As a last guard against needles, each principal stretch of
+        the F applied to splats is clamped to [1/MAX_SPLAT_STRETCH, MAX_SPLAT_STRETCH].
+        """
         if not (-self.num_frames <= frame < self.num_frames):
             raise InputError(f"frame {frame} is out of range: the simulation has {self.num_frames} frames")
         p = self.binding
-        Fp = self.F[frame][p].to(self.rest.means.dtype)
+        Fp = clamp_stretch(self.F[frame], MAX_SPLAT_STRETCH)[p].to(self.rest.means.dtype)
         offset = self.rest.means - self.rest_particles[p]
         means = self.x[frame][p] + (Fp @ offset[:, :, None])[:, :, 0]
         cov0 = self.rest.covariance()

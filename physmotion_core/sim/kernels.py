@@ -2,31 +2,49 @@
 
 The same kernels run on ``cpu`` and ``cuda``. One substep is:
 
-  p2g         particles -> grid: mass, momentum, stress impulse, external forces
-  grid_update grid velocities, gravity, ground and wall contact (sticky / slip / Coulomb friction)
-  g2p         grid -> particles: velocity, affine matrix C, position, F = (I + dt C) F, plasticity
+  p2g          particles -> grid: mass, momentum, the stored stress's impulse, external forces
+  grid_update  grid velocities, gravity, anchors, ground and wall contact (sticky / slip / Coulomb)
+  g2p          grid -> particles: velocity, affine C, position, F = (I + dt C) F, then the
+               material's return mapping (plasticity) and the Kirchhoff stress for the next p2g
+  rigid_*      for rigid objects: project their particles' velocities onto a rigid motion
+
+Computing the stress at the end of g2p, right after the return mapping, means a plastic model does
+one SVD per substep (the mapping's) instead of two, and elastic models skip the mapping entirely.
 
 Grid kernels are launched over the particles' active box only (``lo`` offset + launch dims), and
-``grid_update`` zeroes the mass/momentum it consumed, so the next ``p2g`` starts from a clean grid
+``grid_update`` zeroes the accumulators it consumed, so the next ``p2g`` starts from a clean grid
 without a separate clearing pass over the whole domain.
 
-Materials are a table of structs indexed by each particle's material id; the constitutive model is
-an integer switch so that new models (plasticity return mappings) extend ``kirchhoff_stress`` and
-``project_plastic`` without touching the transfer code.
+Materials are a table of structs indexed by each particle's material id; ``model`` selects the
+constitutive rule (a switch inside ``update_material``), so adding a model touches one function.
 """
 
 from __future__ import annotations
 
 import warp as wp
 
-# Constitutive model ids (see materials.MODEL_IDS).
+# Constitutive model ids (materials.MODEL_IDS maps names to these).
 MODEL_FIXED_COROTATED = wp.constant(0)
 MODEL_NEO_HOOKEAN = wp.constant(1)
+MODEL_VON_MISES = wp.constant(2)
+MODEL_DRUCKER_PRAGER = wp.constant(3)
+MODEL_SNOW = wp.constant(4)
+MODEL_PLASTICINE = wp.constant(5)
+MODEL_FRACTURE = wp.constant(6)
+MODEL_VISCOPLASTIC = wp.constant(7)
+MODEL_FLUID = wp.constant(8)
+MODEL_RIGID = wp.constant(9)
 
 # Contact ids.
 CONTACT_STICKY = wp.constant(0)
 CONTACT_SLIP = wp.constant(1)
 CONTACT_FRICTION = wp.constant(2)
+
+# Particle flags.
+FLAG_ANCHORED = wp.constant(1)
+FLAG_RIGID = wp.constant(2)
+
+SQRT_2_3 = wp.constant(0.816496580927726)
 
 
 @wp.struct
@@ -35,6 +53,19 @@ class MaterialParams:
     mu: float
     lam: float
     density: float
+    yield_stress: float
+    hardening: float  # Pa of yield stress gained per unit equivalent plastic strain
+    softening: float  # Pa of yield stress lost per unit equivalent plastic strain
+    dp_alpha: float  # Drucker-Prager cone slope sqrt(2/3) 2 sin(phi) / (3 - sin(phi))
+    cohesion_tr: float  # Drucker-Prager: volumetric Hencky strain the cohesion allows in tension
+    viscosity: float
+    bulk: float
+    gamma: float
+    theta_c: float
+    theta_s: float
+    xi: float
+    fracture_stretch: float
+    damping: float
 
 
 @wp.struct
@@ -56,6 +87,11 @@ class Boundary:
     wall_contact: int
     wall_friction: float
     pad: int  # cells of padding at each wall: nodes closer than this to a face are wall nodes
+
+
+# ----------------------------------------------------------------------------------------------
+# Constitutive rules
+# ----------------------------------------------------------------------------------------------
 
 
 @wp.func
@@ -86,20 +122,100 @@ def extract_rotation(A: wp.mat33, q0: wp.quat) -> wp.quat:
 
 
 @wp.func
-def kirchhoff_stress(mat: MaterialParams, F: wp.mat33, R: wp.mat33) -> wp.mat33:
-    """Kirchhoff stress tau = P F^T for the particle's model (R: the rotation part of F)."""
+def corotated_stress(F: wp.mat33, R: wp.mat33, mu: float, lam: float) -> wp.mat33:
+    """Fixed-corotated Kirchhoff stress 2μ(F − R)Fᵀ + λ(J − 1)J I."""
     J = wp.determinant(F)
-    I = wp.identity(n=3, dtype=float)
-    if mat.model == MODEL_NEO_HOOKEAN:
-        # tau = mu (F F^T - I) + lam log(J) I ; J is kept positive by the caller's safeguards.
-        return mat.mu * (F * wp.transpose(F) - I) + mat.lam * wp.log(wp.max(J, 1.0e-6)) * I
-    # fixed corotated: tau = 2 mu (F - R) F^T + lam (J - 1) J I
-    return 2.0 * mat.mu * (F - R) * wp.transpose(F) + mat.lam * (J - 1.0) * J * I
+    return 2.0 * mu * (F - R) * wp.transpose(F) + lam * (J - 1.0) * J * wp.identity(n=3, dtype=float)
+
+
+@wp.func
+def hencky_stress(U: wp.mat33, eps: wp.vec3, mu: float, lam: float) -> wp.mat33:
+    """StVK-Hencky Kirchhoff stress U diag(2μ ε + λ tr(ε)) Uᵀ from the log principal stretches ε."""
+    tr = eps[0] + eps[1] + eps[2]
+    s = 2.0 * mu * eps + lam * tr * wp.vec3(1.0, 1.0, 1.0)
+    return U * wp.diag(s) * wp.transpose(U)
+
+
+@wp.func
+def log_stretches(sig: wp.vec3) -> wp.vec3:
+    # Inverted or collapsed elements: plasticity treats them as strongly compressed, never NaN.
+    return wp.vec3(wp.log(wp.max(wp.abs(sig[0]), 1.0e-4)), wp.log(wp.max(wp.abs(sig[1]), 1.0e-4)),
+                   wp.log(wp.max(wp.abs(sig[2]), 1.0e-4)))
+
+
+@wp.func
+def exp_vec(e: wp.vec3) -> wp.vec3:
+    return wp.vec3(wp.exp(e[0]), wp.exp(e[1]), wp.exp(e[2]))
+
+
+@wp.func
+def wave_speed_sq(mu: float, lam: float, density: float, J: float) -> float:
+    # The P-wave speed, stiffened under compression (density rises as 1/J).
+    return (lam + 2.0 * mu) / density * wp.max(1.0, 1.0 / wp.max(J, 0.05))
+
+
+# ----------------------------------------------------------------------------------------------
+# Transfers
+# ----------------------------------------------------------------------------------------------
+
+
+@wp.func
+def bspline_weights(fx: wp.vec3, axis: int):
+    f = fx[axis]
+    return wp.vec3(0.5 * (1.5 - f) * (1.5 - f), 0.75 - (f - 1.0) * (f - 1.0), 0.5 * (f - 0.5) * (f - 0.5))
+
+
+@wp.func
+def stencil_base(x: wp.vec3, grid: GridInfo) -> wp.vec3i:
+    xp = (x - grid.origin) * grid.inv_dx
+    return wp.vec3i(int(xp[0] - 0.5), int(xp[1] - 0.5), int(xp[2] - 0.5))
+
+
+@wp.kernel
+def p2g(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    C: wp.array(dtype=wp.mat33),
+    tau: wp.array(dtype=wp.mat33),
+    mass: wp.array(dtype=float),
+    vol: wp.array(dtype=float),
+    flags: wp.array(dtype=int),
+    f_ext: wp.array(dtype=wp.vec3),
+    grid: GridInfo,
+    dt: float,
+    grid_m: wp.array3d(dtype=float),
+    grid_mv: wp.array3d(dtype=wp.vec3),
+    grid_fix: wp.array3d(dtype=int),
+):
+    p = wp.tid()
+    base = stencil_base(x[p], grid)
+    xp = (x[p] - grid.origin) * grid.inv_dx
+    fx = xp - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+    wx = bspline_weights(fx, 0)
+    wy = bspline_weights(fx, 1)
+    wz = bspline_weights(fx, 2)
+    m = mass[p]
+    # MLS-MPM: the stress enters as an affine momentum term -dt * V * (4/dx^2) * tau.
+    affine = (-dt * vol[p] * 4.0 * grid.inv_dx * grid.inv_dx) * tau[p] + m * C[p]
+    mv = m * v[p] + dt * f_ext[p]
+    anchored = (flags[p] & FLAG_ANCHORED) != 0
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                w = wx[i] * wy[j] * wz[k]
+                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * grid.dx
+                ix = base[0] + i
+                iy = base[1] + j
+                iz = base[2] + k
+                wp.atomic_add(grid_m, ix, iy, iz, w * m)
+                wp.atomic_add(grid_mv, ix, iy, iz, w * (mv + affine * dpos))
+                if anchored:
+                    grid_fix[ix, iy, iz] = 1
 
 
 @wp.func
 def contact_velocity(v: wp.vec3, n: wp.vec3, contact: int, mu: float) -> wp.vec3:
-    """Grid-node velocity after contact with a boundary of outward-facing normal n (pointing into the domain)."""
+    """Grid-node velocity after contact with a boundary whose normal n points into the domain."""
     if contact == CONTACT_STICKY:
         return wp.vec3(0.0, 0.0, 0.0)
     vn = wp.dot(v, n)
@@ -115,67 +231,12 @@ def contact_velocity(v: wp.vec3, n: wp.vec3, contact: int, mu: float) -> wp.vec3
     return vt * (1.0 - mu * (-vn) / vt_len)
 
 
-@wp.func
-def bspline_weights(fx: wp.vec3, axis: int):
-    f = fx[axis]
-    return wp.vec3(0.5 * (1.5 - f) * (1.5 - f), 0.75 - (f - 1.0) * (f - 1.0), 0.5 * (f - 0.5) * (f - 0.5))
-
-
-@wp.kernel
-def p2g(
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    C: wp.array(dtype=wp.mat33),
-    F: wp.array(dtype=wp.mat33),
-    rot: wp.array(dtype=wp.quat),
-    mass: wp.array(dtype=float),
-    vol: wp.array(dtype=float),
-    mat_id: wp.array(dtype=int),
-    materials: wp.array(dtype=MaterialParams),
-    f_ext: wp.array(dtype=wp.vec3),
-    grid: GridInfo,
-    dt: float,
-    grid_m: wp.array3d(dtype=float),
-    grid_mv: wp.array3d(dtype=wp.vec3),
-):
-    p = wp.tid()
-    mat = materials[mat_id[p]]
-    xp = (x[p] - grid.origin) * grid.inv_dx
-    base = wp.vec3i(int(xp[0] - 0.5), int(xp[1] - 0.5), int(xp[2] - 0.5))
-    fx = xp - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
-    wx = bspline_weights(fx, 0)
-    wy = bspline_weights(fx, 1)
-    wz = bspline_weights(fx, 2)
-
-    Fp = F[p]
-    R = wp.identity(n=3, dtype=float)
-    if mat.model == MODEL_FIXED_COROTATED:
-        q = extract_rotation(Fp, rot[p])
-        rot[p] = q
-        R = wp.quat_to_matrix(q)
-    tau = kirchhoff_stress(mat, Fp, R)
-    m = mass[p]
-    # MLS-MPM: the stress enters as an affine momentum term -dt * V * (4/dx^2) * tau.
-    affine = (-dt * vol[p] * 4.0 * grid.inv_dx * grid.inv_dx) * tau + m * C[p]
-    mv = m * v[p] + dt * f_ext[p]
-
-    for i in range(3):
-        for j in range(3):
-            for k in range(3):
-                w = wx[i] * wy[j] * wz[k]
-                dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * grid.dx
-                ix = base[0] + i
-                iy = base[1] + j
-                iz = base[2] + k
-                wp.atomic_add(grid_m, ix, iy, iz, w * m)
-                wp.atomic_add(grid_mv, ix, iy, iz, w * (mv + affine * dpos))
-
-
 @wp.kernel
 def grid_update(
     grid_m: wp.array3d(dtype=float),
     grid_mv: wp.array3d(dtype=wp.vec3),
     grid_v: wp.array3d(dtype=wp.vec3),
+    grid_fix: wp.array3d(dtype=int),
     lo: wp.vec3i,
     grid: GridInfo,
     bc: Boundary,
@@ -188,7 +249,7 @@ def grid_update(
     k = lo[2] + c
     m = grid_m[i, j, k]
     v = wp.vec3(0.0, 0.0, 0.0)
-    if m > 0.0:
+    if m > 0.0 and grid_fix[i, j, k] == 0:
         v = grid_mv[i, j, k] / m + dt * gravity
         # Domain walls (x, z sides and the top; the bottom too when there is no ground).
         if i < bc.pad:
@@ -210,6 +271,133 @@ def grid_update(
     # Leave the accumulators clean for the next substep's p2g.
     grid_m[i, j, k] = 0.0
     grid_mv[i, j, k] = wp.vec3(0.0, 0.0, 0.0)
+    grid_fix[i, j, k] = 0
+
+
+@wp.func
+def update_material(
+    mat: MaterialParams,
+    F: wp.mat33,
+    Cp: wp.mat33,
+    q_in: wp.quat,
+    state_in: float,
+    dt: float,
+    p: int,
+    rot: wp.array(dtype=wp.quat),
+    plastic: wp.array(dtype=float),
+    Fout: wp.array(dtype=wp.mat33),
+    tau: wp.array(dtype=wp.mat33),
+) -> float:
+    """Return mapping and Kirchhoff stress of particle p for its model; returns its wave speed².
+
+    ``F`` is the trial deformation gradient (I + dt C) Fⁿ. Writes the projected F, the stress and
+    the model's state (``plastic``: equivalent plastic strain, snow's plastic J, or fracture
+    damage; ``rot``: the warm-started rotation of F for corotated models).
+    """
+    I = wp.identity(n=3, dtype=float)
+    model = mat.model
+    if model == MODEL_FIXED_COROTATED:
+        q = extract_rotation(F, q_in)
+        rot[p] = q
+        Fout[p] = F
+        tau[p] = corotated_stress(F, wp.quat_to_matrix(q), mat.mu, mat.lam)
+        return wave_speed_sq(mat.mu, mat.lam, mat.density, wp.determinant(F))
+    if model == MODEL_NEO_HOOKEAN:
+        J = wp.max(wp.determinant(F), 1.0e-6)
+        Fout[p] = F
+        tau[p] = mat.mu * (F * wp.transpose(F) - I) + mat.lam * wp.log(J) * I
+        return wave_speed_sq(mat.mu, mat.lam, mat.density, J) * wp.max(1.0, 1.0 / J)
+    if model == MODEL_RIGID:
+        Fout[p] = F
+        tau[p] = wp.mat33(0.0)
+        return 0.0
+    if model == MODEL_FLUID:
+        # Only the volume matters: keep F isotropic so no shear accumulates.
+        J = wp.clamp(wp.determinant(F), 0.05, 20.0)
+        Fout[p] = wp.pow(J, 1.0 / 3.0) * I
+        # Tait equation of state, no tension (a free surface separates instead of pulling).
+        pressure = wp.max(mat.bulk * (wp.pow(J, -mat.gamma) - 1.0), 0.0)
+        D = Cp + wp.transpose(Cp)
+        tr = D[0, 0] + D[1, 1] + D[2, 2]
+        tau[p] = -pressure * J * I + mat.viscosity * J * (D - (tr / 3.0) * I)
+        return mat.bulk * mat.gamma * wp.pow(J, 1.0 - mat.gamma) / mat.density
+    if model == MODEL_FRACTURE:
+        J = wp.determinant(F)
+        if state_in > 0.5:
+            # Torn: no tension or shear, only resistance to compression. F is kept isotropic so
+            # the splats of torn material stay round.
+            Jc = wp.clamp(J, 0.05, 20.0)
+            Fout[p] = wp.pow(Jc, 1.0 / 3.0) * I
+            t = wp.mat33(0.0)
+            if Jc < 1.0:
+                t = mat.lam * (Jc - 1.0) * Jc * I
+            tau[p] = t
+            return wave_speed_sq(0.0, mat.lam, mat.density, Jc)
+        U = wp.mat33()
+        sig = wp.vec3()
+        V = wp.mat33()
+        wp.svd3(F, U, sig, V)
+        if sig[0] > mat.fracture_stretch:
+            plastic[p] = 1.0
+        Fout[p] = F
+        tau[p] = corotated_stress(F, U * wp.transpose(V), mat.mu, mat.lam)
+        return wave_speed_sq(mat.mu, mat.lam, mat.density, J)
+
+    # Models below work on the SVD of the trial F.
+    U = wp.mat33()
+    sig = wp.vec3()
+    V = wp.mat33()
+    wp.svd3(F, U, sig, V)
+    if model == MODEL_SNOW:
+        # Stomakhin et al. 2013: stretches beyond [1 - θc, 1 + θs] become plastic; the plastic
+        # volume change Jp hardens the material by exp(ξ (1 - Jp)).
+        lo = 1.0 - mat.theta_c
+        hi = 1.0 + mat.theta_s
+        sc = wp.vec3(wp.clamp(sig[0], lo, hi), wp.clamp(sig[1], lo, hi), wp.clamp(sig[2], lo, hi))
+        Jp = state_in * (sig[0] * sig[1] * sig[2]) / (sc[0] * sc[1] * sc[2])
+        Jp = wp.clamp(Jp, 0.05, 20.0)
+        plastic[p] = Jp
+        Fe = U * wp.diag(sc) * wp.transpose(V)
+        h = wp.exp(wp.min(mat.xi * (1.0 - Jp), 10.0))
+        Fout[p] = Fe
+        tau[p] = corotated_stress(Fe, U * wp.transpose(V), mat.mu * h, mat.lam * h)
+        return wave_speed_sq(mat.mu * h, mat.lam * h, mat.density, sc[0] * sc[1] * sc[2])
+
+    eps = log_stretches(sig)
+    tr = eps[0] + eps[1] + eps[2]
+    dev = eps - (tr / 3.0) * wp.vec3(1.0, 1.0, 1.0)
+    n = wp.length(dev)
+    state = state_in
+    if model == MODEL_DRUCKER_PRAGER:
+        # Klár et al. 2016 on Hencky strain; cohesion moves the cone's apex into tension.
+        tr_s = tr - mat.cohesion_tr
+        if tr_s >= 0.0:
+            eps = (mat.cohesion_tr / 3.0) * wp.vec3(1.0, 1.0, 1.0)  # tension: project to the tip
+        else:
+            dgamma = n + (3.0 * mat.lam + 2.0 * mat.mu) / (2.0 * mat.mu) * tr_s * mat.dp_alpha
+            if dgamma > 0.0:
+                if n > 1.0e-12:
+                    eps = eps - (dgamma / n) * dev
+                else:
+                    eps = (tr / 3.0) * wp.vec3(1.0, 1.0, 1.0)
+    else:
+        # von Mises family on Hencky strain: metal (hardening), plasticine (softening),
+        # viscoplastic (Perzyna rate: only part of the excess flows per substep).
+        sy = mat.yield_stress
+        if model == MODEL_VON_MISES:
+            sy = sy + mat.hardening * state
+        elif model == MODEL_PLASTICINE:
+            sy = wp.max(sy - mat.softening * state, 0.0)
+        dgamma = n - SQRT_2_3 * sy / (2.0 * mat.mu)
+        if dgamma > 0.0 and n > 1.0e-12:
+            if model == MODEL_VISCOPLASTIC:
+                dgamma = dgamma * dt / (dt + mat.viscosity / (2.0 * mat.mu))
+            eps = eps - (dgamma / n) * dev
+            state = state + SQRT_2_3 * dgamma
+            plastic[p] = state
+    Fout[p] = U * wp.diag(exp_vec(eps)) * wp.transpose(V)
+    tau[p] = hencky_stress(U, eps, mat.mu, mat.lam)
+    return wave_speed_sq(mat.mu, mat.lam, mat.density, wp.exp(eps[0] + eps[1] + eps[2]))
 
 
 @wp.kernel
@@ -218,14 +406,20 @@ def g2p(
     v: wp.array(dtype=wp.vec3),
     C: wp.array(dtype=wp.mat33),
     F: wp.array(dtype=wp.mat33),
+    rot: wp.array(dtype=wp.quat),
+    plastic: wp.array(dtype=float),
+    tau: wp.array(dtype=wp.mat33),
+    mat_id: wp.array(dtype=int),
+    materials: wp.array(dtype=MaterialParams),
+    flags: wp.array(dtype=int),
     grid_v: wp.array3d(dtype=wp.vec3),
     grid: GridInfo,
     dt: float,
     stats: wp.array(dtype=float),
 ):
     p = wp.tid()
+    base = stencil_base(x[p], grid)
     xp = (x[p] - grid.origin) * grid.inv_dx
-    base = wp.vec3i(int(xp[0] - 0.5), int(xp[1] - 0.5), int(xp[2] - 0.5))
     fx = xp - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
     wx = bspline_weights(fx, 0)
     wy = bspline_weights(fx, 1)
@@ -242,13 +436,239 @@ def g2p(
                 new_v += w * gv
                 new_C += (4.0 * grid.inv_dx * w) * wp.outer(gv, dpos)
 
+    fl = flags[p]
+    if (fl & FLAG_ANCHORED) != 0:
+        v[p] = wp.vec3(0.0, 0.0, 0.0)
+        C[p] = wp.mat33(0.0)
+        return
+    mat = materials[mat_id[p]]
+    if mat.damping > 0.0:
+        new_v = new_v * wp.exp(-mat.damping * dt)
     v[p] = new_v
     C[p] = new_C
+    if (fl & FLAG_RIGID) != 0:
+        return  # rigid particles move with their body (rigid_apply)
     new_x = x[p] + dt * new_v
     x[p] = new_x
-    F[p] = (wp.identity(n=3, dtype=float) + dt * new_C) * F[p]
+    Ftrial = (wp.identity(n=3, dtype=float) + dt * new_C) * F[p]
+    c2 = update_material(mat, Ftrial, new_C, rot[p], plastic[p], dt, p, rot, plastic, F, tau)
 
-    # Reductions the host reads each substep: max speed (CFL), active box, and a NaN flag.
+    # Reductions the host reads each substep: max speed and stiffness (CFL), active box, NaN flag.
+    speed = wp.length(new_v)
+    if not (speed == speed) or not (new_x[0] == new_x[0]) or not (c2 == c2):
+        stats[7] = 1.0
+    wp.atomic_max(stats, 0, speed)
+    wp.atomic_max(stats, 8, c2)
+    wp.atomic_min(stats, 1, new_x[0])
+    wp.atomic_min(stats, 2, new_x[1])
+    wp.atomic_min(stats, 3, new_x[2])
+    wp.atomic_max(stats, 4, new_x[0])
+    wp.atomic_max(stats, 5, new_x[1])
+    wp.atomic_max(stats, 6, new_x[2])
+
+
+@wp.kernel
+def reset_stats(stats: wp.array(dtype=float)):
+    """Reset the reductions g2p fills: max speed, box min, box max, NaN flag, max wave speed²."""
+    stats[0] = 0.0
+    for a in range(3):
+        stats[1 + a] = 1.0e30
+        stats[4 + a] = -1.0e30
+    stats[7] = 0.0
+    stats[8] = 0.0
+
+
+# ----------------------------------------------------------------------------------------------
+# Rigid bodies: particles of a rigid object share one rigid motion
+# ----------------------------------------------------------------------------------------------
+
+
+@wp.kernel
+def rigid_reduce(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
+    body: wp.array(dtype=int),
+    centre: wp.array(dtype=wp.vec3),
+    momentum: wp.array(dtype=wp.vec3),
+    ang_momentum: wp.array(dtype=wp.vec3),
+):
+    """Linear and angular momentum (about the body's centre) of each rigid body's particles."""
+    p = wp.tid()
+    b = body[p]
+    if b < 0:
+        return
+    mv = mass[p] * v[p]
+    wp.atomic_add(momentum, b, mv)
+    wp.atomic_add(ang_momentum, b, wp.cross(x[p] - centre[b], mv))
+
+
+@wp.kernel
+def rigid_velocity(
+    orient: wp.array(dtype=wp.quat),
+    inertia_body: wp.array(dtype=wp.mat33),
+    body_mass: wp.array(dtype=float),
+    momentum: wp.array(dtype=wp.vec3),
+    ang_momentum: wp.array(dtype=wp.vec3),
+    lin_vel: wp.array(dtype=wp.vec3),
+    ang_vel: wp.array(dtype=wp.vec3),
+):
+    """Each body's velocity and spin from its particles' momenta: V = P / M, ω = I_world⁻¹ L."""
+    b = wp.tid()
+    R = wp.quat_to_matrix(orient[b])
+    I_world = R * inertia_body[b] * wp.transpose(R)
+    lin_vel[b] = momentum[b] / body_mass[b]
+    ang_vel[b] = wp.inverse(I_world) * ang_momentum[b]
+    momentum[b] = wp.vec3(0.0, 0.0, 0.0)
+    ang_momentum[b] = wp.vec3(0.0, 0.0, 0.0)
+
+
+@wp.func
+def body_impulse(V: wp.vec3, w: wp.vec3, Iinv: wp.mat33, inv_m: float, r: wp.vec3, d: wp.vec3,
+                 target: float) -> float:
+    """Impulse along unit d at offset r that brings the point velocity's d-component to ``target``."""
+    vd = wp.dot(V + wp.cross(w, r), d)
+    k = inv_m + wp.dot(wp.cross(Iinv * wp.cross(r, d), r), d)
+    return (target - vd) / k
+
+
+@wp.func
+def plane_impulse(V: wp.vec3, w: wp.vec3, Iinv: wp.mat33, inv_m: float, r: wp.vec3, n: wp.vec3,
+                  contact: int, mu: float) -> wp.vec3:
+    """Impulse that stops a rigid body point moving into a plane of normal n (with friction)."""
+    vp = V + wp.cross(w, r)
+    vn = wp.dot(vp, n)
+    if vn >= 0.0:
+        return wp.vec3(0.0, 0.0, 0.0)
+    jn = body_impulse(V, w, Iinv, inv_m, r, n, 0.0)
+    J = jn * n
+    if contact != CONTACT_SLIP:
+        vt = vp - vn * n
+        vt_len = wp.length(vt)
+        if vt_len > 1.0e-9:
+            t = vt / vt_len
+            jt = body_impulse(V, w, Iinv, inv_m, r, t, 0.0)  # impulse that stops the sliding
+            if contact == CONTACT_FRICTION:
+                jt = wp.max(jt, -mu * jn)  # Coulomb: |jt| <= μ jn (jt < 0, jn > 0)
+            J = J + jt * t
+    return J
+
+
+@wp.kernel
+def rigid_contacts(
+    x: wp.array(dtype=wp.vec3),
+    vol: wp.array(dtype=float),
+    body_start: wp.array(dtype=int),
+    body_end: wp.array(dtype=int),
+    centre: wp.array(dtype=wp.vec3),
+    orient: wp.array(dtype=wp.quat),
+    inertia_body: wp.array(dtype=wp.mat33),
+    body_mass: wp.array(dtype=float),
+    lin_vel: wp.array(dtype=wp.vec3),
+    ang_vel: wp.array(dtype=wp.vec3),
+    grid: GridInfo,
+    bc: Boundary,
+    iterations: int,
+):
+    """Rigid bodies against the ground and the walls (one thread per body; its particles are a
+    contiguous range).
+
+    The grid alone couples a rigid body to a boundary only through the layer of particles next to
+    it, so its weight would push it slowly through the ground; contacts are therefore also
+    resolved at the body level. Each iteration computes, from the same body velocity, the impulse
+    every touching particle needs (normal, plus sticky / Coulomb friction as the boundary says)
+    and applies their average (Jacobi): unlike sequential impulses this does not depend on the
+    particles' order, so a body resting flat does not start to spin or creep.
+    """
+    b = wp.tid()
+    R = wp.quat_to_matrix(orient[b])
+    Iinv = wp.inverse(R * inertia_body[b] * wp.transpose(R))
+    inv_m = 1.0 / body_mass[b]
+    lo = grid.origin + float(bc.pad) * grid.dx * wp.vec3(1.0, 1.0, 1.0)
+    hi = grid.origin + wp.vec3(float(grid.nx - bc.pad), float(grid.ny - bc.pad), float(grid.nz - bc.pad)) * grid.dx
+    ground_y = grid.origin[1] + float(bc.ground_node) * grid.dx
+    c = centre[b]
+    for it in range(iterations):
+        V = lin_vel[b]
+        w = ang_vel[b]
+        dV = wp.vec3(0.0, 0.0, 0.0)
+        dw = wp.vec3(0.0, 0.0, 0.0)
+        count = float(0.0)
+        for p in range(body_start[b], body_end[b]):
+            xp = x[p]
+            r = xp - c
+            skin = 0.5 * wp.pow(vol[p], 1.0 / 3.0)
+            J = wp.vec3(0.0, 0.0, 0.0)
+            if bc.has_ground != 0:
+                if xp[1] - skin <= ground_y:
+                    J += plane_impulse(V, w, Iinv, inv_m, r, wp.vec3(0.0, 1.0, 0.0), bc.ground_contact,
+                                       bc.ground_friction)
+            elif xp[1] - skin <= lo[1]:
+                J += plane_impulse(V, w, Iinv, inv_m, r, wp.vec3(0.0, 1.0, 0.0), bc.wall_contact, bc.wall_friction)
+            if xp[1] + skin >= hi[1]:
+                J += plane_impulse(V, w, Iinv, inv_m, r, wp.vec3(0.0, -1.0, 0.0), bc.wall_contact, bc.wall_friction)
+            if xp[0] - skin <= lo[0]:
+                J += plane_impulse(V, w, Iinv, inv_m, r, wp.vec3(1.0, 0.0, 0.0), bc.wall_contact, bc.wall_friction)
+            if xp[0] + skin >= hi[0]:
+                J += plane_impulse(V, w, Iinv, inv_m, r, wp.vec3(-1.0, 0.0, 0.0), bc.wall_contact, bc.wall_friction)
+            if xp[2] - skin <= lo[2]:
+                J += plane_impulse(V, w, Iinv, inv_m, r, wp.vec3(0.0, 0.0, 1.0), bc.wall_contact, bc.wall_friction)
+            if xp[2] + skin >= hi[2]:
+                J += plane_impulse(V, w, Iinv, inv_m, r, wp.vec3(0.0, 0.0, -1.0), bc.wall_contact, bc.wall_friction)
+            if wp.length(J) > 0.0:
+                dV += inv_m * J
+                dw += Iinv * wp.cross(r, J)
+                count += 1.0
+        if count == 0.0:
+            break
+        lin_vel[b] = V + dV / count
+        ang_vel[b] = w + dw / count
+
+
+@wp.kernel
+def rigid_integrate(
+    centre: wp.array(dtype=wp.vec3),
+    orient: wp.array(dtype=wp.quat),
+    lin_vel: wp.array(dtype=wp.vec3),
+    ang_vel: wp.array(dtype=wp.vec3),
+    dt: float,
+):
+    b = wp.tid()
+    w = ang_vel[b]
+    centre[b] = centre[b] + dt * lin_vel[b]
+    angle = wp.length(w) * dt
+    if angle > 1.0e-12:
+        orient[b] = wp.normalize(wp.quat_from_axis_angle(w / wp.length(w), angle) * orient[b])
+
+
+@wp.kernel
+def rigid_apply(
+    x: wp.array(dtype=wp.vec3),
+    v: wp.array(dtype=wp.vec3),
+    C: wp.array(dtype=wp.mat33),
+    F: wp.array(dtype=wp.mat33),
+    body: wp.array(dtype=int),
+    offset: wp.array(dtype=wp.vec3),
+    centre: wp.array(dtype=wp.vec3),
+    orient: wp.array(dtype=wp.quat),
+    lin_vel: wp.array(dtype=wp.vec3),
+    ang_vel: wp.array(dtype=wp.vec3),
+    stats: wp.array(dtype=float),
+):
+    """Place rigid particles exactly: x = c + R r₀, v = V + ω × (x − c), C = [ω]×, F = R."""
+    p = wp.tid()
+    b = body[p]
+    if b < 0:
+        return
+    R = wp.quat_to_matrix(orient[b])
+    r = R * offset[p]
+    new_x = centre[b] + r
+    w = ang_vel[b]
+    new_v = lin_vel[b] + wp.cross(w, r)
+    x[p] = new_x
+    v[p] = new_v
+    C[p] = wp.skew(w)
+    F[p] = R
     speed = wp.length(new_v)
     if not (speed == speed) or not (new_x[0] == new_x[0]):
         stats[7] = 1.0
@@ -261,11 +681,64 @@ def g2p(
     wp.atomic_max(stats, 6, new_x[2])
 
 
+# ----------------------------------------------------------------------------------------------
+# Torques: f_p = m_p (I⁻¹τ) × (x_p − c) over the region, so Σf = 0 and Σ r×f = τ exactly
+# ----------------------------------------------------------------------------------------------
+
+
 @wp.kernel
-def reset_stats(stats: wp.array(dtype=float)):
-    """Reset the reduction slots g2p fills: max speed, box min, box max, NaN flag."""
-    stats[0] = 0.0
-    for a in range(3):
-        stats[1 + a] = 1.0e30
-        stats[4 + a] = -1.0e30
-    stats[7] = 0.0
+def torque_reduce(
+    x: wp.array(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
+    torque_mask: wp.array(dtype=int),
+    n_torques: int,
+    sums: wp.array2d(dtype=float),
+):
+    """Per torque region: mass, first moment Σ m x and second moment Σ m x xᵀ (13 numbers)."""
+    p = wp.tid()
+    bits = torque_mask[p]
+    if bits == 0:
+        return
+    m = mass[p]
+    xp = x[p]
+    for t in range(n_torques):
+        if (bits >> t) & 1 != 0:
+            wp.atomic_add(sums, t, 0, m)
+            for a in range(3):
+                wp.atomic_add(sums, t, 1 + a, m * xp[a])
+                for b in range(3):
+                    wp.atomic_add(sums, t, 4 + 3 * a + b, m * xp[a] * xp[b])
+
+
+@wp.kernel
+def apply_torques(
+    x: wp.array(dtype=wp.vec3),
+    mass: wp.array(dtype=float),
+    torque_mask: wp.array(dtype=int),
+    n_torques: int,
+    sums: wp.array2d(dtype=float),
+    taus: wp.array(dtype=wp.vec3),
+    f_static: wp.array(dtype=wp.vec3),
+    f_out: wp.array(dtype=wp.vec3),
+):
+    p = wp.tid()
+    f = f_static[p]
+    bits = torque_mask[p]
+    for t in range(n_torques):
+        if (bits >> t) & 1 != 0:
+            M = sums[t, 0]
+            c = wp.vec3(sums[t, 1], sums[t, 2], sums[t, 3]) / M
+            S = wp.mat33(sums[t, 4], sums[t, 5], sums[t, 6], sums[t, 7], sums[t, 8], sums[t, 9],
+                         sums[t, 10], sums[t, 11], sums[t, 12])
+            # Second moment about the centre of mass, then the inertia tensor tr(S) I − S.
+            Sc = S - M * wp.outer(c, c)
+            inertia = (Sc[0, 0] + Sc[1, 1] + Sc[2, 2]) * wp.identity(n=3, dtype=float) - Sc
+            alpha = wp.inverse(inertia) * taus[t]
+            f = f + mass[p] * wp.cross(alpha, x[p] - c)
+    f_out[p] = f
+
+
+@wp.kernel
+def zero_sums(sums: wp.array2d(dtype=float)):
+    i, j = wp.tid()
+    sums[i, j] = 0.0

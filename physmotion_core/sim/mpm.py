@@ -14,12 +14,13 @@ import numpy as np
 from ..errors import InputError, SimulationError
 from ..types import Ground, Material, Walls
 from . import kernels as K
-from .materials import IMPLEMENTED_MODELS, MODEL_IDS
+from .materials import IMPLEMENTED_MODELS, kernel_params
 
 log = logging.getLogger("physmotion.sim")
 
 _CONTACT_IDS = {"sticky": 0, "slip": 1, "friction": 2}
 PAD = 3  # cells of boundary padding at every face of the domain
+MAX_TORQUES = 30  # torque regions are a per-particle bit mask
 
 
 def _warp():
@@ -39,6 +40,8 @@ def resolve_device(device: str = "auto") -> str:
         return "cuda:0" if wp.is_cuda_available() else "cpu"
     if device.startswith("cuda") and not wp.is_cuda_available():
         raise InputError(f"device '{device}' was requested but Warp finds no CUDA device; use 'cpu' or 'auto'")
+    if device != "cpu" and not device.startswith("cuda"):
+        raise InputError(f"device must be 'auto', 'cpu', 'cuda' or 'cuda:N'; got '{device}'")
     return device
 
 
@@ -85,13 +88,18 @@ class Domain:
 def estimate_bytes(num_particles: int, dims: Sequence[int], frames: int, recorded: int) -> dict:
     """Memory the run will need: device arrays, and the host copy of the recorded trajectory."""
     nodes = int(np.prod(dims))
-    device = num_particles * (12 * 3 + 36 * 2 + 4 * 3) + nodes * 28
+    # x v f_ext (vec3) + C F tau (mat33) + rot (quat) + mass vol plastic mat flags body torque (scalars)
+    device = num_particles * (12 * 3 + 36 * 3 + 16 + 4 * 7) + nodes * 32
     host = (frames + 1) * recorded * (12 + 36)
     return {"device": device, "host": host, "nodes": nodes}
 
 
 class MPMSolver:
-    """MLS-MPM on a dense Warp grid, with grid work limited to the particles' active box."""
+    """MLS-MPM on a dense Warp grid, with grid work limited to the particles' active box.
+
+    Per particle: a material index, flags (anchored, rigid), an optional rigid body index, and a
+    bit mask of the torque regions it belongs to.
+    """
 
     def __init__(
         self,
@@ -107,12 +115,15 @@ class MPMSolver:
         cfl: float = 0.4,
         device: str = "cpu",
         v0: Optional[np.ndarray] = None,
+        anchored: Optional[np.ndarray] = None,
+        body: Optional[np.ndarray] = None,
+        torque_mask: Optional[np.ndarray] = None,
     ):
         for m in materials:
             m.validate()
             if m.model not in IMPLEMENTED_MODELS:
-                raise InputError(f"Material '{m.name}' uses the '{m.model}' model, which this version of the "
-                                 f"simulator does not implement yet; available: {', '.join(IMPLEMENTED_MODELS)}")
+                raise InputError(f"Material '{m.name}' uses the '{m.model}' model, which this simulator does "
+                                 f"not implement; available: {', '.join(IMPLEMENTED_MODELS)}")
         self.wp = wp = _warp()
         self.device = device
         t0 = time.perf_counter()
@@ -130,35 +141,61 @@ class MPMSolver:
         self.substeps = 0
         self.dt_min = math.inf
         self.dt_max = 0.0
+        mat_index = np.asarray(mat_index, dtype=np.int64)
 
         density = np.array([m.density for m in materials], dtype=np.float64)[mat_index]
         mass = (density * volume).astype(np.float32)
         self.mass_np = mass
-        self.wave_speed = max(m.wave_speed() for m in materials)
+        self.mat_index = mat_index
+        self._c0 = max(m.wave_speed() for m in materials)
+        self._c = self._c0
+        # Explicit viscosity is stable for dt <= ρ dx² / (6 η) (diffusion in 3-D); keep half of it.
+        visc = [m.density / m.viscosity for m in materials if m.model == "fluid" and m.viscosity > 0]
+        self._dt_viscous = 0.5 * min(visc) * domain.dx**2 / 6.0 if visc else math.inf
+        self._accel_static = float(np.linalg.norm(self.gravity))
+        self._accel_extra = 0.0
+
+        flags = np.zeros(n, np.int32)
+        if anchored is not None:
+            flags[np.asarray(anchored, bool)] |= 1
+        rigid_model = np.array([m.model == "rigid" for m in materials])[mat_index]
+        body_np = np.full(n, -1, np.int32) if body is None else np.asarray(body, np.int32).copy()
+        if rigid_model.any() and (body_np[rigid_model] < 0).any():
+            raise InputError("rigid particles need a body index (one per rigid object)")
+        body_np[~rigid_model] = -1
+        flags[rigid_model] |= 2
+        self.body_np = body_np
+        self.n_bodies = int(body_np.max()) + 1 if (body_np >= 0).any() else 0
+        tmask = np.zeros(n, np.int32) if torque_mask is None else np.asarray(torque_mask, np.int32)
+        self.n_torques = int(np.max(np.floor(np.log2(np.maximum(tmask, 1)))) + 1) if tmask.any() else 0
 
         with wp.ScopedDevice(device):
             self.x = wp.array(x.astype(np.float32), dtype=wp.vec3)
             self.v = wp.array(np.zeros((n, 3), np.float32) if v0 is None else v0.astype(np.float32), dtype=wp.vec3)
             self.C = wp.zeros(n, dtype=wp.mat33)
-            self.rot = wp.array(np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1)), dtype=wp.quat)
             self.F = wp.array(np.tile(np.eye(3, dtype=np.float32), (n, 1, 1)), dtype=wp.mat33)
+            self.tau = wp.zeros(n, dtype=wp.mat33)
+            self.rot = wp.array(np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1)), dtype=wp.quat)
+            snow = np.array([m.model == "snow" for m in materials])[mat_index]
+            self.plastic = wp.array(np.where(snow, 1.0, 0.0).astype(np.float32), dtype=float)  # snow: Jp = 1
             self.mass = wp.array(mass, dtype=float)
             self.vol = wp.array(volume.astype(np.float32), dtype=float)
             self.mat_id = wp.array(mat_index.astype(np.int32), dtype=int)
-            self.f_ext = wp.zeros(n, dtype=wp.vec3)
-            params = []
-            for m in materials:
-                p = K.MaterialParams()
-                p.model = MODEL_IDS[m.model]
-                p.mu = m.mu
-                p.lam = m.lam
-                p.density = m.density
-                params.append(p)
-            self.material_table = wp.array(params, dtype=K.MaterialParams)
+            self.flags = wp.array(flags, dtype=int)
+            self.f_static = wp.zeros(n, dtype=wp.vec3)
+            self.f_total = wp.zeros(n, dtype=wp.vec3)
+            self.material_table = wp.array([kernel_params(m) for m in materials], dtype=K.MaterialParams)
             self.grid_m = wp.zeros(domain.dims, dtype=float)
             self.grid_mv = wp.zeros(domain.dims, dtype=wp.vec3)
             self.grid_v = wp.zeros(domain.dims, dtype=wp.vec3)
-            self.stats = wp.zeros(8, dtype=float)
+            self.grid_fix = wp.zeros(domain.dims, dtype=int)
+            self.stats = wp.zeros(9, dtype=float)
+            self.torque_mask = wp.array(tmask, dtype=int)
+            self.torque_sums = wp.zeros((max(self.n_torques, 1), 13), dtype=float)
+            self.torque_taus = wp.zeros(max(self.n_torques, 1), dtype=wp.vec3)
+            self._torques_on = False
+            if self.n_bodies:
+                self._init_bodies(x, mass, volume)
 
         g = K.GridInfo()
         g.origin = wp.vec3(*domain.origin.astype(np.float32))
@@ -176,56 +213,137 @@ class MPMSolver:
         bc.pad = PAD
         self.bc = bc
 
-        v_init = np.zeros(3) if v0 is None else np.abs(v0).max(axis=0)
-        self._vmax = float(np.linalg.norm(v_init)) if v0 is None else float(np.linalg.norm(v0, axis=1).max())
+        self._vmax = 0.0 if v0 is None else float(np.linalg.norm(v0, axis=1).max())
+        self.frame_vmax = self._vmax
         self._box = (x.min(axis=0), x.max(axis=0))
         self._check_box(frame=0)
 
-    # -- host-side helpers ------------------------------------------------------------------
+    # -- rigid bodies -------------------------------------------------------------------------
+    def _init_bodies(self, x: np.ndarray, mass: np.ndarray, volume: np.ndarray) -> None:
+        wp = self.wp
+        nb = self.n_bodies
+        centres = np.zeros((nb, 3))
+        inertia = np.zeros((nb, 3, 3))
+        masses = np.zeros(nb)
+        offsets = np.zeros_like(x, dtype=np.float64)
+        starts, ends = np.zeros(nb, np.int32), np.zeros(nb, np.int32)
+        for b in range(nb):
+            sel = self.body_np == b
+            idx = np.nonzero(sel)[0]
+            if idx[-1] - idx[0] + 1 != len(idx):
+                raise InputError("a rigid body's particles must be contiguous (fill objects one after another)")
+            starts[b], ends[b] = idx[0], idx[-1] + 1
+            m = mass[sel].astype(np.float64)
+            c = (x[sel] * m[:, None]).sum(0) / m.sum()
+            r = x[sel] - c
+            # Point masses plus each particle's own cube (side s: m s²/6 about any axis).
+            s2 = volume[sel].astype(np.float64) ** (2.0 / 3.0)
+            inertia[b] = (np.eye(3) * ((m * ((r * r).sum(1) + s2 / 6.0)).sum()) - (r.T * m) @ r)
+            centres[b], masses[b] = c, m.sum()
+            offsets[sel] = r
+        self.body_centre0 = centres
+        self.body_inertia = inertia
+        self.body_mass_np = masses
+        self.body = wp.array(self.body_np, dtype=int)
+        self.body_offset = wp.array(offsets.astype(np.float32), dtype=wp.vec3)
+        self.body_centre = wp.array(centres.astype(np.float32), dtype=wp.vec3)
+        self.body_orient = wp.array(np.tile(np.array([0, 0, 0, 1], np.float32), (nb, 1)), dtype=wp.quat)
+        self.body_inertia_w = wp.array(inertia.astype(np.float32), dtype=wp.mat33)
+        self.body_mass = wp.array(masses.astype(np.float32), dtype=float)
+        self.body_start = wp.array(starts, dtype=int)
+        self.body_end = wp.array(ends, dtype=int)
+        self.body_p = wp.zeros(nb, dtype=wp.vec3)
+        self.body_l = wp.zeros(nb, dtype=wp.vec3)
+        self.body_v = wp.zeros(nb, dtype=wp.vec3)
+        self.body_w = wp.zeros(nb, dtype=wp.vec3)
+
+    # -- host-side controls -------------------------------------------------------------------
     def set_external_forces(self, f: np.ndarray) -> None:
-        """Per-particle external forces (N) for the following substeps."""
-        self.f_ext.assign(self.wp.array(f.astype(np.float32), dtype=self.wp.vec3, device=self.device))
+        """Per-particle external forces (N) for the following substeps (not counting torques)."""
+        self.f_static.assign(self.wp.array(f.astype(np.float32), dtype=self.wp.vec3, device=self.device))
+        m = self.mass_np.astype(np.float64)
+        self._accel_extra = float((np.linalg.norm(f, axis=1) / m).max()) if len(m) else 0.0
+
+    def set_torques(self, taus: np.ndarray, accel_bound: float = 0.0) -> None:
+        """Torque vectors (n_torques, 3) N·m, zero for inactive ones; ``accel_bound`` bounds |α × r|."""
+        taus = np.asarray(taus, np.float64).reshape(-1, 3)
+        self._torques_on = bool(np.any(taus != 0))
+        if self.n_torques:
+            self.torque_taus.assign(self.wp.array(taus.astype(np.float32), dtype=self.wp.vec3, device=self.device))
+        self._accel_torque = accel_bound if self._torques_on else 0.0
 
     def stable_dt(self) -> float:
-        """Largest stable step: CFL on the elastic wave speed plus the fastest particle."""
-        return self.cfl * self.domain.dx / (self.wave_speed + self._vmax)
+        """Largest stable step: CFL on the current sound speed plus the fastest particle, an
+        acceleration bound (a particle starting from rest must not cross a cell in one step),
+        and the explicit-viscosity limit."""
+        dx = self.domain.dx
+        dt = self.cfl * dx / max(self._c + self._vmax, 1e-12)
+        accel = self._accel_static + self._accel_extra + getattr(self, "_accel_torque", 0.0)
+        if accel > 0:
+            dt = min(dt, math.sqrt(self.cfl * dx / accel))
+        return min(dt, self._dt_viscous)
 
     def _check_box(self, frame: int) -> None:
         lo, hi = self._box
+        name = self.materials[0].name if len(self.materials) == 1 else "/".join(m.name for m in self.materials)
         if not (np.all(np.isfinite(lo)) and np.all(np.isfinite(hi))):
             raise SimulationError(
-                f"Simulation became invalid (NaN/Inf positions) at frame {frame}, t={self.t:.4f}s, material "
-                f"'{self.materials[0].name}'. Likely cause: a force or stiffness too large for the grid; "
-                "lower the force, E, or raise grid_res.", frame=frame, material=self.materials[0].name)
+                f"Simulation became invalid (NaN/Inf values) at frame {frame}, t={self.t:.4f}s, material "
+                f"'{name}'. Likely cause: a force or stiffness too large for the grid; lower the force or E, "
+                "or raise grid_res.", frame=frame, material=name)
         d = self.domain
         node_lo = np.floor((lo - d.origin) / d.dx - 0.5).astype(int)
         node_hi = np.floor((hi - d.origin) / d.dx - 0.5).astype(int) + 2
         if np.any(node_lo < 0) or np.any(node_hi > np.asarray(d.dims) - 1):
             raise SimulationError(
                 f"Particles left the simulation domain at frame {frame}, t={self.t:.4f}s (material "
-                f"'{self.materials[0].name}', box {lo.round(3).tolist()}..{hi.round(3).tolist()} m, domain "
+                f"'{name}', box {lo.round(3).tolist()}..{hi.round(3).tolist()} m, domain "
                 f"{d.lo.round(3).tolist()}..{d.hi.round(3).tolist()} m). Likely cause: a force far too strong "
-                "for the object's mass; lower it or enlarge domain_margin.",
-                frame=frame, material=self.materials[0].name)
+                "for the object's mass; lower it or enlarge domain_margin.", frame=frame, material=name)
         self._node_lo = node_lo
         self._node_hi = node_hi
 
-    # -- stepping ---------------------------------------------------------------------------
+    # -- stepping -----------------------------------------------------------------------------
     def substep(self, dt: float, frame: int = 0) -> None:
         wp = self.wp
         lo = self._node_lo
         span = tuple(int(s) for s in (self._node_hi - lo + 1))
         with wp.ScopedDevice(self.device):
-            wp.launch(K.p2g, dim=self.n, inputs=[self.x, self.v, self.C, self.F, self.rot, self.mass, self.vol, self.mat_id,
-                                                 self.material_table, self.f_ext, self.grid, dt,
-                                                 self.grid_m, self.grid_mv])
+            forces = self.f_static
+            if self._torques_on:
+                wp.launch(K.zero_sums, dim=self.torque_sums.shape, inputs=[self.torque_sums])
+                wp.launch(K.torque_reduce, dim=self.n, inputs=[self.x, self.mass, self.torque_mask,
+                                                               self.n_torques, self.torque_sums])
+                wp.launch(K.apply_torques, dim=self.n, inputs=[self.x, self.mass, self.torque_mask, self.n_torques,
+                                                               self.torque_sums, self.torque_taus, self.f_static,
+                                                               self.f_total])
+                forces = self.f_total
+            wp.launch(K.p2g, dim=self.n, inputs=[self.x, self.v, self.C, self.tau, self.mass, self.vol, self.flags,
+                                                 forces, self.grid, dt, self.grid_m, self.grid_mv, self.grid_fix])
             gvec = wp.vec3(*self.gravity.astype(np.float32))
-            wp.launch(K.grid_update, dim=span, inputs=[self.grid_m, self.grid_mv, self.grid_v,
+            wp.launch(K.grid_update, dim=span, inputs=[self.grid_m, self.grid_mv, self.grid_v, self.grid_fix,
                                                        wp.vec3i(int(lo[0]), int(lo[1]), int(lo[2])),
                                                        self.grid, self.bc, gvec, dt])
             wp.launch(K.reset_stats, dim=1, inputs=[self.stats])
-            wp.launch(K.g2p, dim=self.n, inputs=[self.x, self.v, self.C, self.F, self.grid_v, self.grid, dt,
-                                                 self.stats])
+            wp.launch(K.g2p, dim=self.n, inputs=[self.x, self.v, self.C, self.F, self.rot, self.plastic, self.tau,
+                                                 self.mat_id, self.material_table, self.flags, self.grid_v,
+                                                 self.grid, dt, self.stats])
+            if self.n_bodies:
+                wp.launch(K.rigid_reduce, dim=self.n, inputs=[self.x, self.v, self.mass, self.body, self.body_centre,
+                                                              self.body_p, self.body_l])
+                wp.launch(K.rigid_velocity, dim=self.n_bodies, inputs=[self.body_orient, self.body_inertia_w,
+                                                                        self.body_mass, self.body_p, self.body_l,
+                                                                        self.body_v, self.body_w])
+                wp.launch(K.rigid_contacts, dim=self.n_bodies, inputs=[self.x, self.vol, self.body_start,
+                                                                        self.body_end, self.body_centre,
+                                                                        self.body_orient, self.body_inertia_w,
+                                                                        self.body_mass, self.body_v, self.body_w,
+                                                                        self.grid, self.bc, 8])
+                wp.launch(K.rigid_integrate, dim=self.n_bodies, inputs=[self.body_centre, self.body_orient,
+                                                                         self.body_v, self.body_w, dt])
+                wp.launch(K.rigid_apply, dim=self.n, inputs=[self.x, self.v, self.C, self.F, self.body,
+                                                             self.body_offset, self.body_centre, self.body_orient,
+                                                             self.body_v, self.body_w, self.stats])
         s = self.stats.numpy()
         self.t += dt
         self.substeps += 1
@@ -235,9 +353,12 @@ class MPMSolver:
             self._box = (np.full(3, np.nan), np.full(3, np.nan))
         else:
             self._vmax = float(s[0])
+            self.frame_vmax = max(self.frame_vmax, self._vmax)
+            self._c = math.sqrt(float(s[8])) if s[8] > 0 else 0.0  # current stiffness, not the rest value
             self._box = (s[1:4].astype(np.float64), s[4:7].astype(np.float64))
         self._check_box(frame)
 
+    # -- read-back ------------------------------------------------------------------------------
     def positions(self) -> np.ndarray:
         return self.x.numpy().copy()
 
@@ -247,3 +368,13 @@ class MPMSolver:
     def velocities(self) -> np.ndarray:
         return self.v.numpy().copy()
 
+    def plastic_state(self) -> np.ndarray:
+        return self.plastic.numpy().copy()
+
+    def body_state(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+        """Rigid bodies' centres, orientations (xyzw), linear and angular velocities."""
+        if not self.n_bodies:
+            z = np.zeros((0, 3))
+            return z, np.zeros((0, 4)), z, z
+        return (self.body_centre.numpy().copy(), self.body_orient.numpy().copy(), self.body_v.numpy().copy(),
+                self.body_w.numpy().copy())

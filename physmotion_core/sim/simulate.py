@@ -1,11 +1,11 @@
-"""simulate(): Gaussians + material + conditions → a trajectory (SimResult)."""
+"""simulate(): Gaussians + materials + conditions → a trajectory (SimResult)."""
 
 from __future__ import annotations
 
 import logging
 import math
 import time
-from typing import Optional
+from typing import Optional, Sequence, Union
 
 import numpy as np
 import torch
@@ -13,63 +13,83 @@ import torch
 from ..errors import InputError
 from ..memory import device_available_bytes, fmt_bytes, host_available_bytes
 from ..progress import ProgressFn, Throttle
-from ..types import (AUTO_GRID_RES, Anchor, Camera, Conditions, Force, Gaussians, InitialVelocity, Material, SimResult,
+from ..types import (Anchor, Camera, Conditions, Force, Gaussians, InitialVelocity, Material, SimResult,
                      SimSettings, Torque)
 from .fill import fill_particles
-from .mpm import Domain, MPMSolver, estimate_bytes, resolve_device
+from .mpm import MAX_TORQUES, Domain, MPMSolver, estimate_bytes, resolve_device
 from .regions import select
 
 log = logging.getLogger("physmotion.sim")
 
+REST_FRAMES = 3  # consecutive still frames before a scene counts as at rest
 
-class _ForceSchedule:
-    """Per-particle external forces as a sum of time-windowed terms."""
 
-    def __init__(self, n: int):
-        self.n = n
-        self.terms: list[tuple[float, float, np.ndarray]] = []
+class _Schedule:
+    """Time-windowed terms (forces, torques): which are active at t, and when that next changes."""
 
-    def add(self, t0: float, t1: float, f: np.ndarray) -> None:
-        self.terms.append((t0, t1, f))
+    def __init__(self):
+        self.windows: list[tuple[float, float]] = []
+
+    def add(self, t0: float, t1: float) -> int:
+        self.windows.append((t0, t1))
+        return len(self.windows) - 1
 
     def active(self, t: float) -> tuple[int, ...]:
-        return tuple(i for i, (t0, t1, _) in enumerate(self.terms) if t0 <= t < t1)
-
-    def total(self, active: tuple[int, ...]) -> np.ndarray:
-        f = np.zeros((self.n, 3), np.float64)
-        for i in active:
-            f += self.terms[i][2]
-        return f
+        return tuple(i for i, (t0, t1) in enumerate(self.windows) if t0 <= t < t1)
 
     def next_edge(self, t: float) -> float:
-        edges = [e for t0, t1, _ in self.terms for e in (t0, t1) if e > t + 1e-12]
+        edges = [e for w in self.windows for e in w if e > t + 1e-12]
         return min(edges) if edges else math.inf
+
+    def pending(self, t: float) -> bool:
+        """Is any term active now or still to come?"""
+        return any(t1 > t + 1e-12 for _, t1 in self.windows)
+
+
+def _as_materials(material, n_objects: int) -> list[Material]:
+    mats = list(material) if isinstance(material, (list, tuple)) else [material]
+    if not mats:
+        raise InputError("At least one material is needed")
+    if len(mats) == 1 and n_objects > 1:
+        mats = mats * n_objects
+    if len(mats) != n_objects:
+        raise InputError(f"The scene has {n_objects} objects but {len(mats)} materials were given; give one "
+                         "material per object (Combine Objects pairs them up)")
+    for m in mats:
+        if not isinstance(m, Material):
+            raise InputError(f"Not a Material: {m!r}")
+        m.validate()
+    return mats
 
 
 def simulate(
     gaussians: Gaussians,
-    material: Material,
+    material: Union[Material, Sequence[Material]],
     conditions: Conditions | None = None,
     settings: SimSettings | None = None,
     *,
     camera: Optional[Camera] = None,
     progress: Optional[ProgressFn] = None,
+    record_all: bool = False,
 ) -> SimResult:
-    """Simulate the object the Gaussians describe and return its trajectory.
+    """Simulate the object(s) the Gaussians describe and return their trajectory.
 
-    The solid the Gaussians enclose is filled with particles (``fill_particles``); each Gaussian
-    follows the particle of its voxel. Time steps are chosen every substep from the CFL limits;
-    frames are recorded at t = k / fps for k = 0..frames-1.
+    Each object (``gaussians.object_ids``; one object if absent) is filled with particles on its
+    own (``fill_particles``) and gets its material (``material`` may be one per object). Every
+    Gaussian follows the particle of its voxel. Time steps come from the CFL limits every
+    substep; frames are recorded at t = k / fps for k = 0..frames-1. ``record_all`` keeps every
+    particle's trajectory (default: only those carrying Gaussians).
     """
     settings = settings or SimSettings()
     settings.validate()
     conditions = conditions or Conditions()
-    material.validate()
     gaussians.validate("the Gaussians to simulate")
-    unsupported = [type(c).__name__ for c in conditions if isinstance(c, (Torque, Anchor))]
-    if unsupported:
-        raise InputError(f"Condition(s) {sorted(set(unsupported))} are not supported by this version of the "
-                         "simulator yet; remove them or use Force / InitialVelocity / Ground / Walls / Gravity")
+    obj_ids = (gaussians.object_ids.cpu().numpy().astype(np.int64) if gaussians.object_ids is not None
+               else np.zeros(len(gaussians), np.int64))
+    objects = np.unique(obj_ids)
+    if objects.min() < 0 or not np.array_equal(objects, np.arange(objects.max() + 1)):
+        raise InputError(f"object_ids must number the objects 0..n-1 without gaps; got {objects.tolist()}")
+    materials = _as_materials(material, len(objects))
     device = resolve_device(settings.device)
     t_start = time.perf_counter()
 
@@ -77,19 +97,37 @@ def simulate(
     size = float(np.max(means.max(0) - means.min(0)))
     if not (size > 0):
         raise InputError("The Gaussians have zero extent; the object must have a size to simulate")
-    grid_res = settings.grid_res or AUTO_GRID_RES["cuda" if device.startswith("cuda") else "cpu"]
+    grid_res = settings.resolved_grid_res(device)
     dx = size / grid_res
     per_axis = round(settings.particles_per_cell ** (1 / 3))
-    parts = fill_particles(gaussians, dx / per_axis, max_particles=settings.max_particles, seed=settings.seed)
-    if parts.spacing > dx / per_axis * 1.001:
-        log.warning("particle count capped at max_particles=%d: particle spacing raised from %.4g m to %.4g m",
-                    settings.max_particles, dx / per_axis, parts.spacing)
-    x0 = parts.x
+    spacing = dx / per_axis
+
+    # Fill each object on its own, so the gap between two objects is never filled in.
+    xs, vols, obj_of, binding = [], [], [], np.zeros(len(gaussians), np.int64)
+    offset = 0
+    budget = settings.max_particles
+    for o in objects:
+        sel = np.nonzero(obj_ids == o)[0]
+        g_o = gaussians.subset(torch.from_numpy(sel))
+        g_o.object_ids = None
+        share = max(1, int(budget * len(sel) / len(gaussians)))
+        parts = fill_particles(g_o, spacing, max_particles=share, seed=settings.seed + int(o))
+        if parts.spacing > spacing * 1.001:
+            log.warning("object %d: particle count capped (max_particles=%d): spacing raised from %.4g m to %.4g m",
+                        o, settings.max_particles, spacing, parts.spacing)
+        xs.append(parts.x)
+        vols.append(parts.volume)
+        obj_of.append(np.full(len(parts.x), o, np.int64))
+        binding[sel] = parts.binding + offset
+        offset += len(parts.x)
+    x0 = np.concatenate(xs)
+    volume = np.concatenate(vols)
+    particle_obj = np.concatenate(obj_of)
+
     ground = conditions.ground()
     domain = Domain.around(x0.min(0), x0.max(0), dx, settings.domain_margin, ground)
-
-    bound = np.unique(parts.binding)
-    need = estimate_bytes(x0.shape[0], domain.dims, settings.frames, bound.shape[0])
+    recorded = np.arange(len(x0)) if record_all else np.unique(binding)
+    need = estimate_bytes(x0.shape[0], domain.dims, settings.frames, recorded.shape[0])
     dev_free = device_available_bytes(device)
     if device.startswith("cuda"):
         if need["device"] > 0.9 * dev_free:
@@ -103,78 +141,144 @@ def simulate(
                          f"{fmt_bytes(host_available_bytes())} is available. Lower frames, grid_res or "
                          "particles_per_cell.")
 
-    # Initial velocities.
+    def region(r, what):
+        return select(r, x0, particle_obj, camera, what)
+
+    # Initial velocities (ω about the region's centre of mass).
     v0 = np.zeros_like(x0)
     for iv in conditions.of(InitialVelocity):
-        sel = select(iv.region, x0, parts.object_id, camera, "initial velocity")
-        mass = parts.volume[sel]
+        sel = region(iv.region, "initial velocity")
+        mass = volume[sel]
         com = (x0[sel] * mass[:, None]).sum(0) / mass.sum()
         v0[sel] += np.asarray(iv.velocity) + np.cross(np.asarray(iv.angular_velocity), x0[sel] - com)
+    anchored = np.zeros(len(x0), bool)
+    for a in conditions.of(Anchor):
+        anchored |= region(a.region, "anchor")
+    # Rigid objects: one body each.
+    body = np.full(len(x0), -1, np.int64)
+    rigid_objects = [o for o in objects if materials[o].model == "rigid"]
+    for b, o in enumerate(rigid_objects):
+        body[particle_obj == o] = b
+    if np.any(anchored & (body >= 0)):
+        raise InputError("An anchor region covers a rigid object; anchor a deformable object, or give the rigid "
+                         "object no motion instead (it will rest on the ground)")
+    torques = conditions.of(Torque)
+    if len(torques) > MAX_TORQUES:
+        raise InputError(f"At most {MAX_TORQUES} torques are supported; got {len(torques)}")
+    torque_mask = np.zeros(len(x0), np.int64)
+    for k, tq in enumerate(torques):
+        torque_mask[region(tq.region, "torque")] |= 1 << k
 
-    solver = MPMSolver(x0, parts.volume, np.zeros(x0.shape[0], np.int64), [material], domain,
-                       gravity=conditions.gravity(), ground=ground, walls=conditions.walls(),
-                       cfl=settings.cfl, device=device, v0=v0)
+    solver = MPMSolver(x0, volume, particle_obj, materials, domain, gravity=conditions.gravity(), ground=ground,
+                       walls=conditions.walls(), cfl=settings.cfl, device=device, v0=v0, anchored=anchored,
+                       body=body, torque_mask=torque_mask)
 
-    schedule = _ForceSchedule(x0.shape[0])
-    for force in conditions.of(Force):
-        sel = select(force.region, x0, parts.object_id, camera, "force")
+    forces = conditions.of(Force)
+    f_terms, schedule = [], _Schedule()
+    for force in forces:
+        sel = region(force.region, "force")
         m = solver.mass_np[sel].astype(np.float64)
         f = np.zeros((x0.shape[0], 3))
         f[sel] = np.asarray(force.vector)[None, :] * (m / m.sum())[:, None]
-        schedule.add(force.t_start, force.t_end, f)
+        f_terms.append(f)
+        schedule.add(force.t_start, force.t_end)
+    torque_bounds = []
+    for k, tq in enumerate(torques):
+        sel = (torque_mask >> k) & 1 == 1
+        m = solver.mass_np[sel].astype(np.float64)
+        r = x0[sel] - (x0[sel] * m[:, None]).sum(0) / m.sum()
+        inertia = np.eye(3) * (m * (r * r).sum(1)).sum() - (r.T * m) @ r
+        alpha = np.linalg.norm(np.linalg.solve(inertia, np.asarray(tq.vector)))
+        torque_bounds.append(alpha * float(np.linalg.norm(r, axis=1).max()))
+        schedule.add(tq.t_start, tq.t_end)
+
+    def apply_schedule(active: tuple[int, ...]) -> None:
+        f = np.zeros((x0.shape[0], 3))
+        for i in active:
+            if i < len(forces):
+                f += f_terms[i]
+        solver.set_external_forces(f)
+        taus = np.zeros((max(len(torques), 1), 3))
+        bound = 0.0
+        for i in active:
+            if i >= len(forces):
+                taus[i - len(forces)] = torques[i - len(forces)].vector
+                bound += torque_bounds[i - len(forces)]
+        solver.set_torques(taus, bound)
 
     frames = settings.frames
     frame_dt = 1.0 / settings.fps
-    xs = torch.empty(frames, bound.shape[0], 3)
-    Fs = torch.empty(frames, bound.shape[0], 3, 3)
-    xs[0] = torch.from_numpy(x0[bound])
-    Fs[0] = torch.eye(3)
+    n_rec = recorded.shape[0]
+    xs_t = torch.empty(frames, n_rec, 3)
+    Fs_t = torch.empty(frames, n_rec, 3, 3)
+    plastic_t = torch.empty(frames, n_rec)
+    xs_t[0] = torch.from_numpy(x0[recorded])
+    Fs_t[0] = torch.eye(3)
+    plastic_t[0] = torch.from_numpy(solver.plastic_state()[recorded])
     tick = Throttle(progress, 0.2)
     tick(0, frames - 1)
     active = None
+    still_frames = 0
+    rest_from = None
     t_loop = time.perf_counter()
     for k in range(1, frames):
         t_frame = k * frame_dt
-        while solver.t < t_frame - 1e-9:
-            now_active = schedule.active(solver.t)
-            if now_active != active:
-                solver.set_external_forces(schedule.total(now_active))
-                active = now_active
-            dt = min(solver.stable_dt(), t_frame - solver.t, schedule.next_edge(solver.t) - solver.t)
-            solver.substep(dt, frame=k)
-            if solver.substeps % 64 == 0:
-                tick(k - 1, frames - 1)  # lets Cancel act mid-frame on slow frames
-        xs[k] = torch.from_numpy(solver.positions()[bound])
-        Fs[k] = torch.from_numpy(solver.deformation()[bound])
+        if rest_from is None:
+            solver.frame_vmax = 0.0
+            while solver.t < t_frame - 1e-9:
+                now_active = schedule.active(solver.t)
+                if now_active != active:
+                    apply_schedule(now_active)
+                    active = now_active
+                dt = min(solver.stable_dt(), t_frame - solver.t, schedule.next_edge(solver.t) - solver.t)
+                solver.substep(dt, frame=k)
+                if solver.substeps % 64 == 0:
+                    tick(k - 1, frames - 1)  # lets Cancel act mid-frame on slow frames
+            still = settings.rest_speed > 0 and solver.frame_vmax < settings.rest_speed
+            still_frames = still_frames + 1 if still and not schedule.pending(solver.t) else 0
+            if still_frames >= REST_FRAMES:
+                rest_from = k  # at rest: later frames repeat this state without substepping
+                log.info("scene at rest from frame %d (max speed %.2g m/s): substepping stops", k, solver.frame_vmax)
+            xs_t[k] = torch.from_numpy(solver.positions()[recorded])
+            Fs_t[k] = torch.from_numpy(solver.deformation()[recorded])
+            plastic_t[k] = torch.from_numpy(solver.plastic_state()[recorded])
+        else:
+            xs_t[k], Fs_t[k], plastic_t[k] = xs_t[k - 1], Fs_t[k - 1], plastic_t[k - 1]
         tick(k, frames - 1)
-
     loop_s = time.perf_counter() - t_loop
+
     remap = np.full(x0.shape[0], -1, np.int64)
-    remap[bound] = np.arange(bound.shape[0])
+    remap[recorded] = np.arange(n_rec)
     wall = time.perf_counter() - t_start
     stats = {
         "device": device,
         "particles": int(x0.shape[0]),
-        "particle_spacing": parts.spacing,
+        "objects": int(len(objects)),
+        "particle_spacing": float(spacing),
         "dx": dx,
         "grid_res": grid_res,
         "grid_dims": list(domain.dims),
         "substeps": solver.substeps,
         "dt_min": solver.dt_min,
         "dt_max": solver.dt_max,
+        "rest_from_frame": rest_from,
         "wall_time_s": wall,
         "kernel_load_s": solver.kernel_load_s,
         "stepping_s": loop_s,
         "particle_substeps_per_s": x0.shape[0] * solver.substeps / max(loop_s, 1e-9),
+        "mass_kg": float(solver.mass_np.astype(np.float64).sum()),
     }
     log.info("simulated %d frames: %d particles, %d substeps, %.1fs", frames, x0.shape[0], solver.substeps, wall)
     return SimResult(
         rest=gaussians.detach(),
         times=torch.arange(frames, dtype=torch.float64) * frame_dt,
-        x=xs,
-        F=Fs,
-        binding=torch.from_numpy(remap[parts.binding]),
-        rest_particles=torch.from_numpy(x0[bound]),
-        material=material,
+        x=xs_t,
+        F=Fs_t,
+        binding=torch.from_numpy(remap[binding]),
+        rest_particles=torch.from_numpy(x0[recorded]),
+        material=materials[0],
+        materials=materials,
         stats=stats,
+        plastic=plastic_t,
+        particle_object=torch.from_numpy(particle_obj[recorded]),
     )
