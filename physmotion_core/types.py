@@ -672,6 +672,7 @@ class SimSettings:
     domain_margin: float = 1.0  # free space around the object, in object sizes, for it to move into
     max_particles: int = 200_000
     device: str = "auto"  # "cpu", "cuda", "cuda:N" or "auto"
+    min_substeps: int = 8  # per frame, whatever the CFL allows: bounds the integrator's O(dt) drift
     quality: str = "standard"  # draft / standard / high: scales the automatic grid_res (see QUALITY)
     rest_speed: float = 2e-3  # m/s: a scene whose particles all stay slower than this for 3 frames, with
     #                         no force still to come, stops substepping and repeats its state; 0 = off
@@ -692,6 +693,8 @@ class SimSettings:
             raise InputError(f"domain_margin must be in [0, 20] object sizes; got {self.domain_margin}")
         if self.max_particles < 1:
             raise InputError(f"max_particles must be positive; got {self.max_particles}")
+        if not (isinstance(self.min_substeps, int) and 1 <= self.min_substeps <= 100_000):
+            raise InputError(f"min_substeps must be an integer in [1, 100000]; got {self.min_substeps}")
         if self.quality not in QUALITY:
             raise InputError(f"quality must be one of {tuple(QUALITY)}; got '{self.quality}'")
         if not (math.isfinite(self.rest_speed) and self.rest_speed >= 0):

@@ -197,8 +197,11 @@ def p2g(
     m = mass[p]
     # MLS-MPM: the stress enters as an affine momentum term -dt * V * (4/dx^2) * tau.
     affine = (-dt * vol[p] * 4.0 * grid.inv_dx * grid.inv_dx) * tau[p] + m * C[p]
-    mv = m * v[p] + dt * f_ext[p]
-    anchored = (flags[p] & FLAG_ANCHORED) != 0
+    fl = flags[p]
+    mv = m * v[p]
+    if (fl & FLAG_RIGID) == 0:
+        mv = mv + dt * f_ext[p]  # a rigid body takes its external forces directly (rigid_reduce)
+    anchored = (fl & FLAG_ANCHORED) != 0
     for i in range(3):
         for j in range(3):
             for k in range(3):
@@ -488,17 +491,20 @@ def rigid_reduce(
     x: wp.array(dtype=wp.vec3),
     v: wp.array(dtype=wp.vec3),
     mass: wp.array(dtype=float),
+    f_ext: wp.array(dtype=wp.vec3),
     body: wp.array(dtype=int),
     centre: wp.array(dtype=wp.vec3),
+    dt: float,
     momentum: wp.array(dtype=wp.vec3),
     ang_momentum: wp.array(dtype=wp.vec3),
 ):
-    """Linear and angular momentum (about the body's centre) of each rigid body's particles."""
+    """Linear and angular momentum (about the body's centre) of each rigid body's particles, plus
+    the impulse of the external forces on them (applied here exactly, not through the grid)."""
     p = wp.tid()
     b = body[p]
     if b < 0:
         return
-    mv = mass[p] * v[p]
+    mv = mass[p] * v[p] + dt * f_ext[p]
     wp.atomic_add(momentum, b, mv)
     wp.atomic_add(ang_momentum, b, wp.cross(x[p] - centre[b], mv))
 

@@ -236,9 +236,11 @@ class MPMSolver:
             m = mass[sel].astype(np.float64)
             c = (x[sel] * m[:, None]).sum(0) / m.sum()
             r = x[sel] - c
-            # Point masses plus each particle's own cube (side s: m s²/6 about any axis).
-            s2 = volume[sel].astype(np.float64) ** (2.0 / 3.0)
-            inertia[b] = (np.eye(3) * ((m * ((r * r).sum(1) + s2 / 6.0)).sum()) - (r.T * m) @ r)
+            # Point-mass inertia: the body's spin is measured each substep from its particles'
+            # velocities as Σ r × m v, which is exactly I_points ω for a rigid motion, so the same
+            # I converts it back without drift. (It differs from the solid's by ~(s/L)², s the
+            # particle spacing and L the body's size.)
+            inertia[b] = np.eye(3) * (m * (r * r).sum(1)).sum() - (r.T * m) @ r
             centres[b], masses[b] = c, m.sum()
             offsets[sel] = r
         self.body_centre0 = centres
@@ -329,8 +331,8 @@ class MPMSolver:
                                                  self.mat_id, self.material_table, self.flags, self.grid_v,
                                                  self.grid, dt, self.stats])
             if self.n_bodies:
-                wp.launch(K.rigid_reduce, dim=self.n, inputs=[self.x, self.v, self.mass, self.body, self.body_centre,
-                                                              self.body_p, self.body_l])
+                wp.launch(K.rigid_reduce, dim=self.n, inputs=[self.x, self.v, self.mass, forces, self.body,
+                                                              self.body_centre, dt, self.body_p, self.body_l])
                 wp.launch(K.rigid_velocity, dim=self.n_bodies, inputs=[self.body_orient, self.body_inertia_w,
                                                                         self.body_mass, self.body_p, self.body_l,
                                                                         self.body_v, self.body_w])

@@ -230,7 +230,8 @@ def simulate(
                 if now_active != active:
                     apply_schedule(now_active)
                     active = now_active
-                dt = min(solver.stable_dt(), t_frame - solver.t, schedule.next_edge(solver.t) - solver.t)
+                dt = min(solver.stable_dt(), frame_dt / settings.min_substeps, t_frame - solver.t,
+                         schedule.next_edge(solver.t) - solver.t)
                 solver.substep(dt, frame=k)
                 if solver.substeps % 64 == 0:
                     tick(k - 1, frames - 1)  # lets Cancel act mid-frame on slow frames
