@@ -37,21 +37,24 @@ for _name in NODE_MODULES:
 
 
 
-def _install_example_image() -> None:
-    """Copy the bundled example photo into ComfyUI's input folder (once, never overwriting), so the
-    templates' LoadImage finds it."""
+def _install_example_images() -> None:
+    """Copy the bundled example photos into ComfyUI's input folder as physmotion_<name>.png (once,
+    never overwriting), so the templates' LoadImage nodes find them."""
     try:
         import shutil
 
         import folder_paths
 
-        target = os.path.join(folder_paths.get_input_directory(), "physmotion_coffee.png")
-        if not os.path.exists(target):
-            shutil.copyfile(os.path.join(_HERE, "examples", "coffee.png"), target)
+        examples = os.path.join(_HERE, "examples")
+        for name in sorted(os.listdir(examples)):
+            if name.endswith(".png"):
+                target = os.path.join(folder_paths.get_input_directory(), "physmotion_" + name)
+                if not os.path.exists(target):
+                    shutil.copyfile(os.path.join(examples, name), target)
     except Exception as exc:  # noqa: BLE001 - outside ComfyUI, or a read-only input folder
-        log.debug("PhysMotion: example image not installed: %s", exc)
+        log.debug("PhysMotion: example images not installed: %s", exc)
 
 
-_install_example_image()
+_install_example_images()
 
 __all__ = ["NODE_CLASS_MAPPINGS", "NODE_DISPLAY_NAME_MAPPINGS", "WEB_DIRECTORY"]

@@ -69,7 +69,8 @@ def output_directory() -> Path:
 
 
 def output_path(prefix: str, extension: str) -> tuple[Path, str, str]:
-    """A new file ``<output>/<prefix>_NNNNN_.<ext>``; returns (path, filename, subfolder).
+    """A new file ``<output>/<prefix>_NNNNN_.<ext>`` (or, with extension "", a new folder
+    ``<output>/<prefix>_NNNNN_``); returns (path, name, subfolder).
 
     The prefix may contain sub-folders but never leaves the output directory.
     """
@@ -80,12 +81,13 @@ def output_path(prefix: str, extension: str) -> tuple[Path, str, str]:
         raise ValueError(f"filename_prefix '{prefix}' points outside the output folder; use a relative name")
     folder, stem = target.parent, target.name or "PhysMotion"
     folder.mkdir(parents=True, exist_ok=True)
-    pattern = re.compile(re.escape(stem) + r"_(\d{5})_\." + re.escape(extension) + "$")
+    suffix = f".{extension}" if extension else ""
+    pattern = re.compile(re.escape(stem) + r"_(\d{5})_" + re.escape(suffix) + "$")
     taken = [int(m.group(1)) for p in folder.iterdir() if (m := pattern.match(p.name))]
     counter = max(taken, default=0) + 1
-    filename = f"{stem}_{counter:05d}_.{extension}"
+    name = f"{stem}_{counter:05d}_{suffix}"
     subfolder = os.path.relpath(folder, root)
-    return folder / filename, filename, "" if subfolder == "." else subfolder
+    return folder / name, name, "" if subfolder == "." else subfolder
 
 
 def first_image(image: torch.Tensor, name: str = "image") -> torch.Tensor:

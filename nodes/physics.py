@@ -1,14 +1,56 @@
-"""Material, condition and simulation nodes."""
+"""Material, condition, scene and simulation nodes."""
 
 from __future__ import annotations
 
-from ._util import CATEGORY, progress_callback, sim_device
+from ._util import CATEGORY, output_path, progress_callback, sim_device
+
+_VEC = {"default": 0.0, "min": -1e7, "max": 1e7, "step": 0.1}
 
 
 def _chain(conditions):
     from physmotion_core.types import Conditions
 
     return conditions if conditions is not None else Conditions()
+
+
+def _region_inputs(default: str = "image point") -> dict:
+    """Region widgets shared by every condition node."""
+    from physmotion_core.sim.regions import REGION_MODES
+
+    return {
+        "region": (list(REGION_MODES), {
+            "default": default,
+            "tooltip": "whole object: all of it. image point: the part under pixel (u, v) within radius_px, "
+                       "through its whole depth. mask: the part under the painted region_mask."}),
+        "u": ("INT", {"default": 0, "min": 0, "max": 16384, "tooltip": "Pixel column in the input image."}),
+        "v": ("INT", {"default": 0, "min": 0, "max": 16384, "tooltip": "Pixel row in the input image."}),
+        "radius_px": ("FLOAT", {"default": 25.0, "min": 1.0, "max": 4096.0, "step": 1.0,
+                                "tooltip": "Radius of the image-point region in pixels."}),
+        "object_index": ("INT", {"default": -1, "min": -1, "max": 63,
+                           "tooltip": "Only this object of a combined scene (0 = first); -1 = any object."}),
+    }
+
+
+def _optional_region_inputs() -> dict:
+    return {
+        "conditions": ("PM_CONDITIONS", {"tooltip": "Conditions to add this one to."}),
+        "region_mask": ("MASK", {"tooltip": "Painted region (white = where it acts), used when region is 'mask'."}),
+    }
+
+
+def _region(region, u, v, radius_px, obj, region_mask):
+    from physmotion_core.sim.regions import region_from_ui
+
+    return region_from_ui(region, u, v, radius_px, region_mask, obj)
+
+
+def _window():
+    return {
+        "t_start": ("FLOAT", {"default": 0.0, "min": 0.0, "max": 1e4, "step": 0.01,
+                              "tooltip": "When it starts acting, seconds."}),
+        "t_end": ("FLOAT", {"default": 0.25, "min": 0.001, "max": 1e4, "step": 0.01,
+                            "tooltip": "When it stops acting, seconds."}),
+    }
 
 
 class PhysMotionMaterial:
@@ -19,14 +61,20 @@ class PhysMotionMaterial:
         from physmotion_core.sim.materials import material_names
 
         return {"required": {
-            "preset": (material_names(), {"default": "jelly", "tooltip": "Material preset (SI parameters)."}),
+            "preset": (material_names(), {"default": "jelly", "tooltip": "Material preset (SI parameters): "
+                                          "elastic, plastic, granular, snow, fracture, viscous, fluid or rigid."}),
             "youngs_modulus": ("FLOAT", {"default": 0.0, "min": 0.0, "max": 1e12, "step": 100.0,
                                          "tooltip": "Young's modulus E in Pa; 0 keeps the preset's value "
-                                                    "(jelly ~2e4, rubber ~1e6, metal ~1e10)."}),
+                                                    "(jelly 2e4, rubber 1e6, steel 2e11)."}),
             "poissons_ratio": ("FLOAT", {"default": -1.0, "min": -1.0, "max": 0.499, "step": 0.01,
                                          "tooltip": "Poisson's ratio ν in [0, 0.5); -1 keeps the preset's value."}),
             "density": ("FLOAT", {"default": 0.0, "min": 0.0, "max": 1e5, "step": 10.0,
                                   "tooltip": "Density in kg/m³; 0 keeps the preset's value (water 1000)."}),
+            "overrides": ("STRING", {"default": "", "multiline": False,
+                                     "tooltip": "Any other parameter as key=value, comma-separated: yield_stress, "
+                                                "hardening, softening, friction_angle, cohesion, viscosity, "
+                                                "bulk_modulus, gamma, crit_compression, crit_stretch, "
+                                                "hardening_xi, fracture_stretch, damping."}),
         }}
 
     RETURN_TYPES = ("PM_MATERIAL",)
@@ -34,10 +82,11 @@ class PhysMotionMaterial:
     FUNCTION = "run"
     CATEGORY = f"{CATEGORY}/physics"
 
-    def run(self, preset, youngs_modulus, poissons_ratio, density):
+    def run(self, preset, youngs_modulus, poissons_ratio, density, overrides=""):
+        from physmotion_core.sim.materials import parse_overrides
         from physmotion_core.types import Material
 
-        over = {}
+        over = parse_overrides(overrides)
         if youngs_modulus > 0:
             over["E"] = float(youngs_modulus)
         if poissons_ratio >= 0:
@@ -52,28 +101,15 @@ class PhysMotionForce:
 
     @classmethod
     def INPUT_TYPES(cls):
-        vec = {"default": 0.0, "min": -1e7, "max": 1e7, "step": 0.5}
         return {
             "required": {
-                "fx": ("FLOAT", {**vec, "default": 40.0, "tooltip": "Force along +x (image right), newtons."}),
-                "fy": ("FLOAT", {**vec, "tooltip": "Force along +y (up), newtons."}),
-                "fz": ("FLOAT", {**vec, "tooltip": "Force along +z (towards the camera), newtons."}),
-                "region": (["image point", "whole object"], {
-                    "default": "image point",
-                    "tooltip": "image point: the part of the object under pixel (u, v) within radius_px, "
-                               "through its whole depth. whole object: spread over all of it."}),
-                "u": ("INT", {"default": 0, "min": 0, "max": 16384,
-                              "tooltip": "Pixel column in the input image where the force is applied."}),
-                "v": ("INT", {"default": 0, "min": 0, "max": 16384,
-                              "tooltip": "Pixel row in the input image where the force is applied."}),
-                "radius_px": ("FLOAT", {"default": 25.0, "min": 1.0, "max": 4096.0, "step": 1.0,
-                                        "tooltip": "Radius of the image-point region in pixels."}),
-                "t_start": ("FLOAT", {"default": 0.0, "min": 0.0, "max": 1e4, "step": 0.01,
-                                      "tooltip": "When the force starts, seconds."}),
-                "t_end": ("FLOAT", {"default": 0.25, "min": 0.001, "max": 1e4, "step": 0.01,
-                                    "tooltip": "When the force stops, seconds (a push lasts ~0.1-0.3 s)."}),
+                "fx": ("FLOAT", {**_VEC, "default": 20.0, "tooltip": "Force along +x (image right), newtons."}),
+                "fy": ("FLOAT", {**_VEC, "tooltip": "Force along +y (up), newtons."}),
+                "fz": ("FLOAT", {**_VEC, "tooltip": "Force along +z (towards the camera), newtons."}),
+                **_region_inputs(),
+                **_window(),
             },
-            "optional": {"conditions": ("PM_CONDITIONS", {"tooltip": "Conditions to add this force to."})},
+            "optional": _optional_region_inputs(),
         }
 
     RETURN_TYPES = ("PM_CONDITIONS",)
@@ -81,29 +117,132 @@ class PhysMotionForce:
     FUNCTION = "run"
     CATEGORY = f"{CATEGORY}/physics"
 
-    def run(self, fx, fy, fz, region, u, v, radius_px, t_start, t_end, conditions=None):
-        from physmotion_core.types import Force, Region
+    def run(self, fx, fy, fz, region, u, v, radius_px, object_index, t_start, t_end, conditions=None,
+            region_mask=None):
+        from physmotion_core.types import Force
 
-        r = Region.at_pixel(u, v, radius_px) if region == "image point" else Region()
+        r = _region(region, u, v, radius_px, object_index, region_mask)
         return (_chain(conditions) + Force((fx, fy, fz), r, float(t_start), float(t_end)),)
 
 
-class PhysMotionGround:
-    """The ground plane under the object and how it touches it."""
+class PhysMotionTorque:
+    """A twist: a torque in N·m about the region's centre of mass (net force zero)."""
 
     @classmethod
     def INPUT_TYPES(cls):
         return {
             "required": {
-                "contact": (["friction", "slip", "sticky"], {
+                "tx": ("FLOAT", {**_VEC, "tooltip": "Torque about +x (image right), N·m."}),
+                "ty": ("FLOAT", {**_VEC, "default": 0.5, "tooltip": "Torque about +y (up), N·m: spins it like "
+                                                                    "a turntable."}),
+                "tz": ("FLOAT", {**_VEC, "tooltip": "Torque about +z (towards the camera), N·m: turns it in "
+                                                    "the image plane."}),
+                **_region_inputs("whole object"),
+                **_window(),
+            },
+            "optional": _optional_region_inputs(),
+        }
+
+    RETURN_TYPES = ("PM_CONDITIONS",)
+    RETURN_NAMES = ("conditions",)
+    FUNCTION = "run"
+    CATEGORY = f"{CATEGORY}/physics"
+
+    def run(self, tx, ty, tz, region, u, v, radius_px, object_index, t_start, t_end, conditions=None,
+            region_mask=None):
+        from physmotion_core.types import Torque
+
+        r = _region(region, u, v, radius_px, object_index, region_mask)
+        return (_chain(conditions) + Torque((tx, ty, tz), r, float(t_start), float(t_end)),)
+
+
+class PhysMotionInitialVelocity:
+    """A throw: the region starts with velocity v and spin ω (about its centre of mass)."""
+
+    @classmethod
+    def INPUT_TYPES(cls):
+        spin = {**_VEC, "min": -1e4, "max": 1e4}
+        return {
+            "required": {
+                "vx": ("FLOAT", {**_VEC, "tooltip": "Initial velocity along +x (right), m/s."}),
+                "vy": ("FLOAT", {**_VEC, "tooltip": "Initial velocity along +y (up), m/s."}),
+                "vz": ("FLOAT", {**_VEC, "tooltip": "Initial velocity along +z (towards the camera), m/s."}),
+                "wx": ("FLOAT", {**spin, "tooltip": "Initial spin about +x, rad/s."}),
+                "wy": ("FLOAT", {**spin, "tooltip": "Initial spin about +y, rad/s."}),
+                "wz": ("FLOAT", {**spin, "tooltip": "Initial spin about +z, rad/s."}),
+                **_region_inputs("whole object"),
+            },
+            "optional": _optional_region_inputs(),
+        }
+
+    RETURN_TYPES = ("PM_CONDITIONS",)
+    RETURN_NAMES = ("conditions",)
+    FUNCTION = "run"
+    CATEGORY = f"{CATEGORY}/physics"
+
+    def run(self, vx, vy, vz, wx, wy, wz, region, u, v, radius_px, object_index, conditions=None,
+            region_mask=None):
+        from physmotion_core.types import InitialVelocity
+
+        r = _region(region, u, v, radius_px, object_index, region_mask)
+        return (_chain(conditions) + InitialVelocity((vx, vy, vz), (wx, wy, wz), r),)
+
+
+class PhysMotionAnchor:
+    """Hold part of the object: fixed (a clamp, a nail) or moved at a set velocity (a hand pulling)."""
+
+    @classmethod
+    def INPUT_TYPES(cls):
+        return {
+            "required": {
+                **_region_inputs(),
+                "vx": ("FLOAT", {**_VEC, "tooltip": "Velocity the held part moves at along +x, m/s (0 = fixed)."}),
+                "vy": ("FLOAT", {**_VEC, "tooltip": "Velocity along +y (up), m/s."}),
+                "vz": ("FLOAT", {**_VEC, "tooltip": "Velocity along +z (towards the camera), m/s."}),
+                "t_start": ("FLOAT", {"default": 0.0, "min": 0.0, "max": 1e4, "step": 0.01,
+                                      "tooltip": "When the hold starts, seconds."}),
+                "t_end": ("FLOAT", {"default": 1e4, "min": 0.001, "max": 1e4, "step": 0.01,
+                                    "tooltip": "When the part is released, seconds (10000 = never)."}),
+            },
+            "optional": _optional_region_inputs(),
+        }
+
+    RETURN_TYPES = ("PM_CONDITIONS",)
+    RETURN_NAMES = ("conditions",)
+    FUNCTION = "run"
+    CATEGORY = f"{CATEGORY}/physics"
+
+    def run(self, region, u, v, radius_px, object_index, vx=0.0, vy=0.0, vz=0.0, t_start=0.0, t_end=1e4,
+            conditions=None, region_mask=None):
+        from physmotion_core.types import Anchor
+
+        r = _region(region, u, v, radius_px, object_index, region_mask)
+        return (_chain(conditions) + Anchor(r, (vx, vy, vz), float(t_start), float(t_end)),)
+
+
+class PhysMotionGround:
+    """The ground plane under the object and the walls of the simulation box."""
+
+    CONTACTS = ["friction", "slip", "sticky"]
+
+    @classmethod
+    def INPUT_TYPES(cls):
+        return {
+            "required": {
+                "contact": (cls.CONTACTS, {
                     "default": "friction",
-                    "tooltip": "friction: Coulomb friction μ (slides, then stops). slip: frictionless. "
-                               "sticky: glued to the ground."}),
+                    "tooltip": "Ground contact. friction: Coulomb friction μ (slides, then stops). slip: "
+                               "frictionless. sticky: glued to the ground."}),
                 "friction": ("FLOAT", {"default": 0.5, "min": 0.0, "max": 10.0, "step": 0.05,
-                                       "tooltip": "Coulomb friction coefficient μ (wood on wood ≈ 0.4)."}),
+                                       "tooltip": "Ground Coulomb friction coefficient μ (wood on wood ≈ 0.4)."}),
                 "height": ("FLOAT", {"default": 0.0, "min": -100.0, "max": 100.0, "step": 0.01,
                                      "tooltip": "Height of the ground plane in metres (the lift puts the "
                                                 "object's lowest point at 0)."}),
+                "wall_contact": (cls.CONTACTS, {"default": "slip",
+                                                "tooltip": "Contact with the simulation box's walls."}),
+                "wall_friction": ("FLOAT", {"default": 0.0, "min": 0.0, "max": 10.0, "step": 0.05,
+                                            "tooltip": "Coulomb friction μ of the walls (with wall_contact "
+                                                       "'friction')."}),
             },
             "optional": {"conditions": ("PM_CONDITIONS", {"tooltip": "Conditions to add the ground to."})},
         }
@@ -113,10 +252,11 @@ class PhysMotionGround:
     FUNCTION = "run"
     CATEGORY = f"{CATEGORY}/physics"
 
-    def run(self, contact, friction, height, conditions=None):
-        from physmotion_core.types import Ground
+    def run(self, contact, friction, height, wall_contact="slip", wall_friction=0.0, conditions=None):
+        from physmotion_core.types import Ground, Walls
 
-        return (_chain(conditions) + Ground(float(height), contact, float(friction)),)
+        out = _chain(conditions) + Ground(float(height), contact, float(friction))
+        return (out + Walls(wall_contact, float(wall_friction)),)
 
 
 class PhysMotionGravity:
@@ -145,26 +285,60 @@ class PhysMotionGravity:
         return (_chain(conditions) + Gravity((gx, gy, gz)),)
 
 
+class PhysMotionCombineObjects:
+    """Put a second object (its own material) into the scene: they share one grid and collide."""
+
+    @classmethod
+    def INPUT_TYPES(cls):
+        off = {"default": 0.0, "min": -100.0, "max": 100.0, "step": 0.01}
+        return {"required": {
+            "gaussians_a": ("PM_GAUSSIANS", {"tooltip": "The first object (or a scene already combined)."}),
+            "material_a": ("PM_MATERIAL", {"tooltip": "Its material (or the combined scene's materials)."}),
+            "gaussians_b": ("PM_GAUSSIANS", {"tooltip": "The object to add."}),
+            "material_b": ("PM_MATERIAL", {"tooltip": "The added object's material."}),
+            "offset_x": ("FLOAT", {**off, "tooltip": "Move the added object along x (right), metres."}),
+            "offset_y": ("FLOAT", {**off, "tooltip": "Move the added object along y (up), metres."}),
+            "offset_z": ("FLOAT", {**off, "tooltip": "Move the added object along z (towards the camera), metres."}),
+        }}
+
+    RETURN_TYPES = ("PM_GAUSSIANS", "PM_MATERIAL")
+    RETURN_NAMES = ("gaussians", "materials")
+    OUTPUT_TOOLTIPS = ("The scene; object ids number the objects 0, 1, ... in the order they were added.",
+                       "One material per object.")
+    FUNCTION = "run"
+    CATEGORY = f"{CATEGORY}/physics"
+
+    def run(self, gaussians_a, material_a, gaussians_b, material_b, offset_x, offset_y, offset_z):
+        from physmotion_core.scene import combine_objects
+
+        return combine_objects(gaussians_a, material_a, gaussians_b, material_b, (offset_x, offset_y, offset_z))
+
+
 class PhysMotionMPMSimulate:
     """Simulate the object with the Material Point Method (Warp; CPU or CUDA)."""
 
     DESCRIPTION = ("Fills the object with particles and simulates it with MLS-MPM. The time step adapts every "
                    "substep to the stability (CFL) limit, so stiff materials do not crash; invalid states are "
-                   "reported with the frame and the likely cause.")
+                   "reported with the frame and the likely cause. A scene that comes to rest stops computing.")
 
     @classmethod
     def INPUT_TYPES(cls):
+        from physmotion_core.types import QUALITY
+
         return {
             "required": {
-                "gaussians": ("PM_GAUSSIANS", {"tooltip": "The object as 3D Gaussians (from a lift node)."}),
-                "material": ("PM_MATERIAL", {"tooltip": "What the object is made of."}),
+                "gaussians": ("PM_GAUSSIANS", {"tooltip": "The object(s) as 3D Gaussians (a lift or Combine Objects)."}),
+                "material": ("PM_MATERIAL", {"tooltip": "What it is made of (one per object for a combined scene)."}),
                 "frames": ("INT", {"default": 48, "min": 1, "max": 100000,
                                    "tooltip": "Number of output frames (frame 0 is the rest state)."}),
                 "fps": ("FLOAT", {"default": 24.0, "min": 1.0, "max": 1000.0, "step": 1.0,
                                   "tooltip": "Frames per second of the output."}),
+                "quality": (list(QUALITY), {"default": "standard",
+                                            "tooltip": "draft / standard / high: grid resolution when grid_res is "
+                                                       "0 (standard: 24 cells on CPU, 48 on CUDA)."}),
                 "grid_res": ("INT", {"default": 0, "min": 0, "max": 512,
-                                     "tooltip": "Grid cells across the object's largest extent (cost ~ res³); "
-                                                "0 = auto (24 on CPU, 48 on CUDA)."}),
+                                     "tooltip": "Grid cells across the scene's largest extent (cost ~ res³); "
+                                                "0 = from quality."}),
                 "particles_per_cell": ([8, 1, 27], {"default": 8, "tooltip": "Particles per grid cell (n³)."}),
                 "cfl": ("FLOAT", {"default": 0.4, "min": 0.05, "max": 1.0, "step": 0.05,
                                   "tooltip": "Fraction of the stability limit each time step uses."}),
@@ -176,8 +350,9 @@ class PhysMotionMPMSimulate:
                                  "tooltip": "Seed of the particle jitter (same seed, same result)."}),
             },
             "optional": {
-                "conditions": ("PM_CONDITIONS", {"tooltip": "Forces, ground, gravity... (default: gravity only)."}),
-                "camera": ("PM_CAMERA", {"tooltip": "The input camera; needed by image-point regions."}),
+                "conditions": ("PM_CONDITIONS", {"tooltip": "Forces, torques, anchors, ground, gravity... "
+                                                            "(default: gravity only)."}),
+                "camera": ("PM_CAMERA", {"tooltip": "The input camera; needed by image-point and mask regions."}),
             },
         }
 
@@ -186,29 +361,66 @@ class PhysMotionMPMSimulate:
     FUNCTION = "run"
     CATEGORY = f"{CATEGORY}/physics"
 
-    def run(self, gaussians, material, frames, fps, grid_res, particles_per_cell, cfl, domain_margin, device, seed,
-            conditions=None, camera=None):
+    def run(self, gaussians, material, frames, fps, quality, grid_res, particles_per_cell, cfl, domain_margin,
+            device, seed, conditions=None, camera=None):
         from physmotion_core.sim import simulate
         from physmotion_core.types import SimSettings
 
-        settings = SimSettings(frames=int(frames), fps=float(fps), grid_res=int(grid_res),
+        settings = SimSettings(frames=int(frames), fps=float(fps), grid_res=int(grid_res), quality=quality,
                                particles_per_cell=int(particles_per_cell), cfl=float(cfl),
                                domain_margin=float(domain_margin), device=sim_device(device), seed=int(seed))
         return (simulate(gaussians, material, _chain(conditions), settings, camera=camera,
                          progress=progress_callback()),)
 
 
+class PhysMotionSaveGaussianSequence:
+    """Save the simulated Gaussians as one 3DGS .ply per frame (for splat viewers and other tools)."""
+
+    @classmethod
+    def INPUT_TYPES(cls):
+        return {"required": {
+            "simulation": ("PM_SIM", {"tooltip": "The simulated trajectory."}),
+            "every_nth_frame": ("INT", {"default": 1, "min": 1, "max": 1000, "tooltip": "Save every n-th frame."}),
+            "filename_prefix": ("STRING", {"default": "PhysMotion/sequence",
+                                           "tooltip": "Folder/prefix inside the output folder."}),
+        }}
+
+    RETURN_TYPES = ("STRING",)
+    RETURN_NAMES = ("folder",)
+    OUTPUT_NODE = True
+    FUNCTION = "run"
+    CATEGORY = f"{CATEGORY}/io"
+
+    def run(self, simulation, every_nth_frame, filename_prefix):
+        from physmotion_core.ply import write_ply_sequence
+
+        target, name, sub = output_path(filename_prefix, "")
+        files = write_ply_sequence(target, simulation, every=int(every_nth_frame), progress=progress_callback())
+        rel = f"{sub}/{target.name}" if sub else target.name
+        return {"ui": {"text": [f"{len(files)} .ply files in {rel}"]}, "result": (rel,)}
+
+
 NODE_CLASS_MAPPINGS = {
     "PhysMotionMaterial": PhysMotionMaterial,
     "PhysMotionForce": PhysMotionForce,
+    "PhysMotionTorque": PhysMotionTorque,
+    "PhysMotionInitialVelocity": PhysMotionInitialVelocity,
+    "PhysMotionAnchor": PhysMotionAnchor,
     "PhysMotionGround": PhysMotionGround,
     "PhysMotionGravity": PhysMotionGravity,
+    "PhysMotionCombineObjects": PhysMotionCombineObjects,
     "PhysMotionMPMSimulate": PhysMotionMPMSimulate,
+    "PhysMotionSaveGaussianSequence": PhysMotionSaveGaussianSequence,
 }
 NODE_DISPLAY_NAME_MAPPINGS = {
     "PhysMotionMaterial": "PhysMotion Material",
     "PhysMotionForce": "PhysMotion Force (push)",
-    "PhysMotionGround": "PhysMotion Ground",
+    "PhysMotionTorque": "PhysMotion Torque (twist)",
+    "PhysMotionInitialVelocity": "PhysMotion Initial Velocity (throw)",
+    "PhysMotionAnchor": "PhysMotion Anchor (hold fixed)",
+    "PhysMotionGround": "PhysMotion Ground & Walls",
     "PhysMotionGravity": "PhysMotion Gravity",
+    "PhysMotionCombineObjects": "PhysMotion Combine Objects",
     "PhysMotionMPMSimulate": "PhysMotion MPM Simulate",
+    "PhysMotionSaveGaussianSequence": "PhysMotion Save Gaussian Sequence (.ply per frame)",
 }

@@ -154,3 +154,17 @@ def read_ply(path: str | os.PathLike) -> Gaussians:
     if not all(bool(torch.isfinite(t).all()) for t in (g.means, g.scales, g.sh, g.quats)):
         raise InputError(f"{path} contains NaN/Inf values; the file is corrupt")
     return g
+
+
+def write_ply_sequence(folder: str | os.PathLike, sim, every: int = 1, progress=None) -> list[Path]:
+    """One 3DGS .ply per simulated frame (every ``every``-th), named frame_00000.ply, ... in ``folder``."""
+    from .progress import report
+
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    frames = list(range(0, sim.num_frames, max(1, int(every))))
+    out = []
+    for i, k in enumerate(frames):
+        out.append(write_ply(folder / f"frame_{k:05d}.ply", sim.gaussians_at(k)))
+        report(progress, i + 1, len(frames))
+    return out

@@ -543,9 +543,17 @@ class InitialVelocity:
 
 @dataclass(frozen=True)
 class Anchor:
-    """Particles of the region are held fixed (zero velocity)."""
+    """Particles of the region are held (a clamp, a hand): fixed, or moved at a prescribed
+    ``velocity`` (m/s) from ``t_start`` to ``t_end``; outside that window they move freely."""
 
     region: Region = field(default_factory=Region)
+    velocity: Vec3 = (0.0, 0.0, 0.0)
+    t_start: float = 0.0
+    t_end: float = float("inf")
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "velocity", _as_vec3(self.velocity, "Anchor velocity"))
+        _check_window(self.t_start, self.t_end, "Anchor")
 
 
 CONTACTS = ("sticky", "slip", "friction")
@@ -674,8 +682,9 @@ class SimSettings:
     device: str = "auto"  # "cpu", "cuda", "cuda:N" or "auto"
     min_substeps: int = 8  # per frame, whatever the CFL allows: bounds the integrator's O(dt) drift
     quality: str = "standard"  # draft / standard / high: scales the automatic grid_res (see QUALITY)
-    rest_speed: float = 2e-3  # m/s: a scene whose particles all stay slower than this for 3 frames, with
-    #                         no force still to come, stops substepping and repeats its state; 0 = off
+    rest_speed: float = 2e-3  # m/s: a scene whose RMS particle speed (its kinetic energy per kg) stays
+    #                         below this for 3 frames, with no force still to come, stops substepping and
+    #                         repeats its state; 0 = off
     seed: int = 0
 
     def validate(self) -> None:
@@ -711,12 +720,16 @@ class SimSettings:
 MAX_SPLAT_STRETCH = 3.0
 
 
-def clamp_stretch(F: torch.Tensor, limit: float) -> torch.Tensor:
-    """F (…,3,3) with its singular values clamped to [1/limit, limit] (rotations unchanged)."""
+def splat_deformation(F: torch.Tensor, limit: float, rotation_free: Optional[torch.Tensor] = None) -> torch.Tensor:
+    """The deformation applied to splats: F = U S Vᵀ with S clamped to [1/limit, limit]; where
+    ``rotation_free`` (…,) is true, only the stretch V S Vᵀ (the polar factor without its rotation)."""
     U, S, Vh = torch.linalg.svd(F.double())
-    if bool(((S >= 1.0 / limit) & (S <= limit)).all()):
-        return F
-    return (U @ torch.diag_embed(S.clamp(1.0 / limit, limit)) @ Vh).to(F.dtype)
+    S = S.clamp(1.0 / limit, limit)
+    out = U @ torch.diag_embed(S) @ Vh
+    if rotation_free is not None and bool(rotation_free.any()):
+        stretch = Vh.transpose(-1, -2) @ torch.diag_embed(S) @ Vh
+        out = torch.where(rotation_free[..., None, None], stretch, out)
+    return out.to(F.dtype)
 
 
 @dataclass
@@ -724,8 +737,8 @@ class SimResult:
     """The simulated trajectory.
 
     Physics particles carry the state (positions ``x`` and deformation gradients ``F`` per frame);
-    each rendered Gaussian is bound to one particle and follows its local affine map:
-    x_g = x_p + F_p (X_g − X_p), Σ_g = F_p Σ_g⁰ F_pᵀ.
+    each rendered Gaussian follows a weighted blend of its nearest particles' local affine maps:
+    x_g = Σ_k w_k (x_k + F_k (X_g − X_k)), Σ_g = F̄ Σ_g⁰ F̄ᵀ with F̄ = Σ_k w_k F_k.
     """
 
     rest: Gaussians
@@ -739,6 +752,9 @@ class SimResult:
     materials: list = field(default_factory=list)
     plastic: Optional[torch.Tensor] = None  # (T, P) per-particle plastic state of the recorded particles
     particle_object: Optional[torch.Tensor] = None  # (P,) object id of each recorded particle
+    rotation_free: Optional[torch.Tensor] = None  # (P,) bool: the particle's material flows (see gaussians_at)
+    neighbours: Optional[torch.Tensor] = None  # (N, K) particles each Gaussian interpolates from
+    weights: Optional[torch.Tensor] = None  # (N, K) their weights (rows sum to 1)
 
     @property
     def num_frames(self) -> int:
@@ -747,19 +763,41 @@ class SimResult:
     def gaussians_at(self, frame: int) -> Gaussians:
         """The Gaussians at ``frame``: each follows its particle's position and deformation.
 
-        F here is the *elastic* deformation gradient (plastic models store F_E after their return
-        mapping, fluids and torn material an isotropic one), so flowing sand or honey moves its
-        splats without smearing them. As a last guard against needles, each principal stretch of
-        the F applied to splats is clamped to [1/MAX_SPLAT_STRETCH, MAX_SPLAT_STRETCH].
+        The rule that keeps splats sane (no needles):
+        * F is the *elastic* deformation gradient: plastic models store F_E after their return
+          mapping, fluids and torn material an isotropic one, so plastic flow moves splats without
+          smearing them.
+        * Material that flows (sand, snow, viscoplastic pastes, fluids: ``rotation_free``) uses only
+          the stretch part of F_E: its splats keep their rest orientation. Grains tumbling in a
+          slumping heap would otherwise turn thin surface splats edge-on to the camera.
+        * Each principal stretch applied to a splat is clamped to [1/MAX_SPLAT_STRETCH,
+          MAX_SPLAT_STRETCH].
+        Solids (elastic, metal, plasticine, fracture before it tears, rigid) follow F fully.
         """
         if not (-self.num_frames <= frame < self.num_frames):
             raise InputError(f"frame {frame} is out of range: the simulation has {self.num_frames} frames")
-        p = self.binding
-        Fp = clamp_stretch(self.F[frame], MAX_SPLAT_STRETCH)[p].to(self.rest.means.dtype)
-        offset = self.rest.means - self.rest_particles[p]
-        means = self.x[frame][p] + (Fp @ offset[:, :, None])[:, :, 0]
-        cov0 = self.rest.covariance()
-        covars = Fp @ cov0 @ Fp.transpose(-1, -2)
+        dtype = self.rest.means.dtype
+        F = splat_deformation(self.F[frame], MAX_SPLAT_STRETCH, self.rotation_free)
+        x, X, Xg = self.x[frame], self.rest_particles, self.rest.means
+        if self.neighbours is None:
+            nb = self.binding[:, None]
+            w = torch.ones(nb.shape, dtype=dtype)
+        else:
+            nb, w = self.neighbours, self.weights.to(dtype)
+            # Neighbours torn away from the Gaussian's own particle (now more than twice as far from it
+            # as at rest, plus one spacing) no longer pull on it: a crack stays a crack.
+            x0, X0 = x[nb[:, :1]], X[nb[:, :1]]
+            rest_d = (X[nb] - X0).norm(dim=-1)
+            now_d = (x[nb] - x0).norm(dim=-1)
+            spacing = float(self.stats.get("particle_spacing", 0.0))
+            w = torch.where(now_d <= 2.0 * rest_d + spacing, w, torch.zeros_like(w))
+            w[:, 0] = torch.clamp_min(w[:, 0], 1e-6)
+            w = w / w.sum(dim=1, keepdim=True)
+        Fk = F[nb].to(dtype)  # (N, K, 3, 3)
+        pos = x[nb] + (Fk @ (Xg[:, None, :] - X[nb])[..., None])[..., 0]
+        means = (w[..., None] * pos).sum(dim=1)
+        Fg = (w[..., None, None] * Fk).sum(dim=1)
+        covars = Fg @ self.rest.covariance() @ Fg.transpose(-1, -2)
         return dataclasses.replace(self.rest, means=means, covars=covars)
 
 

@@ -1,8 +1,9 @@
 """Make each template's .jpg thumbnail from a frame the template really produces.
 
 Runs every API workflow in-process (tests/comfy_harness.py), takes the frame at 40 % of the clip
-and writes workflows/<name>.jpg. CPU-capable workflows only. Usage:
-    .venv/bin/python scripts/make_thumbnails.py [name ...]
+and writes workflows/<name>.jpg. CPU-capable workflows only. With --sheet DIR it also writes a
+contact sheet of six frames per workflow to DIR (for reviewing the motion). Usage:
+    .venv/bin/python scripts/make_thumbnails.py [--sheet DIR] [name ...]
 """
 
 from __future__ import annotations
@@ -31,7 +32,19 @@ def frames_node(prompt: dict) -> str:
     raise ValueError("workflow has no PhysMotionSaveVideo node")
 
 
+def contact_sheet(frames, path: Path) -> None:
+    idx = np.linspace(0, frames.shape[0] - 1, 6).round().astype(int)
+    tiles = [(np.clip(frames[i].numpy(), 0, 1) * 255).astype(np.uint8) for i in idx]
+    sheet = np.concatenate([np.concatenate(tiles[:3], 1), np.concatenate(tiles[3:], 1)], 0)
+    scale = 900 / sheet.shape[1]
+    cv2.imwrite(str(path), cv2.resize(sheet, None, fx=scale, fy=scale, interpolation=cv2.INTER_AREA)[..., ::-1])
+
+
 def main(names: list[str]) -> int:
+    sheet_dir = None
+    if names[:1] == ["--sheet"]:
+        sheet_dir, names = Path(names[1]), names[2:]
+        sheet_dir.mkdir(parents=True, exist_ok=True)
     node_classes()
     paths = sorted((ROOT / "workflows" / "api").glob("*.json"))
     if names:
@@ -42,6 +55,8 @@ def main(names: list[str]) -> int:
             os.environ["PHYSMOTION_OUTPUT_DIR"] = tmp
             out = run_prompt(prompt)
         frames = out["results"][frames_node(prompt)][0]
+        if sheet_dir is not None:
+            contact_sheet(frames, sheet_dir / f"{path.stem}.png")
         frame = frames[int(0.4 * (frames.shape[0] - 1))].numpy()
         img = (np.clip(frame, 0, 1) * 255 + 0.5).astype(np.uint8)[..., ::-1]
         scale = 512 / max(img.shape[:2])

@@ -38,7 +38,7 @@ class LoadImage:
     @classmethod
     def INPUT_TYPES(cls):
         files = sorted(p.name for p in cls.input_dir.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
-        files.append("physmotion_coffee.png")
+        files += ["physmotion_" + p.name for p in (ROOT / "examples").glob("*.png")]
         return {"required": {"image": (files, {"image_upload": True})}}
 
     RETURN_TYPES = ("IMAGE", "MASK")
@@ -49,8 +49,8 @@ class LoadImage:
         from physmotion_core.image_io import load_image
 
         path = self.input_dir / image
-        if not path.exists() and image == "physmotion_coffee.png":  # the pack copies it into input/
-            path = ROOT / "examples" / "coffee.png"
+        if not path.exists() and image.startswith("physmotion_"):  # the pack copies these into input/
+            path = ROOT / "examples" / image[len("physmotion_"):]
         rgb, alpha = load_image(path)
         if alpha is None:
             mask = torch.zeros(64, 64)
@@ -97,10 +97,19 @@ def topological_order(prompt: dict) -> list[str]:
     return order
 
 
-def run_prompt(prompt: dict, overrides: dict | None = None) -> dict:
-    """Execute an API prompt; ``overrides`` maps "node_id.input" to a value. Returns outputs per node."""
+def run_prompt(prompt: dict, overrides: dict | None = None, class_overrides: dict | None = None) -> dict:
+    """Execute an API prompt and return outputs per node.
+
+    ``overrides`` maps "node_id.input" to a value; ``class_overrides`` maps "ClassName.input" to a
+    value for every node of that class (e.g. shrink every simulation for a quick test).
+    """
     classes = node_classes()
     prompt = json.loads(json.dumps(prompt))
+    for key, value in (class_overrides or {}).items():
+        cls_name, name = key.split(".", 1)
+        for node in prompt.values():
+            if node["class_type"] == cls_name:
+                node["inputs"][name] = value
     for key, value in (overrides or {}).items():
         nid, name = key.split(".", 1)
         prompt[nid]["inputs"][name] = value

@@ -119,6 +119,22 @@ def test_workflow_conversion_detects_a_changed_link():
 
 
 SMALL = {"3.max_gaussians": 6000, "7.frames": 8, "7.grid_res": 10, "10.filename_prefix": "test/push"}
+TINY = {"PhysMotionSilhouetteLift.max_gaussians": 4000, "PhysMotionMPMSimulate.frames": 5,
+        "PhysMotionMPMSimulate.grid_res": 8}
+
+
+@pytest.mark.parametrize("path", API_WORKFLOWS, ids=lambda p: p.stem)
+def test_every_api_workflow_runs_in_process_at_a_small_size(path, tmp_path, monkeypatch):
+    monkeypatch.setenv("PHYSMOTION_OUTPUT_DIR", str(tmp_path))
+    prompt = json.loads(path.read_text())
+    out = run_prompt(prompt, class_overrides=TINY)
+    saver = next(nid for nid, n in prompt.items() if n["class_type"] == "PhysMotionSaveVideo")
+    frames = out["results"][prompt[saver]["inputs"]["frames"][0]][0]
+    assert frames.shape[0] == 5 and bool(torch.isfinite(frames).all())
+    # Something moves between the first and the last frame.
+    assert float((frames[-1] - frames[0]).abs().mean()) > 1e-4
+    video = tmp_path / out["ui"][saver]["images"][0]["subfolder"] / out["ui"][saver]["images"][0]["filename"]
+    assert read_video(video)[0].shape[0] == 5
 
 
 def test_push_a_jelly_runs_in_process(tmp_path, monkeypatch):

@@ -501,15 +501,18 @@ def segment(image, *, alpha=None, mask=None, box: Optional[Sequence[float]] = No
     if method == "auto":
         method = "alpha" if alpha_arr is not None else ("mask" if mask_arr is not None else "grabcut")
 
+    soft = None  # a soft (anti-aliased) matte: its faint edge must be inpainted away too
     if method == "alpha":
         if alpha_arr is None:
             raise InputError("method='alpha' needs an alpha channel: load an RGBA image or pass alpha=")
         m = alpha_arr > 0.5
+        soft = alpha_arr
         what = "alpha channel"
     elif method == "mask":
         if mask_arr is None:
             raise InputError("method='mask' needs a mask: pass mask= (H, W) with the object at 1")
         m = mask_arr > 0.5
+        soft = mask_arr
         what = "mask"
     else:
         m = grabcut(img, box=box, init_mask=mask_arr, iters=grabcut_iters)
@@ -524,7 +527,10 @@ def segment(image, *, alpha=None, mask=None, box: Optional[Sequence[float]] = No
         raise InputError(f"The {what} covers the whole image, so there is no background to inpaint "
                          "from; the object must leave some of the image free")
     mf = m.astype(np.float32)
-    background = inpaint_background(img, mf, dilate_px=dilate_px, radius=inpaint_radius,
+    # The inpainted region also covers a soft matte's faint edge (alpha below 0.5 but above 1/255),
+    # which still holds the object's colour: otherwise its outline would stay in the background.
+    hole = mf if soft is None else np.maximum(mf, (soft > 1.0 / 255.0).astype(np.float32))
+    background = inpaint_background(img, hole, dilate_px=dilate_px, radius=inpaint_radius,
                                     method=inpaint_method)
     image_t = torch.from_numpy(img)
     mask_t = torch.from_numpy(mf)

@@ -14,7 +14,8 @@ not rendered. Steps, all vectorised numpy with bounded cost:
 4. One particle per solid voxel at its centre (with a small seeded jitter to avoid grid-aligned
    artefacts); volume s³.
 5. Each Gaussian is bound to the particle of the voxel holding its centre (solid whenever the
-   Gaussian stamped it; nearly transparent Gaussians bind to the nearest particle instead).
+   Gaussian stamped it; nearly transparent Gaussians bind to the nearest particle instead), and
+   interpolates its motion from its NEIGHBOURS nearest particles (``_interpolation``).
 """
 
 from __future__ import annotations
@@ -33,9 +34,10 @@ from ..types import Gaussians, quat_to_rotmat
 class ParticleSet:
     x: np.ndarray  # (P,3) float32 rest positions
     volume: np.ndarray  # (P,) float32 m^3
-    binding: np.ndarray  # (N,) int64: the particle each Gaussian follows
+    binding: np.ndarray  # (N,) int64: the particle of each Gaussian's voxel
     spacing: float  # voxel edge s (m)
-    object_id: np.ndarray  # (P,) int32
+    neighbours: np.ndarray  # (N, NEIGHBOURS) int64: particles each Gaussian interpolates from
+    weights: np.ndarray  # (N, NEIGHBOURS) float32, rows sum to 1
 
 
 def _gaussian_axes(g: Gaussians) -> torch.Tensor:
@@ -183,29 +185,41 @@ def fill_particles(
     if unbound.size:
         binding[unbound] = _nearest(means[unbound], x)
 
-    obj = np.zeros(vox.shape[0], dtype=np.int32)
-    if gaussians.object_ids is not None:
-        gid = gaussians.object_ids.cpu().numpy().astype(np.int32)
-        obj[binding] = gid  # particles holding Gaussians take their object; interior ones below
-        # Interior particles take the object id of the nearest bound particle along the voxel grid:
-        # propagate labels by repeated 6-neighbour dilation (bounded by the grid size).
-        label = np.full(tuple(dims), -1, dtype=np.int32)
-        label[vox[binding][:, 0], vox[binding][:, 1], vox[binding][:, 2]] = gid
-        for _ in range(int(dims.max())):
-            missing = solid & (label < 0)
-            if not missing.any():
-                break
-            for ax in range(3):
-                for sh in (1, -1):
-                    rolled = np.roll(label, sh, axis=ax)
-                    take = missing & (label < 0) & (rolled >= 0)
-                    label[take] = rolled[take]
-        obj = np.maximum(label[vox[:, 0], vox[:, 1], vox[:, 2]], 0)
-
+    neighbours, weights = _interpolation(means, binding, x, index_grid, origin, spacing, dims)
     return ParticleSet(
         x=x.astype(np.float32),
         volume=np.full(vox.shape[0], spacing**3, dtype=np.float32),
         binding=binding,
         spacing=float(spacing),
-        object_id=obj,
+        neighbours=neighbours,
+        weights=weights,
     )
+
+
+NEIGHBOURS = 8  # particles each Gaussian interpolates its motion from
+
+
+def _interpolation(means, binding, x, index_grid, origin, spacing, dims):
+    """The NEIGHBOURS nearest particles of each Gaussian (among the 27 voxels around it) and
+    smooth weights (1 - (d / 1.6 s)²)², normalised; the bound particle is always the first.
+
+    A Gaussian then moves with a weighted blend of its neighbours' local affine maps, so the
+    splats of one region deform smoothly instead of moving as rigid tiles, one per particle.
+    """
+    ar = np.arange(-1, 2)
+    offs = np.stack(np.meshgrid(ar, ar, ar, indexing="ij"), -1).reshape(-1, 3)
+    centre = np.clip(np.floor((means - origin) / spacing).astype(np.int64), 1, dims - 2)
+    cand = index_grid[tuple((centre[:, None, :] + offs[None]).transpose(2, 0, 1))]  # (N, 27)
+    cand = np.where(cand == binding[:, None], -1, cand)  # the bound particle goes first, below
+    d = np.linalg.norm(x[np.maximum(cand, 0)] - means[:, None, :], axis=-1)
+    d = np.where(cand >= 0, d, np.inf)
+    k = NEIGHBOURS - 1
+    order = np.argsort(d, axis=1, kind="stable")[:, :k]
+    nb = np.concatenate([binding[:, None], np.take_along_axis(cand, order, 1)], axis=1)
+    dist = np.concatenate([np.linalg.norm(x[binding] - means, axis=1)[:, None],
+                           np.take_along_axis(d, order, 1)], axis=1)
+    w = np.clip(1.0 - (dist / (1.6 * spacing)) ** 2, 0.0, None) ** 2
+    w[:, 0] = np.maximum(w[:, 0], 1e-3)  # never zero: a far (transparent) Gaussian follows its particle
+    w = np.where(nb >= 0, w, 0.0)
+    nb = np.where(nb >= 0, nb, binding[:, None])
+    return nb.astype(np.int64), (w / w.sum(1, keepdims=True)).astype(np.float32)

@@ -186,6 +186,8 @@ def p2g(
     grid_m: wp.array3d(dtype=float),
     grid_mv: wp.array3d(dtype=wp.vec3),
     grid_fix: wp.array3d(dtype=int),
+    grid_fix_v: wp.array3d(dtype=wp.vec3),
+    anchor_v: wp.array(dtype=wp.vec3),
 ):
     p = wp.tid()
     base = stencil_base(x[p], grid)
@@ -214,6 +216,7 @@ def p2g(
                 wp.atomic_add(grid_mv, ix, iy, iz, w * (mv + affine * dpos))
                 if anchored:
                     grid_fix[ix, iy, iz] = 1
+                    grid_fix_v[ix, iy, iz] = anchor_v[p]
 
 
 @wp.func
@@ -240,6 +243,7 @@ def grid_update(
     grid_mv: wp.array3d(dtype=wp.vec3),
     grid_v: wp.array3d(dtype=wp.vec3),
     grid_fix: wp.array3d(dtype=int),
+    grid_fix_v: wp.array3d(dtype=wp.vec3),
     lo: wp.vec3i,
     grid: GridInfo,
     bc: Boundary,
@@ -252,7 +256,9 @@ def grid_update(
     k = lo[2] + c
     m = grid_m[i, j, k]
     v = wp.vec3(0.0, 0.0, 0.0)
-    if m > 0.0 and grid_fix[i, j, k] == 0:
+    if grid_fix[i, j, k] != 0:
+        v = grid_fix_v[i, j, k]  # held by an anchor: fixed or moved at its prescribed velocity
+    elif m > 0.0:
         v = grid_mv[i, j, k] / m + dt * gravity
         # Domain walls (x, z sides and the top; the bottom too when there is no ground).
         if i < bc.pad:
@@ -275,6 +281,7 @@ def grid_update(
     grid_m[i, j, k] = 0.0
     grid_mv[i, j, k] = wp.vec3(0.0, 0.0, 0.0)
     grid_fix[i, j, k] = 0
+    grid_fix_v[i, j, k] = wp.vec3(0.0, 0.0, 0.0)
 
 
 @wp.func
@@ -415,6 +422,8 @@ def g2p(
     mat_id: wp.array(dtype=int),
     materials: wp.array(dtype=MaterialParams),
     flags: wp.array(dtype=int),
+    mass: wp.array(dtype=float),
+    anchor_v: wp.array(dtype=wp.vec3),
     grid_v: wp.array3d(dtype=wp.vec3),
     grid: GridInfo,
     dt: float,
@@ -441,8 +450,18 @@ def g2p(
 
     fl = flags[p]
     if (fl & FLAG_ANCHORED) != 0:
-        v[p] = wp.vec3(0.0, 0.0, 0.0)
+        va = anchor_v[p]
+        v[p] = va
         C[p] = wp.mat33(0.0)
+        x[p] = x[p] + dt * va
+        xa = x[p]
+        wp.atomic_min(stats, 1, xa[0])
+        wp.atomic_min(stats, 2, xa[1])
+        wp.atomic_min(stats, 3, xa[2])
+        wp.atomic_max(stats, 4, xa[0])
+        wp.atomic_max(stats, 5, xa[1])
+        wp.atomic_max(stats, 6, xa[2])
+        wp.atomic_max(stats, 0, wp.length(va))
         return
     mat = materials[mat_id[p]]
     if mat.damping > 0.0:
@@ -462,6 +481,7 @@ def g2p(
         stats[7] = 1.0
     wp.atomic_max(stats, 0, speed)
     wp.atomic_max(stats, 8, c2)
+    wp.atomic_add(stats, 9, mass[p] * wp.dot(new_v, new_v))
     wp.atomic_min(stats, 1, new_x[0])
     wp.atomic_min(stats, 2, new_x[1])
     wp.atomic_min(stats, 3, new_x[2])
@@ -472,13 +492,15 @@ def g2p(
 
 @wp.kernel
 def reset_stats(stats: wp.array(dtype=float)):
-    """Reset the reductions g2p fills: max speed, box min, box max, NaN flag, max wave speed²."""
+    """Reset the reductions g2p fills: max speed, box min, box max, NaN flag, max wave speed²,
+    and Σ m v² of the deformable particles (2 × their kinetic energy)."""
     stats[0] = 0.0
     for a in range(3):
         stats[1 + a] = 1.0e30
         stats[4 + a] = -1.0e30
     stats[7] = 0.0
     stats[8] = 0.0
+    stats[9] = 0.0
 
 
 # ----------------------------------------------------------------------------------------------

@@ -100,3 +100,23 @@ def kernel_params(mat: Material):
     p.fracture_stretch = mat.fracture_stretch if mat.fracture_stretch > 0 else 1.0e30
     p.damping = mat.damping
     return p
+
+
+def parse_overrides(text: str) -> dict:
+    """Parse "key=value, key=value" material overrides (e.g. "yield_stress=1e5, friction_angle=35")."""
+    out: dict[str, float] = {}
+    fields = {f.name for f in dataclasses.fields(Material)} - {"name", "model"}
+    for item in (text or "").replace(";", ",").replace("\n", ",").split(","):
+        item = item.strip()
+        if not item:
+            continue
+        if "=" not in item:
+            raise InputError(f"Material override '{item}' is not key=value (e.g. yield_stress=1e5)")
+        key, value = (s.strip() for s in item.split("=", 1))
+        if key not in fields:
+            raise InputError(f"Unknown material parameter '{key}'; valid: {', '.join(sorted(fields))}")
+        try:
+            out[key] = float(value)
+        except ValueError:
+            raise InputError(f"Material override {key}='{value}' is not a number") from None
+    return out

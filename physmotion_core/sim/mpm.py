@@ -154,6 +154,8 @@ class MPMSolver:
         self._dt_viscous = 0.5 * min(visc) * domain.dx**2 / 6.0 if visc else math.inf
         self._accel_static = float(np.linalg.norm(self.gravity))
         self._accel_extra = 0.0
+        self._accel_torque = 0.0
+        self._anchor_speed = 0.0
 
         flags = np.zeros(n, np.int32)
         if anchored is not None:
@@ -189,7 +191,9 @@ class MPMSolver:
             self.grid_mv = wp.zeros(domain.dims, dtype=wp.vec3)
             self.grid_v = wp.zeros(domain.dims, dtype=wp.vec3)
             self.grid_fix = wp.zeros(domain.dims, dtype=int)
-            self.stats = wp.zeros(9, dtype=float)
+            self.grid_fix_v = wp.zeros(domain.dims, dtype=wp.vec3)
+            self.anchor_v = wp.zeros(n, dtype=wp.vec3)
+            self.stats = wp.zeros(10, dtype=float)
             self.torque_mask = wp.array(tmask, dtype=int)
             self.torque_sums = wp.zeros((max(self.n_torques, 1), 13), dtype=float)
             self.torque_taus = wp.zeros(max(self.n_torques, 1), dtype=wp.vec3)
@@ -215,6 +219,8 @@ class MPMSolver:
 
         self._vmax = 0.0 if v0 is None else float(np.linalg.norm(v0, axis=1).max())
         self.frame_vmax = self._vmax
+        self.frame_rms = 0.0
+        self._deformable_mass = float(mass[(flags & 3) == 0].astype(np.float64).sum())
         self._box = (x.min(axis=0), x.max(axis=0))
         self._check_box(frame=0)
 
@@ -266,6 +272,15 @@ class MPMSolver:
         m = self.mass_np.astype(np.float64)
         self._accel_extra = float((np.linalg.norm(f, axis=1) / m).max()) if len(m) else 0.0
 
+    def set_anchors(self, anchored: np.ndarray, velocity: np.ndarray) -> None:
+        """Which particles are held now, and their prescribed velocities (P,3) m/s."""
+        flags = self.flags.numpy()
+        flags = (flags & ~1) | np.asarray(anchored, bool).astype(np.int32)
+        self.flags.assign(self.wp.array(flags.astype(np.int32), dtype=int, device=self.device))
+        self.anchor_v.assign(self.wp.array(np.asarray(velocity, np.float32), dtype=self.wp.vec3, device=self.device))
+        held = np.asarray(anchored, bool)
+        self._anchor_speed = float(np.linalg.norm(velocity[held], axis=1).max()) if held.any() else 0.0
+
     def set_torques(self, taus: np.ndarray, accel_bound: float = 0.0) -> None:
         """Torque vectors (n_torques, 3) N·m, zero for inactive ones; ``accel_bound`` bounds |α × r|."""
         taus = np.asarray(taus, np.float64).reshape(-1, 3)
@@ -279,8 +294,9 @@ class MPMSolver:
         acceleration bound (a particle starting from rest must not cross a cell in one step),
         and the explicit-viscosity limit."""
         dx = self.domain.dx
-        dt = self.cfl * dx / max(self._c + self._vmax, 1e-12)
-        accel = self._accel_static + self._accel_extra + getattr(self, "_accel_torque", 0.0)
+        speed = max(self._vmax, self._anchor_speed)
+        dt = self.cfl * dx / max(self._c + speed, 1e-12)
+        accel = self._accel_static + self._accel_extra + self._accel_torque
         if accel > 0:
             dt = min(dt, math.sqrt(self.cfl * dx / accel))
         return min(dt, self._dt_viscous)
@@ -321,14 +337,17 @@ class MPMSolver:
                                                                self.f_total])
                 forces = self.f_total
             wp.launch(K.p2g, dim=self.n, inputs=[self.x, self.v, self.C, self.tau, self.mass, self.vol, self.flags,
-                                                 forces, self.grid, dt, self.grid_m, self.grid_mv, self.grid_fix])
+                                                 forces, self.grid, dt, self.grid_m, self.grid_mv, self.grid_fix,
+                                                 self.grid_fix_v, self.anchor_v])
             gvec = wp.vec3(*self.gravity.astype(np.float32))
             wp.launch(K.grid_update, dim=span, inputs=[self.grid_m, self.grid_mv, self.grid_v, self.grid_fix,
+                                                       self.grid_fix_v,
                                                        wp.vec3i(int(lo[0]), int(lo[1]), int(lo[2])),
                                                        self.grid, self.bc, gvec, dt])
             wp.launch(K.reset_stats, dim=1, inputs=[self.stats])
             wp.launch(K.g2p, dim=self.n, inputs=[self.x, self.v, self.C, self.F, self.rot, self.plastic, self.tau,
-                                                 self.mat_id, self.material_table, self.flags, self.grid_v,
+                                                 self.mat_id, self.material_table, self.flags, self.mass,
+                                                 self.anchor_v, self.grid_v,
                                                  self.grid, dt, self.stats])
             if self.n_bodies:
                 wp.launch(K.rigid_reduce, dim=self.n, inputs=[self.x, self.v, self.mass, forces, self.body,
@@ -356,6 +375,11 @@ class MPMSolver:
         else:
             self._vmax = float(s[0])
             self.frame_vmax = max(self.frame_vmax, self._vmax)
+            # RMS speed of the deformable particles (a rigid body's speed is its velocity's)
+            rms = math.sqrt(max(float(s[9]), 0.0) / self._deformable_mass) if self._deformable_mass > 0 else 0.0
+            if self.n_bodies:
+                rms = max(rms, float(np.linalg.norm(self.body_v.numpy(), axis=1).max()))
+            self.frame_rms = max(self.frame_rms, rms)
             self._c = math.sqrt(float(s[8])) if s[8] > 0 else 0.0  # current stiffness, not the rest value
             self._box = (s[1:4].astype(np.float64), s[4:7].astype(np.float64))
         self._check_box(frame)

@@ -57,3 +57,27 @@ def select(region: Region, x: np.ndarray, object_id: np.ndarray, camera: Optiona
         raise InputError(f"The {what}'s region ({where}) contains no part of the object. "
                          "Place it on the object (e.g. click inside the object's mask) or enlarge it.")
     return sel
+
+
+REGION_MODES = ("whole object", "image point", "mask")
+
+
+def region_from_ui(mode: str, u: float = 0.0, v: float = 0.0, radius_px: float = 25.0, mask=None,
+                   object_id: int = -1) -> Region:
+    """A Region from the simple choices a node offers: the whole object, the part under an image
+    point (through the whole depth), or the part under a painted mask; optionally one object only."""
+    obj = None if object_id is None or object_id < 0 else int(object_id)
+    if mode == "whole object":
+        return Region(kind="all", object_id=obj)
+    if mode == "image point":
+        return Region(kind="image", points=((float(u), float(v)),), radius_px=float(radius_px), object_id=obj)
+    if mode == "mask":
+        if mask is None:
+            raise InputError("region is 'mask' but no mask is connected: connect a MASK (paint it in the mask editor)")
+        m = np.asarray(mask.detach().cpu() if hasattr(mask, "detach") else mask, dtype=np.float32)
+        if m.ndim == 3:
+            m = m[0]
+        if not (m > 0.5).any():
+            raise InputError("the region mask is empty: paint the part of the object the condition acts on")
+        return Region(kind="image", mask=m, object_id=obj)
+    raise InputError(f"region must be one of {REGION_MODES}; got '{mode}'")

@@ -22,6 +22,7 @@ from .regions import select
 log = logging.getLogger("physmotion.sim")
 
 REST_FRAMES = 3  # consecutive still frames before a scene counts as at rest
+FLOWING_MODELS = ("drucker_prager", "snow", "viscoplastic", "fluid")  # splats keep their orientation
 
 
 class _Schedule:
@@ -76,7 +77,7 @@ def simulate(
 
     Each object (``gaussians.object_ids``; one object if absent) is filled with particles on its
     own (``fill_particles``) and gets its material (``material`` may be one per object). Every
-    Gaussian follows the particle of its voxel. Time steps come from the CFL limits every
+    Gaussian follows a weighted blend of its nearest particles' local affine maps. Time steps come from the CFL limits every
     substep; frames are recorded at t = k / fps for k = 0..frames-1. ``record_all`` keeps every
     particle's trajectory (default: only those carrying Gaussians).
     """
@@ -104,6 +105,8 @@ def simulate(
 
     # Fill each object on its own, so the gap between two objects is never filled in.
     xs, vols, obj_of, binding = [], [], [], np.zeros(len(gaussians), np.int64)
+    neighbours = np.zeros((len(gaussians), 1), np.int64)
+    weights = np.ones((len(gaussians), 1), np.float32)
     offset = 0
     budget = settings.max_particles
     for o in objects:
@@ -119,6 +122,11 @@ def simulate(
         vols.append(parts.volume)
         obj_of.append(np.full(len(parts.x), o, np.int64))
         binding[sel] = parts.binding + offset
+        if neighbours.shape[1] != parts.neighbours.shape[1]:
+            neighbours = np.zeros((len(gaussians), parts.neighbours.shape[1]), np.int64)
+            weights = np.zeros((len(gaussians), parts.neighbours.shape[1]), np.float32)
+        neighbours[sel] = parts.neighbours + offset
+        weights[sel] = parts.weights
         offset += len(parts.x)
     x0 = np.concatenate(xs)
     volume = np.concatenate(vols)
@@ -126,7 +134,7 @@ def simulate(
 
     ground = conditions.ground()
     domain = Domain.around(x0.min(0), x0.max(0), dx, settings.domain_margin, ground)
-    recorded = np.arange(len(x0)) if record_all else np.unique(binding)
+    recorded = np.arange(len(x0)) if record_all else np.unique(neighbours)
     need = estimate_bytes(x0.shape[0], domain.dims, settings.frames, recorded.shape[0])
     dev_free = device_available_bytes(device)
     if device.startswith("cuda"):
@@ -151,9 +159,11 @@ def simulate(
         mass = volume[sel]
         com = (x0[sel] * mass[:, None]).sum(0) / mass.sum()
         v0[sel] += np.asarray(iv.velocity) + np.cross(np.asarray(iv.angular_velocity), x0[sel] - com)
+    anchors = conditions.of(Anchor)
+    anchor_sel = [region(a.region, "anchor") for a in anchors]
     anchored = np.zeros(len(x0), bool)
-    for a in conditions.of(Anchor):
-        anchored |= region(a.region, "anchor")
+    for sel in anchor_sel:
+        anchored |= sel
     # Rigid objects: one body each.
     body = np.full(len(x0), -1, np.int64)
     rigid_objects = [o for o in objects if materials[o].model == "rigid"]
@@ -170,7 +180,7 @@ def simulate(
         torque_mask[region(tq.region, "torque")] |= 1 << k
 
     solver = MPMSolver(x0, volume, particle_obj, materials, domain, gravity=conditions.gravity(), ground=ground,
-                       walls=conditions.walls(), cfl=settings.cfl, device=device, v0=v0, anchored=anchored,
+                       walls=conditions.walls(), cfl=settings.cfl, device=device, v0=v0,
                        body=body, torque_mask=torque_mask)
 
     forces = conditions.of(Force)
@@ -191,6 +201,9 @@ def simulate(
         alpha = np.linalg.norm(np.linalg.solve(inertia, np.asarray(tq.vector)))
         torque_bounds.append(alpha * float(np.linalg.norm(r, axis=1).max()))
         schedule.add(tq.t_start, tq.t_end)
+    for a in anchors:
+        schedule.add(a.t_start, a.t_end)
+    n_ft = len(forces) + len(torques)
 
     def apply_schedule(active: tuple[int, ...]) -> None:
         f = np.zeros((x0.shape[0], 3))
@@ -201,10 +214,18 @@ def simulate(
         taus = np.zeros((max(len(torques), 1), 3))
         bound = 0.0
         for i in active:
-            if i >= len(forces):
+            if len(forces) <= i < n_ft:
                 taus[i - len(forces)] = torques[i - len(forces)].vector
                 bound += torque_bounds[i - len(forces)]
         solver.set_torques(taus, bound)
+        held = np.zeros(len(x0), bool)
+        velocity = np.zeros((len(x0), 3))
+        for i in active:
+            if i >= n_ft:
+                a = i - n_ft
+                held |= anchor_sel[a]
+                velocity[anchor_sel[a]] = anchors[a].velocity
+        solver.set_anchors(held, velocity)
 
     frames = settings.frames
     frame_dt = 1.0 / settings.fps
@@ -225,6 +246,7 @@ def simulate(
         t_frame = k * frame_dt
         if rest_from is None:
             solver.frame_vmax = 0.0
+            solver.frame_rms = 0.0
             while solver.t < t_frame - 1e-9:
                 now_active = schedule.active(solver.t)
                 if now_active != active:
@@ -235,11 +257,11 @@ def simulate(
                 solver.substep(dt, frame=k)
                 if solver.substeps % 64 == 0:
                     tick(k - 1, frames - 1)  # lets Cancel act mid-frame on slow frames
-            still = settings.rest_speed > 0 and solver.frame_vmax < settings.rest_speed
+            still = settings.rest_speed > 0 and solver.frame_rms < settings.rest_speed
             still_frames = still_frames + 1 if still and not schedule.pending(solver.t) else 0
             if still_frames >= REST_FRAMES:
                 rest_from = k  # at rest: later frames repeat this state without substepping
-                log.info("scene at rest from frame %d (max speed %.2g m/s): substepping stops", k, solver.frame_vmax)
+                log.info("scene at rest from frame %d (RMS speed %.2g m/s): substepping stops", k, solver.frame_rms)
             xs_t[k] = torch.from_numpy(solver.positions()[recorded])
             Fs_t[k] = torch.from_numpy(solver.deformation()[recorded])
             plastic_t[k] = torch.from_numpy(solver.plastic_state()[recorded])
@@ -276,10 +298,13 @@ def simulate(
         x=xs_t,
         F=Fs_t,
         binding=torch.from_numpy(remap[binding]),
+        neighbours=torch.from_numpy(remap[neighbours]),
+        weights=torch.from_numpy(weights),
         rest_particles=torch.from_numpy(x0[recorded]),
         material=materials[0],
         materials=materials,
         stats=stats,
         plastic=plastic_t,
         particle_object=torch.from_numpy(particle_obj[recorded]),
+        rotation_free=torch.from_numpy(np.array([m.model in FLOWING_MODELS for m in materials])[particle_obj[recorded]]),
     )
