@@ -306,3 +306,15 @@ def test_anchors_hold_still_or_move_at_their_velocity_then_release():
     assert np.allclose(x[k, held_r, 0] - x[0, held_r, 0], 0.1 * t[k], atol=1e-5)
     assert np.allclose(x[k, held_r, 1:], x[0, held_r, 1:], atol=1e-6)
     assert x[-1, held_r, 0].mean() < x[k, held_r, 0].mean() - 1e-3  # released: it springs back
+
+
+def test_every_preset_is_documented_and_valid():
+    from pathlib import Path
+
+    from physmotion_core.sim.materials import PRESETS
+
+    doc = (Path(__file__).resolve().parent.parent / "docs" / "materials.md").read_text()
+    for name in PRESETS:
+        m = Material.preset(name)
+        assert f"| {name} | {m.model} |" in doc, f"docs/materials.md lacks the '{name}' preset"
+        assert m.wave_speed() >= 0
