@@ -340,7 +340,7 @@ class PhysMotionMPMSimulate:
                                      "tooltip": "Grid cells across the scene's largest extent (cost ~ res³); "
                                                 "0 = from quality."}),
                 "particles_per_cell": ([8, 1, 27], {"default": 8, "tooltip": "Particles per grid cell (n³)."}),
-                "cfl": ("FLOAT", {"default": 0.4, "min": 0.05, "max": 1.0, "step": 0.05,
+                "cfl": ("FLOAT", {"default": 0.4, "min": 0.05, "max": 0.7, "step": 0.05,
                                   "tooltip": "Fraction of the stability limit each time step uses."}),
                 "domain_margin": ("FLOAT", {"default": 1.0, "min": 0.1, "max": 20.0, "step": 0.1,
                                             "tooltip": "Free space around the object, in object sizes."}),

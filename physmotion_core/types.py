@@ -668,6 +668,9 @@ AUTO_GRID_RES = {"cpu": 24, "cuda": 48}
 QUALITY = {"draft": (0.67, 8), "standard": (1.0, 8), "high": (1.5, 8)}
 
 
+MAX_CFL = 0.7  # the stress matrix (docs/stability.md) finds 0.9 unstable for rubber; 0.8 passes; keep a margin
+
+
 @dataclass
 class SimSettings:
     """How to simulate. Times in seconds; ``grid_res`` cells across the object's largest extent."""
@@ -686,6 +689,11 @@ class SimSettings:
     #                         below this for 3 frames, with no force still to come, stops substepping and
     #                         repeats its state; 0 = off
     seed: int = 0
+    transfer: str = "apic"  # particle↔grid velocity transfer: "apic" (affine, MLS-MPM) or "pic" (dissipative)
+    fixed_dt: float = 0.0  # s; 0 = adaptive (CFL every substep). >0: this substep length, refused before the
+    #                        run if above the stable step, shortened during the run wherever the CFL needs it
+    max_substeps_per_frame: int = 100_000  # runs estimated to need more are refused before they start,
+    #                                        and a frame that needs more stops the run with an explanation
 
     def validate(self) -> None:
         if not (isinstance(self.frames, int) and 1 <= self.frames <= 100_000):
@@ -696,8 +704,9 @@ class SimSettings:
             raise InputError(f"grid_res must be 0 (auto) or between 4 and 1024 cells; got {self.grid_res}")
         if self.particles_per_cell not in (1, 8, 27, 64):
             raise InputError(f"particles_per_cell must be 1, 8, 27 or 64 (n³ per cell); got {self.particles_per_cell}")
-        if not (0.01 <= self.cfl <= 1.0):
-            raise InputError(f"cfl must be in [0.01, 1]; 0.3-0.5 is typical; got {self.cfl}")
+        if not (0.01 <= self.cfl <= MAX_CFL):
+            raise InputError(f"cfl must be in [0.01, {MAX_CFL}]; 0.3-0.5 is typical, and above {MAX_CFL} stiff "
+                             f"materials blow up (docs/stability.md); got {self.cfl}")
         if not (0.0 <= self.domain_margin <= 20.0):
             raise InputError(f"domain_margin must be in [0, 20] object sizes; got {self.domain_margin}")
         if self.max_particles < 1:
@@ -706,6 +715,13 @@ class SimSettings:
             raise InputError(f"min_substeps must be an integer in [1, 100000]; got {self.min_substeps}")
         if self.quality not in QUALITY:
             raise InputError(f"quality must be one of {tuple(QUALITY)}; got '{self.quality}'")
+        if self.transfer not in ("apic", "pic"):
+            raise InputError(f"transfer must be 'apic' or 'pic'; got '{self.transfer}'")
+        if not (math.isfinite(self.fixed_dt) and 0.0 <= self.fixed_dt <= 0.1):
+            raise InputError(f"fixed_dt must be 0 (adaptive) or a substep length in (0, 0.1] s; got {self.fixed_dt}")
+        if not (isinstance(self.max_substeps_per_frame, int) and 1 <= self.max_substeps_per_frame <= 10_000_000):
+            raise InputError(f"max_substeps_per_frame must be an integer in [1, 10000000]; got "
+                             f"{self.max_substeps_per_frame}")
         if not (math.isfinite(self.rest_speed) and self.rest_speed >= 0):
             raise InputError(f"rest_speed must be a non-negative speed in m/s (0 turns rest detection off); "
                              f"got {self.rest_speed}")

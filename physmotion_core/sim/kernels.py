@@ -123,9 +123,17 @@ def extract_rotation(A: wp.mat33, q0: wp.quat) -> wp.quat:
 
 @wp.func
 def corotated_stress(F: wp.mat33, R: wp.mat33, mu: float, lam: float) -> wp.mat33:
-    """Fixed-corotated Kirchhoff stress 2μ(F − R)Fᵀ + λ(J − 1)J I."""
+    """Fixed-corotated Kirchhoff stress 2μ(F − R)Fᵀ + λ(J − 1)J I, symmetrised.
+
+    With the exact polar rotation the stress is symmetric; an R that is off by ε (a tracked
+    rotation lagging a spinning body) adds a skew part 2μ·O(ε) that is as large as the elastic
+    stress itself at small strains and brakes the spin (angular momentum is lost every step).
+    Keeping the symmetric part conserves angular momentum exactly; what remains of the error is
+    O(ε · strain).
+    """
     J = wp.determinant(F)
-    return 2.0 * mu * (F - R) * wp.transpose(F) + lam * (J - 1.0) * J * wp.identity(n=3, dtype=float)
+    T = 2.0 * mu * (F - R) * wp.transpose(F)
+    return 0.5 * (T + wp.transpose(T)) + lam * (J - 1.0) * J * wp.identity(n=3, dtype=float)
 
 
 @wp.func
@@ -188,6 +196,7 @@ def p2g(
     grid_fix: wp.array3d(dtype=int),
     grid_fix_v: wp.array3d(dtype=wp.vec3),
     anchor_v: wp.array(dtype=wp.vec3),
+    apic: float,
 ):
     p = wp.tid()
     base = stencil_base(x[p], grid)
@@ -197,8 +206,9 @@ def p2g(
     wy = bspline_weights(fx, 1)
     wz = bspline_weights(fx, 2)
     m = mass[p]
-    # MLS-MPM: the stress enters as an affine momentum term -dt * V * (4/dx^2) * tau.
-    affine = (-dt * vol[p] * 4.0 * grid.inv_dx * grid.inv_dx) * tau[p] + m * C[p]
+    # MLS-MPM: the stress enters as an affine momentum term -dt * V * (4/dx^2) * tau. The particle's
+    # affine velocity m C is transferred with APIC (apic = 1) and dropped with PIC (apic = 0).
+    affine = (-dt * vol[p] * 4.0 * grid.inv_dx * grid.inv_dx) * tau[p] + (apic * m) * C[p]
     fl = flags[p]
     mv = m * v[p]
     if (fl & FLAG_RIGID) == 0:
@@ -307,7 +317,13 @@ def update_material(
     I = wp.identity(n=3, dtype=float)
     model = mat.model
     if model == MODEL_FIXED_COROTATED:
-        q = extract_rotation(F, q_in)
+        # Predict the rotation with this substep's spin (the skew part of C), then refine.
+        spin = wp.vec3(Cp[2, 1] - Cp[1, 2], Cp[0, 2] - Cp[2, 0], Cp[1, 0] - Cp[0, 1]) * (0.5 * dt)
+        turn = wp.length(spin)
+        q_pred = q_in
+        if turn > 1.0e-12:
+            q_pred = wp.normalize(wp.quat_from_axis_angle(spin / turn, turn) * q_in)
+        q = extract_rotation(F, q_pred)
         rot[p] = q
         Fout[p] = F
         tau[p] = corotated_stress(F, wp.quat_to_matrix(q), mat.mu, mat.lam)
@@ -424,6 +440,7 @@ def g2p(
     flags: wp.array(dtype=int),
     mass: wp.array(dtype=float),
     anchor_v: wp.array(dtype=wp.vec3),
+    f_ext: wp.array(dtype=wp.vec3),
     grid_v: wp.array3d(dtype=wp.vec3),
     grid: GridInfo,
     dt: float,
@@ -466,6 +483,9 @@ def g2p(
     mat = materials[mat_id[p]]
     if mat.damping > 0.0:
         new_v = new_v * wp.exp(-mat.damping * dt)
+    fp = f_ext[p]
+    if fp[0] != 0.0 or fp[1] != 0.0 or fp[2] != 0.0:
+        wp.atomic_add(stats, 10, dt * wp.dot(fp, new_v))  # work done by the external forces
     v[p] = new_v
     C[p] = new_C
     if (fl & FLAG_RIGID) != 0:
@@ -493,7 +513,7 @@ def g2p(
 @wp.kernel
 def reset_stats(stats: wp.array(dtype=float)):
     """Reset the reductions g2p fills: max speed, box min, box max, NaN flag, max wave speed²,
-    and Σ m v² of the deformable particles (2 × their kinetic energy)."""
+    Σ m v² of the deformable particles (2 × their kinetic energy), and the external forces' work."""
     stats[0] = 0.0
     for a in range(3):
         stats[1 + a] = 1.0e30
@@ -501,6 +521,7 @@ def reset_stats(stats: wp.array(dtype=float)):
     stats[7] = 0.0
     stats[8] = 0.0
     stats[9] = 0.0
+    stats[10] = 0.0
 
 
 # ----------------------------------------------------------------------------------------------

@@ -21,6 +21,7 @@ log = logging.getLogger("physmotion.sim")
 _CONTACT_IDS = {"sticky": 0, "slip": 1, "friction": 2}
 PAD = 3  # cells of boundary padding at every face of the domain
 MAX_TORQUES = 30  # torque regions are a per-particle bit mask
+TRANSFERS = ("apic", "pic")  # particle-grid velocity transfer: affine (APIC / MLS-MPM) or plain PIC
 
 
 def _warp():
@@ -118,12 +119,16 @@ class MPMSolver:
         anchored: Optional[np.ndarray] = None,
         body: Optional[np.ndarray] = None,
         torque_mask: Optional[np.ndarray] = None,
+        transfer: str = "apic",
     ):
         for m in materials:
             m.validate()
             if m.model not in IMPLEMENTED_MODELS:
                 raise InputError(f"Material '{m.name}' uses the '{m.model}' model, which this simulator does "
                                  f"not implement; available: {', '.join(IMPLEMENTED_MODELS)}")
+        if transfer not in TRANSFERS:
+            raise InputError(f"transfer must be one of {TRANSFERS}; got '{transfer}'")
+        self.apic = 1.0 if transfer == "apic" else 0.0
         self.wp = wp = _warp()
         self.device = device
         t0 = time.perf_counter()
@@ -139,6 +144,7 @@ class MPMSolver:
         self.n = n
         self.t = 0.0
         self.substeps = 0
+        self.work = 0.0  # J done by the external forces and torques so far
         self.dt_min = math.inf
         self.dt_max = 0.0
         mat_index = np.asarray(mat_index, dtype=np.int64)
@@ -193,7 +199,7 @@ class MPMSolver:
             self.grid_fix = wp.zeros(domain.dims, dtype=int)
             self.grid_fix_v = wp.zeros(domain.dims, dtype=wp.vec3)
             self.anchor_v = wp.zeros(n, dtype=wp.vec3)
-            self.stats = wp.zeros(10, dtype=float)
+            self.stats = wp.zeros(12, dtype=float)
             self.torque_mask = wp.array(tmask, dtype=int)
             self.torque_sums = wp.zeros((max(self.n_torques, 1), 13), dtype=float)
             self.torque_taus = wp.zeros(max(self.n_torques, 1), dtype=wp.vec3)
@@ -293,13 +299,31 @@ class MPMSolver:
         """Largest stable step: CFL on the current sound speed plus the fastest particle, an
         acceleration bound (a particle starting from rest must not cross a cell in one step),
         and the explicit-viscosity limit."""
-        dx = self.domain.dx
-        speed = max(self._vmax, self._anchor_speed)
-        dt = self.cfl * dx / max(self._c + speed, 1e-12)
         accel = self._accel_static + self._accel_extra + self._accel_torque
+        return self._dt_limit(self._c, max(self._vmax, self._anchor_speed), accel)
+
+    def wave_speed(self) -> float:
+        """The fastest elastic wave speed among the particles now (m/s)."""
+        return self._c
+
+    def _dt_limit(self, c: float, speed: float, accel: float) -> float:
+        dx = self.domain.dx
+        dt = self.cfl * dx / max(c + speed, 1e-12)
         if accel > 0:
             dt = min(dt, math.sqrt(self.cfl * dx / accel))
         return min(dt, self._dt_viscous)
+
+    def estimate_dt(self, peak_accel: float, peak_speed: float = 0.0) -> tuple[float, str]:
+        """The step the run will start with when external accelerations reach ``peak_accel`` (m/s²,
+        besides gravity) and driven particles ``peak_speed``; and which limit sets it."""
+        c, speed = self._c0, max(self._vmax, peak_speed)
+        accel = self._accel_static + peak_accel
+        dx = self.domain.dx
+        limits = {"wave speed": self.cfl * dx / max(c + speed, 1e-12),
+                  "acceleration": math.sqrt(self.cfl * dx / accel) if accel > 0 else math.inf,
+                  "viscosity": self._dt_viscous}
+        why = min(limits, key=limits.get)
+        return limits[why], why
 
     def _check_box(self, frame: int) -> None:
         lo, hi = self._box
@@ -338,7 +362,7 @@ class MPMSolver:
                 forces = self.f_total
             wp.launch(K.p2g, dim=self.n, inputs=[self.x, self.v, self.C, self.tau, self.mass, self.vol, self.flags,
                                                  forces, self.grid, dt, self.grid_m, self.grid_mv, self.grid_fix,
-                                                 self.grid_fix_v, self.anchor_v])
+                                                 self.grid_fix_v, self.anchor_v, self.apic])
             gvec = wp.vec3(*self.gravity.astype(np.float32))
             wp.launch(K.grid_update, dim=span, inputs=[self.grid_m, self.grid_mv, self.grid_v, self.grid_fix,
                                                        self.grid_fix_v,
@@ -347,7 +371,7 @@ class MPMSolver:
             wp.launch(K.reset_stats, dim=1, inputs=[self.stats])
             wp.launch(K.g2p, dim=self.n, inputs=[self.x, self.v, self.C, self.F, self.rot, self.plastic, self.tau,
                                                  self.mat_id, self.material_table, self.flags, self.mass,
-                                                 self.anchor_v, self.grid_v,
+                                                 self.anchor_v, forces, self.grid_v,
                                                  self.grid, dt, self.stats])
             if self.n_bodies:
                 wp.launch(K.rigid_reduce, dim=self.n, inputs=[self.x, self.v, self.mass, forces, self.body,
@@ -373,6 +397,7 @@ class MPMSolver:
         if s[7] != 0.0 or not np.isfinite(s[0]):
             self._box = (np.full(3, np.nan), np.full(3, np.nan))
         else:
+            self.work += float(s[10])
             self._vmax = float(s[0])
             self.frame_vmax = max(self.frame_vmax, self._vmax)
             # RMS speed of the deformable particles (a rigid body's speed is its velocity's)
@@ -393,6 +418,13 @@ class MPMSolver:
 
     def velocities(self) -> np.ndarray:
         return self.v.numpy().copy()
+
+    def energy(self) -> tuple[float, float]:
+        """Kinetic and gravitational potential energy (J; potential relative to the origin)."""
+        m = self.mass_np.astype(np.float64)
+        v = self.v.numpy().astype(np.float64)
+        x = self.x.numpy().astype(np.float64)
+        return 0.5 * float((m * (v * v).sum(1)).sum()), -float((m * (x @ self.gravity)).sum())
 
     def plastic_state(self) -> np.ndarray:
         return self.plastic.numpy().copy()

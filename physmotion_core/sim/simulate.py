@@ -10,7 +10,7 @@ from typing import Optional, Sequence, Union
 import numpy as np
 import torch
 
-from ..errors import InputError
+from ..errors import InputError, SimulationError
 from ..memory import device_available_bytes, fmt_bytes, host_available_bytes
 from ..progress import ProgressFn, Throttle
 from ..types import (Anchor, Camera, Conditions, Force, Gaussians, InitialVelocity, Material, SimResult,
@@ -61,6 +61,29 @@ def _as_materials(material, n_objects: int) -> list[Material]:
             raise InputError(f"Not a Material: {m!r}")
         m.validate()
     return mats
+
+
+def _check_cost(solver: MPMSolver, settings: SimSettings, materials: Sequence[Material], frame_dt: float,
+                peak_accel: float, peak_speed: float) -> None:
+    """Refuse, before the first substep, a run whose step would be above the stability limit or
+    whose substep count per frame would exceed ``settings.max_substeps_per_frame``."""
+    dt0, why = solver.estimate_dt(peak_accel, peak_speed)
+    stiff = max(materials, key=lambda m: m.wave_speed())
+    cause = {"wave speed": f"material '{stiff.name}' (E={stiff.E:.3g} Pa, ρ={stiff.density:.3g} kg/m³) carries waves at "
+                           f"{stiff.wave_speed():.3g} m/s",
+             "acceleration": f"the forces and torques accelerate it at up to {peak_accel:.3g} m/s²",
+             "viscosity": "a fluid's viscosity limits the explicit step"}[why]
+    if settings.fixed_dt and settings.fixed_dt > dt0 * (1 + 1e-6):
+        raise InputError(f"fixed_dt={settings.fixed_dt:.3g} s is above the stable step {dt0:.3g} s for this scene: "
+                         f"{cause} on a grid of dx={solver.domain.dx:.3g} m (CFL {solver.cfl}). Use fixed_dt <= "
+                         f"{dt0:.3g}, or 0 for the adaptive step.")
+    step = min(dt0, frame_dt / settings.min_substeps, settings.fixed_dt or math.inf)
+    per_frame = math.ceil(frame_dt / step)
+    if per_frame > settings.max_substeps_per_frame:
+        raise InputError(f"This run would need about {per_frame} substeps per frame (step {step:.3g} s), more than "
+                         f"max_substeps_per_frame={settings.max_substeps_per_frame}: {cause} on a grid of "
+                         f"dx={solver.domain.dx:.3g} m. Lower E or the force, raise the density, lower grid_res, or "
+                         "raise max_substeps_per_frame if you mean to wait.")
 
 
 def simulate(
@@ -181,7 +204,7 @@ def simulate(
 
     solver = MPMSolver(x0, volume, particle_obj, materials, domain, gravity=conditions.gravity(), ground=ground,
                        walls=conditions.walls(), cfl=settings.cfl, device=device, v0=v0,
-                       body=body, torque_mask=torque_mask)
+                       body=body, torque_mask=torque_mask, transfer=settings.transfer)
 
     forces = conditions.of(Force)
     f_terms, schedule = [], _Schedule()
@@ -204,6 +227,10 @@ def simulate(
     for a in anchors:
         schedule.add(a.t_start, a.t_end)
     n_ft = len(forces) + len(torques)
+    peak_accel = sum(float((np.linalg.norm(f, axis=1) / solver.mass_np).max()) for f in f_terms) + sum(torque_bounds)
+    peak_anchor = max([float(np.linalg.norm(a.velocity)) for a in anchors], default=0.0)
+    frame_dt = 1.0 / settings.fps
+    _check_cost(solver, settings, materials, frame_dt, peak_accel, peak_anchor)
 
     def apply_schedule(active: tuple[int, ...]) -> None:
         f = np.zeros((x0.shape[0], 3))
@@ -228,7 +255,6 @@ def simulate(
         solver.set_anchors(held, velocity)
 
     frames = settings.frames
-    frame_dt = 1.0 / settings.fps
     n_rec = recorded.shape[0]
     xs_t = torch.empty(frames, n_rec, 3)
     Fs_t = torch.empty(frames, n_rec, 3, 3)
@@ -241,12 +267,22 @@ def simulate(
     active = None
     still_frames = 0
     rest_from = None
+    energy = {"kinetic": [], "potential": [], "work": []}
+
+    def record_energy() -> None:
+        kin, pot = solver.energy()
+        energy["kinetic"].append(kin)
+        energy["potential"].append(pot)
+        energy["work"].append(solver.work)
+
+    record_energy()
     t_loop = time.perf_counter()
     for k in range(1, frames):
         t_frame = k * frame_dt
         if rest_from is None:
             solver.frame_vmax = 0.0
             solver.frame_rms = 0.0
+            in_frame = 0
             while solver.t < t_frame - 1e-9:
                 now_active = schedule.active(solver.t)
                 if now_active != active:
@@ -254,6 +290,16 @@ def simulate(
                     active = now_active
                 dt = min(solver.stable_dt(), frame_dt / settings.min_substeps, t_frame - solver.t,
                          schedule.next_edge(solver.t) - solver.t)
+                if settings.fixed_dt:
+                    dt = min(dt, settings.fixed_dt)
+                in_frame += 1
+                if in_frame > settings.max_substeps_per_frame:
+                    raise SimulationError(
+                        f"Frame {k} needed more than max_substeps_per_frame={settings.max_substeps_per_frame} "
+                        f"substeps (step now {dt:.3g} s: fastest particle {solver.frame_vmax:.3g} m/s, wave speed "
+                        f"{solver.wave_speed():.3g} m/s). Likely cause: the material was compressed far stiffer "
+                        "than at rest, or a force accelerates it without bound; lower the force or E, or raise "
+                        "max_substeps_per_frame.", frame=k, material="/".join(m.name for m in materials))
                 solver.substep(dt, frame=k)
                 if solver.substeps % 64 == 0:
                     tick(k - 1, frames - 1)  # lets Cancel act mid-frame on slow frames
@@ -265,8 +311,11 @@ def simulate(
             xs_t[k] = torch.from_numpy(solver.positions()[recorded])
             Fs_t[k] = torch.from_numpy(solver.deformation()[recorded])
             plastic_t[k] = torch.from_numpy(solver.plastic_state()[recorded])
+            record_energy()
         else:
             xs_t[k], Fs_t[k], plastic_t[k] = xs_t[k - 1], Fs_t[k - 1], plastic_t[k - 1]
+            for key in energy:
+                energy[key].append(energy[key][-1])
         tick(k, frames - 1)
     loop_s = time.perf_counter() - t_loop
 
@@ -290,6 +339,8 @@ def simulate(
         "stepping_s": loop_s,
         "particle_substeps_per_s": x0.shape[0] * solver.substeps / max(loop_s, 1e-9),
         "mass_kg": float(solver.mass_np.astype(np.float64).sum()),
+        "energy": energy,  # per frame: kinetic, gravitational potential, cumulative external work (J)
+        "transfer": settings.transfer,
     }
     log.info("simulated %d frames: %d particles, %d substeps, %.1fs", frames, x0.shape[0], solver.substeps, wall)
     return SimResult(
