@@ -18,7 +18,7 @@ import tempfile
 import time
 from pathlib import Path
 
-from benchmarks._docs import machine_description, update_section
+from physmotion_core.report import machine_description, update_section
 
 ROOT = Path(__file__).resolve().parent.parent
 

@@ -110,7 +110,7 @@ def run(quick: bool = False) -> str:
 
 
 def machine_line() -> str:
-    from benchmarks._docs import machine_description
+    from physmotion_core.report import machine_description
 
     return machine_description()
 
@@ -123,7 +123,7 @@ def main() -> None:
     markdown = run(quick=args.quick)
     print(markdown)
     if not args.no_write:
-        from benchmarks._docs import update_section
+        from physmotion_core.report import update_section
 
         path = update_section("benchmarks.md", "render", markdown)
         print(f"written to {path}")

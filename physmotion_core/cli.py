@@ -59,6 +59,7 @@ def _build_parser() -> argparse.ArgumentParser:
     g.add_argument("--save-ply", type=Path, help="also write the lifted Gaussians as a 3DGS .ply")
     g.add_argument("--stats", type=Path, help="write timings and simulation statistics as JSON")
     g.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    _add_check_parsers(sub)
     return p
 
 
@@ -114,6 +115,74 @@ def _generate(args) -> int:
     return 0
 
 
+def _add_check_parsers(sub) -> None:
+    v = sub.add_parser("validate", help="compare the simulator with analytic and published answers",
+                       description="Run the accuracy suite (free fall, projectile, momentum, torque spin-up, elastic "
+                                   "bar period, convergence order, cantilever, friction, bouncing ball, granular "
+                                   "column collapse) and print measured vs expected with each tolerance.")
+    v.add_argument("--quick", action="store_true", help="only the cases that take seconds")
+    v.add_argument("--case", action="append", help="run only this case (repeatable); see --list")
+    v.add_argument("--list", action="store_true", help="list the case names and exit")
+    v.add_argument("--json", type=Path, help="also write the results as JSON here")
+    v.add_argument("--markdown", type=Path, help="write the results table into this markdown file's "
+                                                  "'validate' section (e.g. docs/accuracy.md)")
+    s = sub.add_parser("stress", help="run the numerical-stability stress matrix",
+                       description="Extreme stiffness, Poisson ratio, density, loads, thin and wall-touching objects, "
+                                   "long runs and oversized steps: every case must complete with finite, in-domain, "
+                                   "energy-bounded state or be refused before it starts.")
+    s.add_argument("--quick", action="store_true", help="the fast subset CI runs")
+    s.add_argument("--json", type=Path, help="also write the outcomes as JSON here")
+    s.add_argument("--markdown", type=Path, help="write the table into this markdown file's 'stress' section "
+                                                  "(e.g. docs/stability.md)")
+
+
+def _progress_line(i: int, n: int, name: str) -> None:
+    print(f"[{i + 1}/{n}] {name}", file=sys.stderr, flush=True)
+
+
+def _validate(args) -> int:
+    from .report import machine_description, update_section
+    from .validate.cases import all_cases, run_cases
+    from .validate.report import cases_markdown
+
+    names = [n for n, _ in all_cases(quick=False)]
+    if args.list:
+        print("\n".join(names))
+        return 0
+    unknown = sorted(set(args.case or []) - set(names))
+    if unknown:
+        raise argparse.ArgumentTypeError(f"unknown case(s) {unknown}; choose from {names}")
+    results = run_cases(args.case, quick=args.quick, progress=_progress_line)
+    for r in results:
+        print(f"{'PASS' if r.passed else 'FAIL'}  {r.name}: {r.quantity}: measured {r.measured:.6g}, expected "
+              f"{r.expected:.6g}, error {r.error:+.3g} (tolerance {r.tolerance:.3g}) [{r.seconds:.1f}s]")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps([r.as_dict() for r in results], indent=2, default=float))
+    if args.markdown:
+        update_section(args.markdown, "validate", cases_markdown(results, machine_description()))
+    return 0 if all(r.passed for r in results) else 1
+
+
+def _stress(args) -> int:
+    from dataclasses import asdict
+
+    from .report import machine_description, update_section
+    from .validate.stress import markdown, run_matrix, summary
+
+    results = run_matrix(quick=args.quick, progress=_progress_line)
+    for r in results:
+        print(f"{r.status:9s} {r.group}: {r.name} [{r.seconds:.1f}s] {r.reason}")
+    s = summary(results)
+    print(f"{len(results)} cases: {s['completed']} completed, {s['refused']} refused, {s['failed']} failed")
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps([asdict(r) for r in results], indent=2, default=float))
+    if args.markdown:
+        update_section(args.markdown, "stress", markdown(results, machine_description()))
+    return 0 if s["failed"] == 0 else 1
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     parser = _build_parser()
     args = parser.parse_args(argv)
@@ -122,6 +191,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     try:
         if args.command == "generate":
             return _generate(args)
+        if args.command == "validate":
+            return _validate(args)
+        if args.command == "stress":
+            return _stress(args)
     except argparse.ArgumentTypeError as exc:
         parser.error(str(exc))
     except PhysMotionError as exc:

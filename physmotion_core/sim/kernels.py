@@ -28,6 +28,7 @@ MODEL_FIXED_COROTATED = wp.constant(0)
 MODEL_NEO_HOOKEAN = wp.constant(1)
 MODEL_VON_MISES = wp.constant(2)
 MODEL_DRUCKER_PRAGER = wp.constant(3)
+NEO_HOOKEAN_MIN_J = wp.constant(0.05)
 MODEL_SNOW = wp.constant(4)
 MODEL_PLASTICINE = wp.constant(5)
 MODEL_FRACTURE = wp.constant(6)
@@ -329,7 +330,10 @@ def update_material(
         tau[p] = corotated_stress(F, wp.quat_to_matrix(q), mat.mu, mat.lam)
         return wave_speed_sq(mat.mu, mat.lam, mat.density, wp.determinant(F))
     if model == MODEL_NEO_HOOKEAN:
-        J = wp.max(wp.determinant(F), 1.0e-6)
+        # The stress (and wave speed, ~1/J) grows without bound as J → 0; below J = 0.05 (a body
+        # crushed to 5 % of its volume, far past any rubber's validity) it stops growing, so a
+        # Mach-10 impact costs bounded substeps instead of stalling the run (docs/stability.md).
+        J = wp.max(wp.determinant(F), NEO_HOOKEAN_MIN_J)
         Fout[p] = F
         tau[p] = mat.mu * (F * wp.transpose(F) - I) + mat.lam * wp.log(J) * I
         return wave_speed_sq(mat.mu, mat.lam, mat.density, J) * wp.max(1.0, 1.0 / J)

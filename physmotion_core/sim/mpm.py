@@ -145,6 +145,7 @@ class MPMSolver:
         self.t = 0.0
         self.substeps = 0
         self.work = 0.0  # J done by the external forces and torques so far
+        self.kernel_times: Optional[dict] = None  # set to {} to time every kernel (benchmarks)
         self.dt_min = math.inf
         self.dt_max = 0.0
         mat_index = np.asarray(mat_index, dtype=np.int64)
@@ -346,6 +347,17 @@ class MPMSolver:
         self._node_hi = node_hi
 
     # -- stepping -----------------------------------------------------------------------------
+    def _launch(self, kernel, dim, inputs) -> None:
+        """Launch a kernel; with ``kernel_times`` set to a dict, also time it (synchronising)."""
+        if self.kernel_times is None:
+            self.wp.launch(kernel, dim=dim, inputs=inputs)
+            return
+        t0 = time.perf_counter()
+        self.wp.launch(kernel, dim=dim, inputs=inputs)
+        self.wp.synchronize_device(self.device)
+        key = kernel.key
+        self.kernel_times[key] = self.kernel_times.get(key, 0.0) + time.perf_counter() - t0
+
     def substep(self, dt: float, frame: int = 0) -> None:
         wp = self.wp
         lo = self._node_lo
@@ -353,40 +365,40 @@ class MPMSolver:
         with wp.ScopedDevice(self.device):
             forces = self.f_static
             if self._torques_on:
-                wp.launch(K.zero_sums, dim=self.torque_sums.shape, inputs=[self.torque_sums])
-                wp.launch(K.torque_reduce, dim=self.n, inputs=[self.x, self.mass, self.torque_mask,
+                self._launch(K.zero_sums, dim=self.torque_sums.shape, inputs=[self.torque_sums])
+                self._launch(K.torque_reduce, dim=self.n, inputs=[self.x, self.mass, self.torque_mask,
                                                                self.n_torques, self.torque_sums])
-                wp.launch(K.apply_torques, dim=self.n, inputs=[self.x, self.mass, self.torque_mask, self.n_torques,
+                self._launch(K.apply_torques, dim=self.n, inputs=[self.x, self.mass, self.torque_mask, self.n_torques,
                                                                self.torque_sums, self.torque_taus, self.f_static,
                                                                self.f_total])
                 forces = self.f_total
-            wp.launch(K.p2g, dim=self.n, inputs=[self.x, self.v, self.C, self.tau, self.mass, self.vol, self.flags,
+            self._launch(K.p2g, dim=self.n, inputs=[self.x, self.v, self.C, self.tau, self.mass, self.vol, self.flags,
                                                  forces, self.grid, dt, self.grid_m, self.grid_mv, self.grid_fix,
                                                  self.grid_fix_v, self.anchor_v, self.apic])
             gvec = wp.vec3(*self.gravity.astype(np.float32))
-            wp.launch(K.grid_update, dim=span, inputs=[self.grid_m, self.grid_mv, self.grid_v, self.grid_fix,
+            self._launch(K.grid_update, dim=span, inputs=[self.grid_m, self.grid_mv, self.grid_v, self.grid_fix,
                                                        self.grid_fix_v,
                                                        wp.vec3i(int(lo[0]), int(lo[1]), int(lo[2])),
                                                        self.grid, self.bc, gvec, dt])
-            wp.launch(K.reset_stats, dim=1, inputs=[self.stats])
-            wp.launch(K.g2p, dim=self.n, inputs=[self.x, self.v, self.C, self.F, self.rot, self.plastic, self.tau,
+            self._launch(K.reset_stats, dim=1, inputs=[self.stats])
+            self._launch(K.g2p, dim=self.n, inputs=[self.x, self.v, self.C, self.F, self.rot, self.plastic, self.tau,
                                                  self.mat_id, self.material_table, self.flags, self.mass,
                                                  self.anchor_v, forces, self.grid_v,
                                                  self.grid, dt, self.stats])
             if self.n_bodies:
-                wp.launch(K.rigid_reduce, dim=self.n, inputs=[self.x, self.v, self.mass, forces, self.body,
+                self._launch(K.rigid_reduce, dim=self.n, inputs=[self.x, self.v, self.mass, forces, self.body,
                                                               self.body_centre, dt, self.body_p, self.body_l])
-                wp.launch(K.rigid_velocity, dim=self.n_bodies, inputs=[self.body_orient, self.body_inertia_w,
+                self._launch(K.rigid_velocity, dim=self.n_bodies, inputs=[self.body_orient, self.body_inertia_w,
                                                                         self.body_mass, self.body_p, self.body_l,
                                                                         self.body_v, self.body_w])
-                wp.launch(K.rigid_contacts, dim=self.n_bodies, inputs=[self.x, self.vol, self.body_start,
+                self._launch(K.rigid_contacts, dim=self.n_bodies, inputs=[self.x, self.vol, self.body_start,
                                                                         self.body_end, self.body_centre,
                                                                         self.body_orient, self.body_inertia_w,
                                                                         self.body_mass, self.body_v, self.body_w,
                                                                         self.grid, self.bc, 8])
-                wp.launch(K.rigid_integrate, dim=self.n_bodies, inputs=[self.body_centre, self.body_orient,
+                self._launch(K.rigid_integrate, dim=self.n_bodies, inputs=[self.body_centre, self.body_orient,
                                                                          self.body_v, self.body_w, dt])
-                wp.launch(K.rigid_apply, dim=self.n, inputs=[self.x, self.v, self.C, self.F, self.body,
+                self._launch(K.rigid_apply, dim=self.n, inputs=[self.x, self.v, self.C, self.F, self.body,
                                                              self.body_offset, self.body_centre, self.body_orient,
                                                              self.body_v, self.body_w, self.stats])
         s = self.stats.numpy()

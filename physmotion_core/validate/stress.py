@@ -71,7 +71,7 @@ def _check_completed(res) -> tuple[bool, str, dict]:
     mech = kin + pot - (kin[0] + pot[0]) - work
     height = float(x[0][:, 1].max() - x[0][:, 1].min())
     scale = kin[0] + res.stats["mass_kg"] * 9.81 * max(height, 1e-3) + float(np.abs(work).max())
-    excess = float(mech.max()) / scale
+    excess = float(mech[1:].max() if len(mech) > 1 else 0.0) / scale  # < 0: energy was dissipated
     details = {"substeps": res.stats["substeps"], "energy_excess": excess, "particles": res.stats["particles"]}
     if excess > ENERGY_SLACK:
         return False, f"energy grew by {excess:.1%} of its scale beyond the external work", details
@@ -143,7 +143,7 @@ def cases() -> list[StressCase]:
             return (_cube(), material_preset("jelly"),
                     Conditions(_ground() + [Torque((0.0, tq, 0.0), t_start=0.0, t_end=0.05)]), _settings())
         out.append(StressCase(f"torque {tq:.0e} N·m for 0.05 s", "load", build, quick=tq == 1e6))
-    for v in (10.0, 1e3, 1e5):
+    for v in (10.0, 300.0, 1e3, 1e5):
         def build(v=v):
             return (_cube(), material_preset("rubber"),
                     Conditions(_ground() + [InitialVelocity((v, -v, 0.0))]), _settings())
@@ -170,9 +170,9 @@ def cases() -> list[StressCase]:
                               touching(contact), quick=contact == "friction"))
 
     def two_stiff():
-        a = _cube(lift=0.15)
+        a = _cube(lift=0.17)
         a.object_ids = torch.zeros(len(a), dtype=torch.int64)
-        b = _cube(lift=0.0)
+        b = _cube(lift=0.02)
         b.object_ids = torch.ones(len(b), dtype=torch.int64)
         mats = [material_preset("metal"), material_preset("jelly", E=1e3)]
         return Gaussians.cat([a, b]), mats, Conditions(_ground()), _settings(frames=6)

@@ -1,6 +1,6 @@
-"""Write a benchmark's results into its own marked section of a docs/ markdown file.
+"""Write measured results into their own marked section of a markdown page (docs/ by default).
 
-Each benchmark owns one section, delimited by HTML comments, so several benchmarks can share a
+Each benchmark or report owns one section, delimited by HTML comments, so several can share a
 page and re-running one replaces only its numbers.
 """
 
@@ -11,7 +11,7 @@ import platform
 import re
 from pathlib import Path
 
-DOCS = Path(__file__).resolve().parent.parent / "docs"
+DOCS = Path(__file__).resolve().parent.parent / "docs"  # the repository's docs/ (an editable install)
 
 
 def machine_description() -> str:
@@ -33,11 +33,12 @@ def machine_description() -> str:
     return desc
 
 
-def update_section(page: str, name: str, markdown: str) -> Path:
-    """Replace (or append) the section `name` of docs/`page` with `markdown`."""
-    path = DOCS / page
-    DOCS.mkdir(exist_ok=True)
-    text = path.read_text() if path.exists() else f"# {page.rsplit('.', 1)[0].capitalize()}\n"
+def update_section(page, name: str, markdown: str) -> Path:
+    """Replace (or append) the section `name` of `page` (a path, or a file name inside docs/)."""
+    page = Path(page)
+    path = page if page.parent != Path(".") else DOCS / page
+    path.parent.mkdir(parents=True, exist_ok=True)
+    text = path.read_text() if path.exists() else f"# {path.stem.capitalize()}\n"
     begin, end = f"<!-- BEGIN {name} -->", f"<!-- END {name} -->"
     block = f"{begin}\n{markdown.strip()}\n{end}"
     pattern = re.compile(re.escape(begin) + r".*?" + re.escape(end), re.S)

@@ -1,0 +1,126 @@
+"""MPM throughput: particle-substeps per second against particle count and grid size, a per-kernel
+breakdown, memory per particle, and whether sorting particles by cell pays.
+
+    python -m benchmarks.bench_sim            # writes the "sim-throughput" section of docs/benchmarks.md
+    python -m benchmarks.bench_sim --quick    # smaller sweep
+    python -m benchmarks.bench_sim --device cuda:0
+
+Scene: a jelly cube (fixed-corotated, E 2e4 Pa) falling under gravity, particles on a lattice at
+2 per cell per axis (8 per cell), timed over substeps after warm-up substeps (kernels compiled,
+caches warm). Warp runs CPU kernels on one thread, so the CPU numbers are single-core numbers.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import time
+
+import numpy as np
+
+from physmotion_core.report import machine_description, update_section
+from physmotion_core.sim.materials import material_preset
+from physmotion_core.sim.mpm import Domain, MPMSolver, estimate_bytes
+from physmotion_core.validate.harness import lattice
+
+
+def make_solver(n_side: int, cells_across: int, device: str, order: str = "lattice") -> MPMSolver:
+    """A cube of n_side³ particles spanning ``cells_across`` grid cells."""
+    size = 0.5
+    dx = size / cells_across
+    x, vol = lattice((0.0, 0.5, 0.0), (size, 0.5 + size, size), size / n_side)
+    if order != "lattice":
+        rng = np.random.default_rng(0)
+        x = x[rng.permutation(len(x))]
+        if order == "sorted":
+            dom0 = Domain.around(x.min(0), x.max(0), dx, 0.5, None)
+            cell = np.floor((x - dom0.origin) / dx).astype(np.int64)
+            key = (cell[:, 0] * dom0.dims[1] + cell[:, 1]) * dom0.dims[2] + cell[:, 2]
+            x = x[np.argsort(key, kind="stable")]
+    dom = Domain.around(x.min(0), x.max(0), dx, 0.5, None)
+    return MPMSolver(x, vol, np.zeros(len(x), np.int64), [material_preset("jelly")], dom, device=device)
+
+
+def time_substeps(s: MPMSolver, steps: int, warm: int = 3) -> float:
+    for _ in range(warm):
+        s.substep(1e-4)
+    t0 = time.perf_counter()
+    for _ in range(steps):
+        s.substep(1e-4)
+    s.wp.synchronize_device(s.device)
+    return (time.perf_counter() - t0) / steps
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--device", default="cpu")
+    args = ap.parse_args()
+    dev = args.device
+    sides = (10, 22, 32, 46) if args.quick else (10, 22, 32, 46, 58)  # 1k, 10.6k, 32.8k, 97k, 195k particles
+    rows = []
+    for n in sides:
+        s = make_solver(n, n // 2, dev)
+        steps = max(5, int(2e6 / n**3))
+        per = time_substeps(s, steps)
+        rows.append((n**3, n // 2, per, n**3 / per))
+        print(f"{n**3} particles, grid {n // 2} cells across: {per * 1e3:.2f} ms/substep", flush=True)
+
+    grid_rows = []
+    n = 32
+    for cells in (8, 16, 32, 64):
+        s = make_solver(n, cells, dev)
+        per = time_substeps(s, 10)
+        grid_rows.append((cells, int(np.prod(s.domain.dims)), n**3 / cells**3, per, n**3 / per))
+        print(f"grid {cells}: {per * 1e3:.2f} ms", flush=True)
+
+    s = make_solver(46, 23, dev)
+    s.kernel_times = {}
+    steps = 10
+    time_substeps(s, steps, warm=0)
+    s.kernel_times = {}
+    total = time_substeps(s, steps, warm=0) * steps
+    breakdown = sorted(s.kernel_times.items(), key=lambda kv: -kv[1])
+
+    order_rows = []
+    for order in ("lattice", "random", "sorted"):
+        s = make_solver(40, 20, dev, order)
+        order_rows.append((order, time_substeps(s, 15)))
+
+    s = make_solver(32, 16, dev)
+    arrays = [s.x, s.v, s.C, s.F, s.tau, s.rot, s.plastic, s.mass, s.vol, s.mat_id, s.flags, s.f_static, s.f_total,
+              s.anchor_v, s.torque_mask]
+    per_particle = sum(a.capacity for a in arrays) / s.n
+    est = estimate_bytes(s.n, s.domain.dims, 1, 0)["device"]
+    grid_bytes = sum(a.capacity for a in (s.grid_m, s.grid_mv, s.grid_v, s.grid_fix, s.grid_fix_v))
+
+    lines = [f"Measured {datetime.date.today()} on {machine_description()}, Warp device `{dev}`. "
+             "Scene: a falling jelly cube, 8 particles per cell, times per substep after warm-up.", "",
+             "**Throughput against particle count** (grid sized to keep 8 particles per cell):", "",
+             "| particles | cells across | ms / substep | particle-substeps / s |", "|---:|---:|---:|---:|"]
+    lines += [f"| {p:,} | {c} | {t * 1e3:.2f} | {r / 1e6:.2f} M |" for p, c, t, r in rows]
+    lines += ["", f"**Grid size** ({32**3:,} particles, the grid refined under them):", "",
+              "| cells across | grid nodes (whole domain) | particles per cell | ms / substep | "
+              "particle-substeps / s |", "|---:|---:|---:|---:|---:|"]
+    lines += [f"| {c} | {nodes:,} | {ppc:.2f} | {t * 1e3:.2f} | {r / 1e6:.2f} M |"
+              for c, nodes, ppc, t, r in grid_rows]
+    lines += ["", f"**Per kernel** ({46**3:,} particles, each launch synchronised and timed; "
+              f"{total / steps * 1e3:.1f} ms per substep):", "", "| kernel | share | ms / substep |", "|---|---:|---:|"]
+    lines += [f"| {k} | {v / total:.0%} | {v / steps * 1e3:.2f} |" for k, v in breakdown]
+    lines += ["", f"**Particle order** ({40**3:,} particles): does sorting particles by grid cell speed up the "
+              "scatter?", "", "| order | ms / substep |", "|---|---:|"]
+    lines += [f"| {o} | {t * 1e3:.2f} |" for o, t in order_rows]
+    base = dict(order_rows)
+    lines += ["", f"Random order costs {base['random'] / base['lattice'] - 1:+.0%} against the fill's lattice order and "
+              f"re-sorting by cell {base['sorted'] / base['random'] - 1:+.0%} against random: on this CPU the grid of "
+              "the active box fits in cache and the single-threaded scatter has no atomic contention, so the "
+              "solver does not sort (the fill already emits particles in lattice order). On CUDA it is untested.",
+              "", f"**Memory**: {per_particle:.0f} bytes of device state per particle (the estimate used for the "
+              f"up-front memory check says {est / s.n:.0f} with the grid's share), plus "
+              f"{grid_bytes / np.prod(s.domain.dims):.0f} bytes per grid node over the whole domain box."]
+    path = update_section("benchmarks.md", "sim-throughput", "## MPM throughput\n\n" + "\n".join(lines))
+    print(f"wrote {path}")
+
+
+if __name__ == "__main__":
+    main()
