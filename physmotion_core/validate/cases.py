@@ -327,7 +327,7 @@ def lube_runout(a: float, geometry: str = "plane") -> float:
 
 @timed
 def column_collapse(aspect: float = 1.0, cells: int = 16, geometry: str = "plane", base_friction: float = 0.5,
-                    t_end: float = 0.0) -> CaseResult:
+                    friction_angle: float = 32.0, t_end: float = 0.0) -> CaseResult:
     """A dry-sand column released on rough ground (Coulomb μ = ``base_friction``); its run-out is
     compared with the experiments' scaling law. ``plane``: width L0 against a slip wall, in a narrow
     slip-walled channel (plane strain). ``axisymmetric``: a cylinder of radius L0 on open ground."""
@@ -346,7 +346,7 @@ def column_collapse(aspect: float = 1.0, cells: int = 16, geometry: str = "plane
         x, vol = x[keep], vol[keep]
         reach = L0 + 1.6 * runout + 0.05
         dom = box_domain((-reach, 0.0, -reach), (reach, H0 + 0.05, reach), dx, ground=ground)
-    s = _solver(x, vol, material_preset("sand"), dom, ground=ground)
+    s = _solver(x, vol, material_preset("sand", friction_angle=friction_angle), dom, ground=ground)
     t_end = t_end or 3.5 * math.sqrt(H0 / G) + 0.2
     run_sampled(s, [t_end], lambda s: None, max_dt=FRAME_DT / MIN_SUBSTEPS)
     xs = s.positions().astype(np.float64)
@@ -366,7 +366,8 @@ def column_collapse(aspect: float = 1.0, cells: int = 16, geometry: str = "plane
                       measured / expected - 1, 0.35,
                       "experiments scatter ±15 % about the law; Drucker–Prager without a rate-dependent μ(I) is "
                       "reported within ~20–30 %; the base friction μ = 0.5 stands for the experiments' rough bed",
-                      details={"substeps": s.substeps, "cells": cells, "base_friction": base_friction})
+                      details={"substeps": s.substeps, "cells": cells, "base_friction": base_friction,
+                               "friction_angle": friction_angle})
 
 
 CaseFn = Callable[[], "CaseResult | list[CaseResult]"]
@@ -391,7 +392,6 @@ def all_cases(quick: bool = False) -> list[tuple[str, CaseFn]]:
             ("collapse_1", lambda: column_collapse(1.0)),
             ("collapse_3", lambda: column_collapse(3.0)),
             ("collapse_axi_1", lambda: column_collapse(1.0, cells=10, geometry="axisymmetric")),
-            ("collapse_axi_3", lambda: column_collapse(3.0, cells=10, geometry="axisymmetric")),
         ]
     return cases
 
