@@ -160,7 +160,9 @@ def _validate(args) -> int:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps([r.as_dict() for r in results], indent=2, default=float))
     if args.markdown:
-        update_section(args.markdown, "validate", cases_markdown(results, machine_description()))
+        table = cases_markdown(results, machine_description())
+        update_section(args.markdown, "validate", "## The accuracy suite\n\n" + table
+                       + "\n\nRun with `physmotion validate --markdown docs/accuracy.md`.")
     return 0 if all(r.passed for r in results) else 1
 
 

@@ -228,7 +228,8 @@ def summary(results: list[StressOutcome]) -> dict:
 
 def markdown(results: list[StressOutcome], machine: str) -> str:
     s = summary(results)
-    lines = [f"{len(results)} cases: **{s['completed']} completed, {s['refused']} refused, {s['failed']} failed**. "
+    lines = ["## Results", "",
+             f"{len(results)} cases: **{s['completed']} completed, {s['refused']} refused, {s['failed']} failed**. "
              f"Machine: {machine}.", "",
              "| group | case | outcome | s | detail |", "|---|---|---|---:|---|"]
     for r in results:
