@@ -318,3 +318,20 @@ def test_every_preset_is_documented_and_valid():
         m = Material.preset(name)
         assert f"| {name} | {m.model} |" in doc, f"docs/materials.md lacks the '{name}' preset"
         assert m.wave_speed() >= 0
+
+
+def test_a_rigid_body_spinning_in_place_is_not_at_rest():
+    # Regression: rest detection looked at a rigid body's linear velocity only, so a cube spun by
+    # a torque stopped being simulated (and froze) three frames after the torque ended.
+    blk = lattice((-0.05, 0.2, -0.05), (0.05, 0.3, 0.05), (6, 6, 6))
+    res = simulate(blk, Material.preset("rigid"), Conditions([NO_GRAVITY, Torque((0.0, 0.01, 0.0), t_end=0.1)]),
+                   SimSettings(frames=16, fps=24, grid_res=8), record_all=True)
+    assert res.stats["rest_from_frame"] is None
+    x = res.x.numpy().astype(np.float64)
+    r = [x[k] - x[k].mean(0) for k in (-3, -2, -1)]
+    turn = [np.arctan2(np.cross(r[i][:, [2, 0]], r[i + 1][:, [2, 0]]), (r[i][:, [2, 0]] * r[i + 1][:, [2, 0]]).sum(1))
+            for i in range(2)]
+    # Still turning at a steady rate in the last frames (no torque, no friction: ω is constant);
+    # ω = τ t / I ≈ 0.2 rad/s for this ~2 kg filled cube, 0.0083 rad per frame.
+    assert float(np.median(turn[0])) > 0.005
+    assert float(np.median(turn[1])) == pytest.approx(float(np.median(turn[0])), rel=0.02)

@@ -257,6 +257,7 @@ class MPMSolver:
             centres[b], masses[b] = c, m.sum()
             offsets[sel] = r
         self.body_centre0 = centres
+        self.body_radius = np.array([np.linalg.norm(offsets[self.body_np == b], axis=1).max() for b in range(nb)])
         self.body_inertia = inertia
         self.body_mass_np = masses
         self.body = wp.array(self.body_np, dtype=int)
@@ -415,7 +416,10 @@ class MPMSolver:
             # RMS speed of the deformable particles (a rigid body's speed is its velocity's)
             rms = math.sqrt(max(float(s[9]), 0.0) / self._deformable_mass) if self._deformable_mass > 0 else 0.0
             if self.n_bodies:
-                rms = max(rms, float(np.linalg.norm(self.body_v.numpy(), axis=1).max()))
+                # A rigid body's fastest point moves at |v| + |ω| r: a body spinning in place is not at rest.
+                v_b = np.linalg.norm(self.body_v.numpy(), axis=1)
+                w_b = np.linalg.norm(self.body_w.numpy(), axis=1)
+                rms = max(rms, float((v_b + w_b * self.body_radius).max()))
             self.frame_rms = max(self.frame_rms, rms)
             self._c = math.sqrt(float(s[8])) if s[8] > 0 else 0.0  # current stiffness, not the rest value
             self._box = (s[1:4].astype(np.float64), s[4:7].astype(np.float64))
