@@ -134,6 +134,18 @@ def _add_check_parsers(sub) -> None:
     s.add_argument("--json", type=Path, help="also write the outcomes as JSON here")
     s.add_argument("--markdown", type=Path, help="write the table into this markdown file's 'stress' section "
                                                   "(e.g. docs/stability.md)")
+    c = sub.add_parser("comfy-run", help="run a workflow on a ComfyUI server and download its outputs",
+                       description="Upload the image, apply --set edits, queue the workflow on a running ComfyUI, "
+                                   "show its progress and download every output file.")
+    c.add_argument("workflow", type=Path, help="workflow JSON (API format, e.g. workflows/api/push_a_jelly.json; "
+                                               "a UI-format file is converted with the server's node schemas)")
+    c.add_argument("--server", default="http://127.0.0.1:8188", help="ComfyUI address")
+    c.add_argument("--image", type=Path, help="upload this image and feed it to the workflow's LoadImage node")
+    c.add_argument("--set", action="append", default=[], metavar="NODE.INPUT=VALUE",
+                   help="change a widget value (node id, title or unique class name); repeatable")
+    c.add_argument("-o", "--output", type=Path, default=Path("out"), help="folder for the downloaded outputs")
+    c.add_argument("--timeout", type=float, default=3600.0, help="seconds to wait for the run")
+    c.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
 
 
 def _progress_line(i: int, n: int, name: str) -> None:
@@ -185,6 +197,24 @@ def _stress(args) -> int:
     return 0 if s["failed"] == 0 else 1
 
 
+def _comfy_run(args) -> int:
+    from .comfy_client import run_workflow
+
+    def on_event(kind: str, data: dict) -> None:
+        if args.quiet:
+            return
+        if kind == "progress":
+            print(f"  node {data.get('node')}: {data.get('value')}/{data.get('max')}", file=sys.stderr, flush=True)
+        elif kind == "executing" and data.get("node") is not None:
+            print(f"running node {data['node']}", file=sys.stderr, flush=True)
+
+    saved = run_workflow(args.workflow, args.server, args.output, image=args.image, sets=args.set,
+                         on_event=on_event, timeout=args.timeout)
+    for path in saved:
+        print(path)
+    return 0
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
     parser = _build_parser()
     args = parser.parse_args(argv)
@@ -197,6 +227,8 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             return _validate(args)
         if args.command == "stress":
             return _stress(args)
+        if args.command == "comfy-run":
+            return _comfy_run(args)
     except argparse.ArgumentTypeError as exc:
         parser.error(str(exc))
     except PhysMotionError as exc:

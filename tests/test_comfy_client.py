@@ -1,0 +1,205 @@
+"""`physmotion comfy-run` against a stand-in ComfyUI server (HTTP + websocket, standard library).
+
+The stand-in speaks the parts of ComfyUI's API the client uses: /upload/image (multipart),
+/prompt, /history/<id>, /view and the /ws progress socket. (Against a real ComfyUI, see README:
+"Headless runs".)
+"""
+
+from __future__ import annotations
+
+import base64
+import hashlib
+import json
+import struct
+import threading
+import time
+import urllib.parse
+from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
+from pathlib import Path
+
+import pytest
+
+from physmotion_core.cli import main
+from physmotion_core.comfy_client import ComfyError, apply_sets, run_workflow
+from physmotion_core.errors import InputError
+
+ROOT = Path(__file__).resolve().parent.parent
+WORKFLOW = ROOT / "workflows" / "api" / "push_a_jelly.json"
+
+
+class FakeComfy:
+    def __init__(self, websocket=True, fail_node=None, reject=False):
+        self.websocket = websocket
+        self.fail_node = fail_node
+        self.reject = reject
+        self.uploads = {}
+        self.prompts = {}
+        self.done = {}
+        self.events = threading.Event()
+        fake = self
+
+        class Handler(BaseHTTPRequestHandler):
+            def log_message(self, *a):
+                pass
+
+            def _json(self, obj, code=200):
+                body = json.dumps(obj).encode()
+                self.send_response(code)
+                self.send_header("Content-Type", "application/json")
+                self.send_header("Content-Length", str(len(body)))
+                self.end_headers()
+                self.wfile.write(body)
+
+            def do_POST(self):
+                data = self.rfile.read(int(self.headers["Content-Length"]))
+                if self.path == "/upload/image":
+                    head, _, rest = data.partition(b'filename="')
+                    name = rest.split(b'"', 1)[0].decode()
+                    content = rest.split(b"\r\n\r\n", 1)[1].rsplit(b"\r\n--", 1)[0]
+                    fake.uploads[name] = content
+                    return self._json({"name": name, "subfolder": "", "type": "input"})
+                if self.path == "/prompt":
+                    body = json.loads(data)
+                    if fake.reject:
+                        return self._json({"error": {"message": "Prompt outputs failed validation"},
+                                           "node_errors": {"6": {"errors": [{"message": "Value too big",
+                                                                             "details": "force_x: 1e9 > 1e4"}]}}},
+                                          400)
+                    pid = f"p{len(fake.prompts)}"
+                    fake.prompts[pid] = body["prompt"]
+                    threading.Thread(target=fake.execute, args=(pid,), daemon=True).start()
+                    return self._json({"prompt_id": pid, "number": 0})
+                self._json({}, 404)
+
+            def do_GET(self):
+                url = urllib.parse.urlparse(self.path)
+                if url.path.startswith("/history/"):
+                    pid = url.path.rsplit("/", 1)[1]
+                    return self._json({pid: fake.done[pid]} if pid in fake.done else {})
+                if url.path == "/view":
+                    q = urllib.parse.parse_qs(url.query)
+                    body = f"{q['subfolder'][0]}/{q['filename'][0]}".encode()
+                    self.send_response(200)
+                    self.send_header("Content-Length", str(len(body)))
+                    self.end_headers()
+                    return self.wfile.write(body)
+                if url.path == "/ws" and fake.websocket:
+                    key = self.headers["Sec-WebSocket-Key"]
+                    accept = base64.b64encode(hashlib.sha1((key + "258EAFA5-E914-47DA-95CA-C5AB0DC85B11")
+                                                           .encode()).digest()).decode()
+                    self.send_response(101)
+                    self.send_header("Upgrade", "websocket")
+                    self.send_header("Connection", "Upgrade")
+                    self.send_header("Sec-WebSocket-Accept", accept)
+                    self.end_headers()
+                    fake.events.wait(10)
+                    for msg in fake.messages:
+                        payload = json.dumps(msg).encode()
+                        self.wfile.write(bytes([0x81, 126]) + struct.pack(">H", len(payload)) + payload)
+                    self.wfile.write(bytes([0x82, 3]) + b"bin")  # a binary preview frame: skipped
+                    self.wfile.write(bytes([0x88, 0]))
+                    return
+                self._json({}, 404)
+
+        self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
+        self.url = f"http://127.0.0.1:{self.server.server_address[1]}"
+        threading.Thread(target=self.server.serve_forever, daemon=True).start()
+
+    def execute(self, pid):
+        time.sleep(0.3)
+        if self.fail_node:
+            self.messages = [{"type": "execution_error", "data": {"prompt_id": pid, "node_id": self.fail_node,
+                                                                   "node_type": "PhysMotionMPMSimulate",
+                                                                   "exception_message": "Simulation became invalid"}}]
+            self.done[pid] = {"status": {"status_str": "error", "completed": False, "messages": [
+                ["execution_error", {"exception_message": "Simulation became invalid"}]]}, "outputs": {}}
+        else:
+            self.messages = [{"type": "executing", "data": {"node": "7", "prompt_id": pid}},
+                             {"type": "progress", "data": {"value": 3, "max": 47, "node": "7", "prompt_id": pid}},
+                             {"type": "executing", "data": {"node": None, "prompt_id": pid}}]
+            self.done[pid] = {"status": {"status_str": "success", "completed": True, "messages": []},
+                              "outputs": {"10": {"images": [{"filename": "push_a_jelly_00001.mp4",
+                                                             "subfolder": "PhysMotion", "type": "output"}],
+                                                 "animated": [True]},
+                                          "11": {"text": ["not a file"]}}}
+        self.events.set()
+
+    def close(self):
+        self.server.shutdown()
+
+
+@pytest.fixture
+def photo(tmp_path):
+    p = tmp_path / "photo.png"
+    p.write_bytes(b"\x89PNG fake")
+    return p
+
+
+@pytest.mark.parametrize("websocket", [True, False])
+def test_run_uploads_edits_queues_follows_and_downloads(tmp_path, photo, websocket):
+    fake = FakeComfy(websocket=websocket)
+    events = []
+    try:
+        saved = run_workflow(WORKFLOW, fake.url, tmp_path / "out", image=photo, sets=["PhysMotionSaveVideo.crf=23"],
+                             on_event=lambda k, d: events.append(k), timeout=20)
+    finally:
+        fake.close()
+    assert fake.uploads == {"photo.png": b"\x89PNG fake"}
+    prompt = fake.prompts["p0"]
+    assert prompt["1"]["inputs"]["image"] == "photo.png"
+    assert prompt["10"]["inputs"]["crf"] == 23
+    assert [p.name for p in saved] == ["push_a_jelly_00001.mp4"]
+    assert saved[0].read_bytes() == b"PhysMotion/push_a_jelly_00001.mp4"
+    if websocket:
+        assert events == ["executing", "progress", "executing"]
+    else:
+        assert events == []  # polled /history instead
+
+
+def test_server_errors_are_reported_with_the_node_and_message(tmp_path, photo):
+    fake = FakeComfy(reject=True)
+    try:
+        with pytest.raises(ComfyError, match="node 6: Value too big force_x"):
+            run_workflow(WORKFLOW, fake.url, tmp_path, timeout=5)
+    finally:
+        fake.close()
+    fake = FakeComfy(fail_node="7")
+    try:
+        with pytest.raises(ComfyError, match="Node 7 .*Simulation became invalid"):
+            run_workflow(WORKFLOW, fake.url, tmp_path, timeout=5)
+    finally:
+        fake.close()
+
+
+def test_unreachable_server_gives_a_clear_error(tmp_path, capsys):
+    code = main(["comfy-run", str(WORKFLOW), "--server", "http://127.0.0.1:9", "-o", str(tmp_path), "-q"])
+    assert code == 2
+    assert "Cannot reach ComfyUI at http://127.0.0.1:9" in capsys.readouterr().err
+
+
+def test_set_edits_are_checked():
+    prompt = json.loads(WORKFLOW.read_text())
+    apply_sets(prompt, ["10.crf=20", "PhysMotionSaveVideo.filename_prefix=run/a", "10.fps=12.5"])
+    assert prompt["10"]["inputs"]["crf"] == 20 and prompt["10"]["inputs"]["fps"] == 12.5
+    assert prompt["10"]["inputs"]["filename_prefix"] == "run/a"
+    with pytest.raises(InputError, match="No node 'Nope'"):
+        apply_sets(prompt, ["Nope.x=1"])
+    with pytest.raises(InputError, match="has no input 'bogus'"):
+        apply_sets(prompt, ["10.bogus=1"])
+    with pytest.raises(InputError, match="is connected to node"):
+        apply_sets(prompt, ["10.frames=1"])
+    with pytest.raises(InputError, match="NODE.INPUT=VALUE"):
+        apply_sets(prompt, ["crf20"])
+
+
+def test_cli_prints_the_saved_files(tmp_path, photo, capsys):
+    fake = FakeComfy()
+    try:
+        code = main(["comfy-run", str(WORKFLOW), "--server", fake.url, "--image", str(photo), "-o",
+                     str(tmp_path / "o"), "--set", "10.crf=30"])
+    finally:
+        fake.close()
+    assert code == 0
+    out = capsys.readouterr()
+    assert out.out.strip().endswith("push_a_jelly_00001.mp4")
+    assert "node 7: 3/47" in out.err
