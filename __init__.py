@@ -25,6 +25,13 @@ NODE_DISPLAY_NAME_MAPPINGS: dict = {}
 FAILED_MODULES: dict = {}
 WEB_DIRECTORY = "./web"
 
+try:
+    from .nodes._util import register_model_folders
+
+    register_model_folders()
+except Exception as _exc:  # noqa: BLE001 - never stop the pack from loading
+    log.warning("PhysMotion: model folders not registered: %s", _exc)
+
 for _name in NODE_MODULES:
     try:
         _mod = importlib.import_module(f".nodes.{_name}", __name__)

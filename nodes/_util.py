@@ -109,3 +109,93 @@ def first_mask(mask: Optional[torch.Tensor]) -> Optional[torch.Tensor]:
     if mask.ndim != 2:
         raise ValueError(f"mask must be a MASK [B,H,W]; got shape {tuple(mask.shape)}")
     return mask.float().cpu()
+
+
+# ----------------------------------------------------------------------------------------------
+# Model folders: ComfyUI's models/<sub> when inside ComfyUI, $PHYSMOTION_MODELS/<sub> outside.
+# ----------------------------------------------------------------------------------------------
+
+#: ComfyUI folder name -> physmotion_core.models kind
+COMFY_FOLDERS = {"sams": "sams", "physmotion_lgm": "lgm", "physmotion_imagedream": "imagedream"}
+
+
+def register_model_folders() -> None:
+    """Add our model folders to ComfyUI's folder_paths (keeping any the user configured)."""
+    try:
+        import folder_paths
+    except ImportError:
+        return
+    from physmotion_core.models import MODEL_FOLDERS
+
+    for name, kind in COMFY_FOLDERS.items():
+        path = os.path.join(folder_paths.models_dir, *MODEL_FOLDERS[kind].split("/"))
+        if name not in folder_paths.folder_names_and_paths:
+            folder_paths.folder_names_and_paths[name] = ([path], set(folder_paths.supported_pt_extensions))
+        else:
+            folder_paths.add_model_folder_path(name, path)
+
+
+def model_folders(kind: str) -> list[Path]:
+    """Every folder holding weights of ``kind`` (ComfyUI's list, or the library's single folder)."""
+    from physmotion_core.models import model_dir
+
+    name = next((n for n, k in COMFY_FOLDERS.items() if k == kind), None)
+    try:
+        import folder_paths
+
+        if name is not None and name in folder_paths.folder_names_and_paths:
+            return [Path(p) for p in folder_paths.get_folder_paths(name)]
+    except ImportError:
+        pass
+    return [model_dir(kind)]
+
+
+def model_choices(kind: str, *, dirs: bool = False, suffixes=(".safetensors", ".pth", ".pt", ".bin")) -> list[str]:
+    """Names to offer in a loader's drop-down: files (or sub-folders with ``dirs``) of every folder."""
+    names: set[str] = set()
+    for folder in model_folders(kind):
+        if not folder.is_dir():
+            continue
+        if dirs:
+            names.update(p.name for p in folder.iterdir() if p.is_dir())
+        else:
+            names.update(str(p.relative_to(folder)) for p in folder.rglob("*")
+                         if p.is_file() and p.name.lower().endswith(tuple(suffixes)))
+    return sorted(names) or ["(none found)"]
+
+
+def model_path(kind: str, name: str, *, expected: str) -> Path:
+    """The full path of a drop-down choice; a clear error naming the folders when it is absent."""
+    from physmotion_core.errors import MissingModelError
+    from physmotion_core.models import describe_folder
+
+    folders = model_folders(kind)
+    if name and name != "(none found)":
+        p = Path(name)
+        if p.is_absolute() and p.exists():
+            return p
+        for folder in folders:
+            if (folder / name).exists():
+                return folder / name
+    where = "; ".join(f"{f} ({describe_folder(f)})" for f in folders)
+    raise MissingModelError(f"{kind} model {name!r} not found. Expected {expected} in: {where}. "
+                            "Weights are never downloaded: put the file there and refresh the node (press R).")
+
+
+def offload_device() -> torch.device:
+    try:
+        import comfy.model_management as mm
+
+        return mm.unet_offload_device()
+    except ImportError:
+        return torch.device("cpu")
+
+
+def free_memory_for(model_bytes: int, device: torch.device) -> None:
+    """Ask ComfyUI to make room on ``device`` before one of our models moves there."""
+    try:
+        import comfy.model_management as mm
+    except ImportError:
+        return
+    if device.type == "cuda":
+        mm.free_memory(int(model_bytes * 1.2) + (512 << 20), device)

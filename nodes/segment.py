@@ -65,5 +65,98 @@ class PhysMotionSegment:
         return (seg.foreground[None], seg.mask[None], seg.background[None])
 
 
-NODE_CLASS_MAPPINGS = {"PhysMotionSegment": PhysMotionSegment}
-NODE_DISPLAY_NAME_MAPPINGS = {"PhysMotionSegment": "PhysMotion Segment (no model)"}
+class PhysMotionSAMLoader:
+    """Load an official SAM checkpoint (vit_b / vit_l / vit_h, detected from the file) from models/sams/."""
+
+    DESCRIPTION = ("Loads Segment Anything from models/sams/ (sam_vit_h_4b8939.pth, sam_vit_l_0b3195.pth or "
+                   "sam_vit_b_01ec64.pth from the official release). The size is read from the file itself. "
+                   "Nothing is downloaded.")
+
+    @classmethod
+    def INPUT_TYPES(cls):
+        from ._util import model_choices
+
+        return {"required": {
+            "sam_name": (model_choices("sams", suffixes=(".pth", ".pt", ".safetensors")),
+                         {"tooltip": "A checkpoint in models/sams/."}),
+        }}
+
+    RETURN_TYPES = ("PM_SAM",)
+    RETURN_NAMES = ("sam",)
+    FUNCTION = "run"
+    CATEGORY = f"{CATEGORY}/segment"
+
+    def run(self, sam_name):
+        from physmotion_core.segment.sam import OFFICIAL_FILES, load_sam
+
+        from ._util import model_path, offload_device
+
+        path = model_path("sams", sam_name, expected=" or ".join(OFFICIAL_FILES.values()))
+        return (load_sam(str(path), device=offload_device()),)
+
+
+class PhysMotionSAMSegment:
+    """Segment objects with SAM from points and/or boxes (or the most salient object automatically)."""
+
+    DESCRIPTION = ("Masks the object(s) to animate with SAM. Points: 'x, y' on an object, 'x, y, 0' on the "
+                   "background, 'x, y, 1, k' for object number k. Boxes: 'x0, y0, x1, y1', one object each. "
+                   "Entries are separated by ';' or new lines. No prompt: the most salient object. Of SAM's "
+                   "three candidate masks the one with the best predicted IoU is kept; holes and specks are "
+                   "cleaned. The background has every object inpainted away.")
+
+    @classmethod
+    def INPUT_TYPES(cls):
+        return {
+            "required": {
+                "sam": ("PM_SAM", {"tooltip": "From PhysMotion SAM Loader."}),
+                "image": ("IMAGE", {"tooltip": "The photo (the first image of a batch is used)."}),
+                "points": ("STRING", {"default": "", "multiline": True,
+                                      "tooltip": "Point prompts, e.g. '320, 240; 40, 20, 0' (object point, "
+                                                 "background point). Empty: use the boxes, or automatic."}),
+                "boxes": ("STRING", {"default": "", "multiline": True,
+                                     "tooltip": "Box prompts 'x0, y0, x1, y1', one object per box."}),
+                "coordinates": (["pixels", "fraction"], {
+                    "default": "pixels",
+                    "tooltip": "pixels: as in the image. fraction: 0..1 of the width and height "
+                               "(templates that work at any image size)."}),
+                "clean": ("BOOLEAN", {"default": True, "tooltip": "Fill small holes and drop specks."}),
+            },
+        }
+
+    RETURN_TYPES = ("IMAGE", "MASK", "IMAGE", "MASK")
+    RETURN_NAMES = ("foreground", "mask", "background", "object_masks")
+    OUTPUT_TOOLTIPS = ("Every object over black.", "All objects (1 on an object).",
+                       "The photo with every object inpainted away.",
+                       "One mask per object, in prompt order (a batch), for multi-object scenes.")
+    FUNCTION = "run"
+    CATEGORY = f"{CATEGORY}/segment"
+
+    def run(self, sam, image, points, boxes, coordinates, clean):
+        from physmotion_core.segment.sam import parse_prompts, sam_segment
+
+        from ._util import free_memory_for, offload_device, torch_device
+
+        img = first_image(image)
+        H, W = img.shape[:2]
+        prompts = parse_prompts(points, boxes, width=W, height=H, fraction=coordinates == "fraction")
+        dev = torch_device()
+        free_memory_for(sum(p.numel() * p.element_size() for p in sam.model.parameters()), dev)
+        try:
+            sam.to(dev)
+            res = sam_segment(sam, img, prompts, clean=bool(clean))
+        finally:
+            sam.to(offload_device())
+        seg = res.segmentation
+        return (seg.foreground[None], seg.mask[None], seg.background[None], res.masks)
+
+
+NODE_CLASS_MAPPINGS = {
+    "PhysMotionSegment": PhysMotionSegment,
+    "PhysMotionSAMLoader": PhysMotionSAMLoader,
+    "PhysMotionSAMSegment": PhysMotionSAMSegment,
+}
+NODE_DISPLAY_NAME_MAPPINGS = {
+    "PhysMotionSegment": "PhysMotion Segment (no model)",
+    "PhysMotionSAMLoader": "PhysMotion SAM Loader",
+    "PhysMotionSAMSegment": "PhysMotion SAM Segment",
+}
