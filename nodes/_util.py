@@ -116,7 +116,8 @@ def first_mask(mask: Optional[torch.Tensor]) -> Optional[torch.Tensor]:
 # ----------------------------------------------------------------------------------------------
 
 #: ComfyUI folder name -> physmotion_core.models kind
-COMFY_FOLDERS = {"sams": "sams", "physmotion_lgm": "lgm", "physmotion_imagedream": "imagedream"}
+COMFY_FOLDERS = {"sams": "sams", "physmotion_lgm": "lgm", "physmotion_imagedream": "imagedream",
+                 "physmotion_depth": "depth"}
 
 
 def register_model_folders() -> None:

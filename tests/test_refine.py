@@ -237,3 +237,40 @@ def test_depth_loader_errors_name_the_folder(tmp_path):
     (folder / "config.json").write_text("{}")
     with pytest.raises(MissingModelError, match="no weights"):
         load_depth_model("half", root=tmp_path)
+
+
+def test_refine_nodes_run_on_a_silhouette_lift_with_a_tiny_depth_model(tmp_path, monkeypatch):
+    from comfy_harness import load_pack
+    from transformers import DPTConfig, DPTForDepthEstimation, DPTImageProcessor
+
+    from physmotion_core.lift import silhouette_lift
+
+    torch.manual_seed(0)
+    cfg = DPTConfig(hidden_size=32, num_hidden_layers=4, num_attention_heads=2, intermediate_size=64, image_size=64,
+                    patch_size=16, neck_hidden_sizes=[8, 16, 32, 32], fusion_hidden_size=16,
+                    backbone_out_indices=[0, 1, 2, 3])
+    folder = tmp_path / "physmotion" / "depth" / "tiny-dpt"
+    DPTForDepthEstimation(cfg).save_pretrained(folder)
+    DPTImageProcessor(size={"height": 64, "width": 64}, keep_aspect_ratio=False).save_pretrained(folder)
+    monkeypatch.setenv("PHYSMOTION_MODELS", str(tmp_path))
+    nodes = load_pack().NODE_CLASS_MAPPINGS
+    assert nodes["PhysMotionDepthLoader"].INPUT_TYPES()["required"]["model_name"][0] == ["tiny-dpt"]
+    (dm,) = nodes["PhysMotionDepthLoader"]().run("tiny-dpt")
+
+    H, W = 60, 80
+    yy, xx = np.mgrid[:H, :W]
+    mask = ((xx - 40) ** 2 / 400 + (yy - 30) ** 2 / 300 < 1).astype(np.float32)
+    img = np.where(mask[..., None] > 0, [0.8, 0.3, 0.2], [0.2, 0.4, 0.6]).astype(np.float32)
+    lift = silhouette_lift(img, mask, max_gaussians=1500, fit_colors=False)
+    image = torch.from_numpy(img)[None]
+    (prev,) = nodes["PhysMotionDepth"]().run(dm, image, torch.from_numpy(mask)[None])
+    assert prev.shape == (1, H, W, 3)
+    g, preview = nodes["PhysMotionHardDepthRefine"]().run(lift.gaussians, lift.camera, image,
+                                                           torch.from_numpy(mask)[None], 12, 2, 1e-3, True, 128,
+                                                           0.0, 0, None, dm)
+    assert len(g) <= len(lift.gaussians) and bool(torch.isfinite(g.means).all())
+    assert preview.shape == (1, H, 2 * W, 3)
+    # The Gaussians moved (colour and depth steps ran) but stayed near the object.
+    shift = (g.means - lift.gaussians.means[: len(g)]).norm(dim=1) if len(g) == len(lift.gaussians) else None
+    if shift is not None:
+        assert float(shift.max()) > 0 and float(shift.max()) < 0.05

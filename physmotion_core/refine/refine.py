@@ -310,3 +310,28 @@ def refine_gaussians(gaussians: Gaussians, views: Sequence[RefineView], settings
             result = result.subset(keep)
     return RefineResult(gaussians=result, history=history, iterations_done=done, seconds=seconds, pruned=pruned,
                         notes=notes)
+
+
+def build_views(camera: Camera, image, mask, extra_views: Sequence[RefineView] = (), depth_model=None,
+                progress: Optional[ProgressFn] = None) -> list[RefineView]:
+    """The input view (colour + depth) and any generated views (depth only), with monocular depth
+    from ``depth_model`` when one is given (``physmotion_core.depth.DepthModel``)."""
+    from ..segment.classic import as_image_array, as_mask_array
+
+    img = torch.from_numpy(as_image_array(image))
+    H, W = img.shape[:2]
+    if (camera.width, camera.height) != (W, H):
+        camera = camera.resized(W, H)
+    m = torch.from_numpy(as_mask_array(mask, (H, W))).float() if mask is not None else None
+    views = [RefineView(camera=camera, image=img, mask=m, colour=True, name="input")]
+    for v in extra_views:
+        views.append(RefineView(camera=v.camera, image=v.image, mask=v.mask, depth=v.depth, colour=False,
+                                name=v.name))
+    if depth_model is not None:
+        from ..depth import estimate_depth
+
+        for k, v in enumerate(views):
+            if v.image is not None and v.depth is None:
+                v.depth = estimate_depth(depth_model, v.image).pseudo_depth()
+            report(progress, k + 1, len(views))
+    return views
