@@ -179,12 +179,15 @@ def prune_floaters(gaussians: Gaussians, views: Sequence[RefineView], dilate: fl
 
 def refine_gaussians(gaussians: Gaussians, views: Sequence[RefineView], settings: Optional[RefineSettings] = None,
                      *, progress: Optional[ProgressFn] = None,
-                     preview: Optional[Callable[[int, torch.Tensor], None]] = None) -> RefineResult:
+                     preview: Optional[Callable[[int, torch.Tensor], None]] = None,
+                     monitor: Optional[Callable[[int, Gaussians], None]] = None, monitor_every: int = 50) -> RefineResult:
     """Refine ``gaussians`` against ``views`` (see the module docstring); returns new Gaussians.
 
     ``progress(done, total)`` is called every iteration (it may raise to cancel: the Gaussians of
     the last finished iteration are then lost, the input is never modified). ``preview(it, image)``
-    gets the current input-view render beside its target every 50 iterations.
+    gets the current input-view render beside its target every 50 iterations. ``monitor(it, g)``
+    gets a detached copy of the current Gaussians before iteration 0 and after every
+    ``monitor_every`` iterations (benchmarks use it to trace error against iterations).
     """
     st = settings or RefineSettings()
     st.validate()
@@ -248,6 +251,14 @@ def refine_gaussians(gaussians: Gaussians, views: Sequence[RefineView], settings
     history = []
     t0 = time.perf_counter()
     done = 0
+    def snapshot() -> Gaussians:
+        with torch.no_grad():
+            c = current(detach_shape=True)
+            return Gaussians(means=c.means.detach().clone(), quats=c.quats.clone(), scales=c.scales.clone(),
+                             opacities=c.opacities.clone(), sh=c.sh.clone())
+
+    if monitor is not None:
+        monitor(0, snapshot())
     for it in range(n_it):
         if it == decay_it:
             for g, lr in zip(opt.param_groups, base_lrs):
@@ -287,6 +298,8 @@ def refine_gaussians(gaussians: Gaussians, views: Sequence[RefineView], settings
             rec["depth"] = float(dl.detach())
         history.append(rec)
         done = it + 1
+        if monitor is not None and done % int(monitor_every) == 0:
+            monitor(done, snapshot())
         report(progress, done, n_it)
         if st.max_seconds and time.perf_counter() - t0 > st.max_seconds:
             notes.append(f"stopped after {done} of {n_it} iterations (time limit {st.max_seconds:g} s)")
