@@ -11,6 +11,8 @@ from typing import Optional
 
 import torch
 
+from physmotion_core.errors import InputError
+
 log = logging.getLogger("physmotion.nodes")
 
 CATEGORY = "PhysMotion"
@@ -36,6 +38,76 @@ def progress_callback():
         bar.update_absolute(done, total, preview)
 
     return callback
+
+
+def temp_directory() -> Path:
+    """ComfyUI's temp folder (previews, cleared on restart); outside ComfyUI $PHYSMOTION_TEMP_DIR or
+    ``.previews`` in the output folder."""
+    try:
+        import folder_paths
+
+        return Path(folder_paths.get_temp_directory())
+    except ImportError:
+        return Path(os.environ.get("PHYSMOTION_TEMP_DIR") or output_directory() / ".previews")
+
+
+#: Longest side of the preview clips shown in the nodes (full-size frames go to Save Video).
+PREVIEW_MAX_SIDE = 512
+
+
+def _preview_frames(frames: torch.Tensor) -> torch.Tensor:
+    """(T,H,W,3) or (T,H,W) frames shrunk to PREVIEW_MAX_SIDE, as (T,h,w,3) float in 0..1."""
+    f = frames.detach().float().cpu()
+    if f.ndim == 3:
+        f = f[..., None].expand(*f.shape, 3)
+    f = f[..., :3].clamp(0, 1)
+    scale = PREVIEW_MAX_SIDE / max(f.shape[1], f.shape[2])
+    if scale < 1:
+        size = (max(2, round(f.shape[1] * scale)), max(2, round(f.shape[2] * scale)))
+        f = torch.nn.functional.interpolate(f.permute(0, 3, 1, 2), size=size, mode="area").permute(0, 2, 3, 1)
+    return f
+
+
+def preview_video(frames: torch.Tensor, fps: float, stem: str = "PhysMotion_preview") -> dict:
+    """A node's video preview: an mp4 in the temp folder, returned as the ``ui`` dict ComfyUI's own
+    video nodes return ({"images": [file], "animated": (True,)}); a single frame is a still PNG."""
+    from physmotion_core.video import write_mp4
+
+    folder = temp_directory()
+    folder.mkdir(parents=True, exist_ok=True)
+    f = _preview_frames(frames)
+    if f.shape[0] == 1:
+        return preview_images(f, stem)
+    name = f"{stem}_{os.urandom(4).hex()}.mp4"
+    write_mp4(folder / name, f, fps=float(min(max(fps, 1.0), 240.0)), crf=28)
+    return {"images": [{"filename": name, "subfolder": "", "type": "temp"}], "animated": (True,)}
+
+
+def preview_images(images: torch.Tensor, stem: str = "PhysMotion_preview") -> dict:
+    """Still previews (PNG in the temp folder) in the form ComfyUI's PreviewImage returns."""
+    import cv2
+    import numpy as np
+
+    folder = temp_directory()
+    folder.mkdir(parents=True, exist_ok=True)
+    out = []
+    for img in _preview_frames(images):
+        name = f"{stem}_{os.urandom(4).hex()}.png"
+        arr = (img.numpy() * 255 + 0.5).astype(np.uint8)[..., ::-1]
+        if not cv2.imwrite(str(folder / name), arr, [cv2.IMWRITE_PNG_COMPRESSION, 1]):
+            raise OSError(f"could not write the preview {folder / name}")
+        out.append({"filename": name, "subfolder": "", "type": "temp"})
+    return {"images": out, "animated": (False,)}
+
+
+def save_ply_output(gaussians, prefix: str) -> str:
+    """Save Gaussians as a 3DGS .ply in the output folder; returns its path relative to the output
+    folder (what Preview3D's model_file takes)."""
+    from physmotion_core.ply import write_ply
+
+    path, filename, subfolder = output_path(prefix, "ply")
+    write_ply(path, gaussians)
+    return f"{subfolder}/{filename}" if subfolder else filename
 
 
 def torch_device() -> torch.device:
@@ -78,7 +150,7 @@ def output_path(prefix: str, extension: str) -> tuple[Path, str, str]:
     prefix = (prefix or "PhysMotion").strip().replace("\\", "/")
     target = (root / prefix).resolve()
     if os.path.commonpath([root, target]) != str(root):
-        raise ValueError(f"filename_prefix '{prefix}' points outside the output folder; use a relative name")
+        raise InputError(f"filename_prefix '{prefix}' points outside the output folder; use a relative name")
     folder, stem = target.parent, target.name or "PhysMotion"
     folder.mkdir(parents=True, exist_ok=True)
     suffix = f".{extension}" if extension else ""
@@ -95,7 +167,7 @@ def first_image(image: torch.Tensor, name: str = "image") -> torch.Tensor:
     if image.ndim == 3:
         image = image[None]
     if image.ndim != 4 or image.shape[-1] not in (3, 4):
-        raise ValueError(f"{name} must be an IMAGE [B,H,W,3]; got shape {tuple(image.shape)}")
+        raise InputError(f"{name} must be an IMAGE [B,H,W,3]; got shape {tuple(image.shape)}")
     if image.shape[0] > 1:
         log.warning("%s: a batch of %d images was given; using the first", name, image.shape[0])
     return image[0, ..., :3].float().cpu()
@@ -107,7 +179,7 @@ def first_mask(mask: Optional[torch.Tensor]) -> Optional[torch.Tensor]:
     if mask.ndim == 3:
         mask = mask[0]
     if mask.ndim != 2:
-        raise ValueError(f"mask must be a MASK [B,H,W]; got shape {tuple(mask.shape)}")
+        raise InputError(f"mask must be a MASK [B,H,W]; got shape {tuple(mask.shape)}")
     return mask.float().cpu()
 
 

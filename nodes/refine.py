@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ._util import CATEGORY, first_image, first_mask, log, progress_callback
+from ._util import CATEGORY, first_image, first_mask, log, preview_images, progress_callback, save_ply_output
 
 
 class PhysMotionDepthLoader:
@@ -108,17 +108,23 @@ class PhysMotionHardDepthRefine:
             "optional": {
                 "views": ("PM_VIEWS", {"tooltip": "Generated views with cameras (from LGM Lift)."}),
                 "depth_model": ("PM_DEPTH_MODEL", {"tooltip": "Monocular depth model; without it, colour loss only."}),
+                "filename_prefix": ("STRING", {"default": "PhysMotion/refined",
+                                               "tooltip": "The refined Gaussians are saved as a 3DGS .ply with this "
+                                                          "prefix in the output folder (for Load3D / Preview3D); "
+                                                          "empty = do not save."}),
             },
         }
 
-    RETURN_TYPES = ("PM_GAUSSIANS", "IMAGE")
-    RETURN_NAMES = ("gaussians", "preview")
-    OUTPUT_TOOLTIPS = ("Refined Gaussians.", "Render of the result from the input camera beside the photo.")
+    RETURN_TYPES = ("PM_GAUSSIANS", "IMAGE", "STRING")
+    RETURN_NAMES = ("gaussians", "preview", "ply_path")
+    OUTPUT_TOOLTIPS = ("Refined Gaussians.", "Render of the result from the input camera beside the photo.",
+                       "The saved .ply relative to the output folder (connect to Preview3D's model_file); "
+                       "empty when filename_prefix is empty.")
     FUNCTION = "run"
     CATEGORY = f"{CATEGORY}/refine"
 
     def run(self, gaussians, camera, image, mask, iterations, hard_depth_every, learning_rate, prune_floaters,
-            max_render_side, time_limit_s, seed, views=None, depth_model=None):
+            max_render_side, time_limit_s, seed, views=None, depth_model=None, filename_prefix="PhysMotion/refined"):
         import torch
 
         from physmotion_core.refine import RefineSettings, build_views, refine_gaussians
@@ -154,7 +160,11 @@ class PhysMotionHardDepthRefine:
             r = rasterize(out, cam)
         tgt = rviews[0].image * (rviews[0].mask[..., None] if rviews[0].mask is not None else 1.0)
         preview = torch.cat([r.rgb.clamp(0, 1), tgt], dim=1)[None]
-        return (out, preview)
+        ply = save_ply_output(out, filename_prefix) if (filename_prefix or "").strip() else ""
+        ui = preview_images(preview, "PhysMotion_refine")
+        if ply:
+            ui["text"] = [ply]
+        return {"ui": ui, "result": (out, preview, ply)}
 
 
 NODE_CLASS_MAPPINGS = {

@@ -4,7 +4,9 @@ from __future__ import annotations
 
 import torch
 
-from ._util import CATEGORY, first_image, log, output_path, progress_callback, torch_device
+from physmotion_core.errors import InputError
+
+from ._util import CATEGORY, first_image, log, output_path, preview_video, progress_callback, torch_device
 
 
 class PhysMotionRender:
@@ -22,6 +24,9 @@ class PhysMotionRender:
                                    "tooltip": "Output height in pixels; 0 = the camera's."}),
             },
         }
+
+    DESCRIPTION = ("Renders the simulated Gaussians through the camera, frame by frame (gsplat on CUDA when it is "
+                   "installed, the pack's own PyTorch rasterizer otherwise). The node shows the clip as a preview.")
 
     RETURN_TYPES = ("IMAGE", "MASK", "IMAGE")
     RETURN_NAMES = ("rgb", "alpha", "depth")
@@ -41,7 +46,8 @@ class PhysMotionRender:
         dev = torch_device()
         frames = render_frames(simulation, cam, device=dev if dev.type == "cuda" else "cpu",
                                progress=progress_callback())
-        return (frames.rgb, frames.alpha, depth_to_image(frames.depth, frames.alpha))
+        result = (frames.rgb, frames.alpha, depth_to_image(frames.depth, frames.alpha))
+        return {"ui": preview_video(frames.rgb, frames.fps, "PhysMotion_render"), "result": result}
 
 
 class PhysMotionBlend:
@@ -54,16 +60,32 @@ class PhysMotionBlend:
             "alpha": ("MASK", {"tooltip": "Rendered coverage from PhysMotion Render."}),
             "background": ("IMAGE", {"tooltip": "The inpainted background from PhysMotion Segment (one image, "
                                                 "or one per frame)."}),
+        }, "optional": {
+            "fps": ("FLOAT", {"default": 24.0, "min": 1.0, "max": 1000.0, "step": 1.0,
+                              "tooltip": "Frame rate of the preview clip only (the frames themselves carry no rate)."}),
         }}
+
+    DESCRIPTION = "Alpha-composites the rendered frames over the background: the coarse video, shown as a preview."
 
     RETURN_TYPES = ("IMAGE",)
     RETURN_NAMES = ("frames",)
     FUNCTION = "run"
     CATEGORY = f"{CATEGORY}/render"
 
-    def run(self, rgb, alpha, background):
+    def run(self, rgb, alpha, background, fps=24.0):
         from physmotion_core.blend import composite
 
+        if rgb.ndim != 4 or rgb.shape[-1] < 3:
+            raise InputError(f"rgb must be an IMAGE batch [T,H,W,3]; got shape {tuple(rgb.shape)}. Connect "
+                             "PhysMotion Render's rgb output.")
+        if alpha.ndim == 2:
+            alpha = alpha[None]
+        if alpha.shape[0] != rgb.shape[0] or tuple(alpha.shape[1:3]) != tuple(rgb.shape[1:3]):
+            raise InputError(f"alpha {tuple(alpha.shape)} does not match rgb {tuple(rgb.shape[:3])}: connect the "
+                             "alpha output of the same PhysMotion Render node as rgb.")
+        if background.ndim == 4 and background.shape[0] not in (1, rgb.shape[0]):
+            raise InputError(f"background has {background.shape[0]} images but there are {rgb.shape[0]} frames: "
+                             "give one background image or one per frame.")
         bg = background if background.shape[0] == rgb.shape[0] else first_image(background, "background")
         if bg.shape[-3:-1] != rgb.shape[1:3]:
             log.warning("background %s resized to the frames' %s", tuple(bg.shape[-3:-1]), tuple(rgb.shape[1:3]))
@@ -72,7 +94,8 @@ class PhysMotionBlend:
                                                  mode="bilinear", align_corners=False).permute(0, 2, 3, 1)
             if bg.shape[0] == 1:
                 bg = bg[0]
-        return (composite(rgb, alpha, bg),)
+        out = composite(rgb, alpha, bg)
+        return {"ui": preview_video(out, float(fps), "PhysMotion_blend"), "result": (out,)}
 
 
 class PhysMotionSaveVideo:
@@ -92,6 +115,8 @@ class PhysMotionSaveVideo:
 
     RETURN_TYPES = ("STRING",)
     RETURN_NAMES = ("video_path",)
+    OUTPUT_TOOLTIPS = ("Absolute path of the saved mp4.",)
+    DESCRIPTION = "Writes the frames as an H.264 mp4 (yuv420p, plays everywhere) to the output folder and previews it."
     OUTPUT_NODE = True
     FUNCTION = "run"
     CATEGORY = f"{CATEGORY}/io"
@@ -99,6 +124,9 @@ class PhysMotionSaveVideo:
     def run(self, frames, fps, filename_prefix, crf):
         from physmotion_core.video import write_mp4
 
+        if frames.ndim != 4 or frames.shape[0] == 0:
+            raise InputError(f"frames must be a non-empty IMAGE batch [T,H,W,3]; got shape {tuple(frames.shape)}. "
+                             "Connect PhysMotion Blend's frames (or Render's rgb).")
         path, filename, subfolder = output_path(filename_prefix, "mp4")
         write_mp4(path, frames, fps=float(fps), crf=int(crf))
         preview = {"filename": filename, "subfolder": subfolder, "type": "output"}

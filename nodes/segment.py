@@ -2,7 +2,11 @@
 
 from __future__ import annotations
 
-from ._util import CATEGORY, first_image, first_mask, log
+import torch
+
+from physmotion_core.errors import InputError
+
+from ._util import CATEGORY, first_image, first_mask, log, preview_images
 
 
 class PhysMotionSegment:
@@ -48,11 +52,11 @@ class PhysMotionSegment:
         img = first_image(image)
         m = first_mask(mask)
         if method == "mask" and m is None:
-            raise ValueError("method is 'mask' but no mask is connected: connect a MASK or choose 'auto'")
+            raise InputError("method is 'mask' but no mask is connected: connect a MASK or choose 'auto'")
         if m is not None and float(m.max() - m.min()) < 0.5:
             # LoadImage gives a uniform (all-zero 64x64) MASK for images without alpha: that is "no mask".
             if method == "mask":
-                raise ValueError("method is 'mask' but the connected mask is empty/uniform (the image has no "
+                raise InputError("method is 'mask' but the connected mask is empty/uniform (the image has no "
                                  "alpha channel?): draw a mask, use an RGBA image, or choose 'auto'")
             log.info("the connected mask is uniform (no alpha channel): segmenting with GrabCut instead")
             m = None
@@ -62,7 +66,13 @@ class PhysMotionSegment:
             m = orient_object_mask(m, mask_polarity)
         seg = segment(img, mask=m, method="mask" if m is not None else "grabcut",
                       grabcut_iters=int(grabcut_iterations))
-        return (seg.foreground[None], seg.mask[None], seg.background[None])
+        return {"ui": _segment_preview(seg.foreground, seg.background),
+                "result": (seg.foreground[None], seg.mask[None], seg.background[None])}
+
+
+def _segment_preview(foreground: torch.Tensor, background: torch.Tensor) -> dict:
+    """The object over black beside the inpainted background, as one still preview."""
+    return preview_images(torch.cat([foreground, background], dim=1)[None], "PhysMotion_segment")
 
 
 class PhysMotionSAMLoader:
@@ -147,7 +157,8 @@ class PhysMotionSAMSegment:
         finally:
             sam.to(offload_device())
         seg = res.segmentation
-        return (seg.foreground[None], seg.mask[None], seg.background[None], res.masks)
+        return {"ui": _segment_preview(seg.foreground, seg.background),
+                "result": (seg.foreground[None], seg.mask[None], seg.background[None], res.masks)}
 
 
 NODE_CLASS_MAPPINGS = {

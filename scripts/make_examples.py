@@ -1,7 +1,9 @@
 """Generate the synthetic example inputs in examples/ (RGBA cut-outs with shading).
 
 They are drawn here, procedurally and deterministically, so they carry no licence of anyone
-else's: a metal bar, a bread loaf and a rubber ball. Run: .venv/bin/python scripts/make_examples.py
+else's: a metal bar, a bread loaf, a rubber ball, a snow block, a drop of water, a dollop of honey, a
+lump of clay, a small ball in a wide frame (to throw) and a wooden block in a wide frame (to slide).
+Run: .venv/bin/python scripts/make_examples.py [name ...]
 """
 
 from __future__ import annotations
@@ -97,12 +99,102 @@ def ball(size=256) -> None:
     save_rgba("ball.png", rgb, alpha)
 
 
-def main() -> int:
-    metal_bar()
-    bread()
-    ball()
+def _blob(w: int, h: int, cx: float, cy: float, a: float, b: float, p_top: float = 2.0, p_bottom: float = 2.0,
+          p_side: float = 2.0):
+    """A superellipse blob: (inside mask, surface normal, u, v) with separate exponents above and below."""
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64) + 0.5
+    u, v = (xx - cx) / a, (yy - cy) / b
+    pv = np.where(v < 0, p_top, p_bottom)
+    d = np.abs(u) ** p_side + np.abs(v) ** pv
+    inside = d <= 1.0
+    nz = np.sqrt(np.clip(1 - d, 0, 1))
+    normal = np.dstack([u * 0.9, v * 0.9, nz + 0.15])
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    return inside, normal, u, v
+
+
+def _noise(h: int, w: int, seed: int, sigma: float) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    n = cv2.GaussianBlur(rng.normal(0, 1, (h, w)), (0, 0), sigma)
+    return n / (n.std() + 1e-9)
+
+
+def snow_block(w=512, h=320) -> None:
+    inside, normal, u, v = _blob(w, h, w / 2, h * 0.6, 150.0, 80.0, p_top=4.0, p_bottom=8.0, p_side=4.0)
+    sparkle = (np.random.default_rng(11).random((h, w)) > 0.996)[..., None] * 0.25
+    base = np.array([0.9, 0.93, 0.98]) * (1 + 0.03 * _noise(h, w, 5, 1.5)[..., None])
+    rgb = np.clip(shade(normal, base, spec=0.15, shininess=6, ambient=0.55) + sparkle, 0, 1)
+    save_rgba("snow_block.png", rgb, cv2.GaussianBlur(inside.astype(np.float64), (0, 0), 0.7))
+
+
+def water_drop(size=384) -> None:
+    # A falling drop: round below, drawn to a point above.
+    yy, xx = np.mgrid[0:size, 0:size].astype(np.float64) + 0.5
+    cx, cy, r = size / 2, size * 0.46, size * 0.2
+    dy = (yy - cy) / r
+    half_width = np.where(dy >= 0, np.sqrt(np.clip(1 - dy**2, 0, 1)),
+                          np.clip(1 + dy / 1.6, 0, 1) ** 1.5)  # tapers over 1.6 r above the centre
+    dx = (xx - cx) / r
+    inside = (np.abs(dx) <= half_width) & (dy >= -1.6) & (dy <= 1)
+    nx = np.where(half_width > 0, dx / np.maximum(half_width, 1e-3), 0) * 0.9
+    normal = np.dstack([nx, np.clip(dy, -1, 1) * 0.6, np.sqrt(np.clip(1 - nx**2, 0.05, 1))])
+    normal /= np.linalg.norm(normal, axis=-1, keepdims=True)
+    base = np.array([0.25, 0.5, 0.85]) * np.ones((size, size, 1))
+    rgb = shade(normal, base, spec=0.9, shininess=60, ambient=0.35)
+    save_rgba("water_drop.png", rgb, cv2.GaussianBlur(inside.astype(np.float64), (0, 0), 0.7))
+
+
+def honey(w=448, h=320) -> None:
+    # A tall dollop: narrower than tall, domed, on a flat base.
+    inside, normal, u, v = _blob(w, h, w / 2, h * 0.55, 80.0, 110.0, p_top=1.8, p_bottom=6.0, p_side=2.2)
+    swirl = 0.06 * np.sin(10 * v + 4 * u)[..., None]
+    base = np.array([0.85, 0.55, 0.1]) * (1 + swirl)
+    rgb = shade(normal, base, spec=0.7, shininess=35, ambient=0.4)
+    save_rgba("honey.png", rgb, cv2.GaussianBlur(inside.astype(np.float64), (0, 0), 0.7))
+
+
+def clay(w=448, h=320) -> None:
+    inside, normal, u, v = _blob(w, h, w / 2, h * 0.56, 95.0, 95.0, p_top=2.4, p_bottom=6.0, p_side=2.4)
+    base = np.array([0.75, 0.38, 0.22]) * (1 + 0.05 * _noise(h, w, 9, 3.0)[..., None])
+    rgb = shade(normal, base, spec=0.1, shininess=6, ambient=0.35)
+    save_rgba("clay.png", rgb, cv2.GaussianBlur(inside.astype(np.float64), (0, 0), 0.7))
+
+
+def throw_ball(w=640, h=360) -> None:
+    """A small ball low at the left of a wide frame: room to fly to the right."""
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64) + 0.5
+    c, r = (110.0, 270.0), 32.0
+    dx, dy = (xx - c[0]) / r, (yy - c[1]) / r
+    d2 = dx**2 + dy**2
+    inside = d2 <= 1
+    normal = np.dstack([dx, dy, np.sqrt(np.clip(1 - d2, 0, 1))])
+    stripe = (np.abs(dy + 0.25 * dx) < 0.18)[..., None]
+    base = np.where(stripe, np.array([0.95, 0.85, 0.2]), np.array([0.15, 0.35, 0.85]))
+    rgb = shade(normal, base, spec=0.5, shininess=40)
+    save_rgba("throw_ball.png", rgb, cv2.GaussianBlur(inside.astype(np.float64), (0, 0), 0.7))
+
+
+def block(w=640, h=320) -> None:
+    """A wooden block at the left of a wide frame: room to slide to the right."""
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float64) + 0.5
+    x0, x1, y0, y1 = 50.0, 170.0, 200.0, 260.0
+    inside = (xx >= x0) & (xx <= x1) & (yy >= y0) & (yy <= y1)
+    grain = 0.5 + 0.5 * np.sin(0.35 * yy + 2.0 * _noise(h, w, 4, 6.0))
+    base = np.array([0.62, 0.42, 0.22])[None, None, :] * (0.85 + 0.2 * grain[..., None])
+    edge = np.minimum.reduce([xx - x0, x1 - xx, yy - y0, y1 - yy])
+    rgb = base * np.where(edge < 3, 0.8, 1.0)[..., None]
+    save_rgba("block.png", np.clip(rgb, 0, 1), cv2.GaussianBlur(inside.astype(np.float64), (0, 0), 0.7))
+
+
+EXAMPLES = {"metal_bar": metal_bar, "bread": bread, "ball": ball, "snow_block": snow_block,
+            "water_drop": water_drop, "honey": honey, "clay": clay, "throw_ball": throw_ball, "block": block}
+
+
+def main(names: list[str]) -> int:
+    for name in names or EXAMPLES:
+        EXAMPLES[name]()
     return 0
 
 
 if __name__ == "__main__":
-    sys.exit(main())
+    sys.exit(main(sys.argv[1:]))

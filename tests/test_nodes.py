@@ -171,10 +171,12 @@ def test_segment_node_handles_loadimage_masks():
     # An RGBA cut-out arrives as LoadImage's MASK = 1 - alpha: black on the object.
     obj = torch.zeros(1, h, w)
     obj[:, 100:300, 150:450] = 1.0
-    fg, mask, bg = seg.run(image, "auto", "auto", 5, mask=1.0 - obj)
+    out = seg.run(image, "auto", "auto", 5, mask=1.0 - obj)
+    fg, mask, bg = out["result"]
     assert torch.equal(mask, obj)
+    assert out["ui"]["images"][0]["type"] == "temp"  # the foreground | background preview
     # A uniform 64x64 mask (no alpha) means "no mask": GrabCut runs instead.
-    fg, mask, bg = seg.run(image, "auto", "auto", 5, mask=torch.zeros(1, 64, 64))
+    fg, mask, bg = seg.run(image, "auto", "auto", 5, mask=torch.zeros(1, 64, 64))["result"]
     assert mask.shape == (1, h, w) and 0.2 < float(mask.mean()) < 0.8
     with pytest.raises(ValueError, match="no mask"):
         seg.run(image, "mask", "auto", 5)

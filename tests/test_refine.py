@@ -265,9 +265,10 @@ def test_refine_nodes_run_on_a_silhouette_lift_with_a_tiny_depth_model(tmp_path,
     image = torch.from_numpy(img)[None]
     (prev,) = nodes["PhysMotionDepth"]().run(dm, image, torch.from_numpy(mask)[None])
     assert prev.shape == (1, H, W, 3)
-    g, preview = nodes["PhysMotionHardDepthRefine"]().run(lift.gaussians, lift.camera, image,
-                                                           torch.from_numpy(mask)[None], 12, 2, 1e-3, True, 128,
-                                                           0.0, 0, None, dm)
+    out = nodes["PhysMotionHardDepthRefine"]().run(lift.gaussians, lift.camera, image, torch.from_numpy(mask)[None],
+                                                    12, 2, 1e-3, True, 128, 0.0, 0, None, dm, filename_prefix="")
+    g, preview, ply_path = out["result"]
+    assert ply_path == ""  # an empty prefix saves no .ply
     assert len(g) <= len(lift.gaussians) and bool(torch.isfinite(g.means).all())
     assert preview.shape == (1, H, 2 * W, 3)
     # The Gaussians moved (colour and depth steps ran) but stayed near the object.
