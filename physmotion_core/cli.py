@@ -145,6 +145,8 @@ def _add_check_parsers(sub) -> None:
                    help="change a widget value (node id, title or unique class name); repeatable")
     c.add_argument("-o", "--output", type=Path, default=Path("out"), help="folder for the downloaded outputs")
     c.add_argument("--timeout", type=float, default=3600.0, help="seconds to wait for the run")
+    c.add_argument("--previews", action="store_true", help="also download the nodes' preview clips/images "
+                                                           "(the server's temp folder)")
     c.add_argument("-q", "--quiet", action="store_true", help="no progress lines")
 
 
@@ -209,7 +211,7 @@ def _comfy_run(args) -> int:
             print(f"running node {data['node']}", file=sys.stderr, flush=True)
 
     saved = run_workflow(args.workflow, args.server, args.output, image=args.image, sets=args.set,
-                         on_event=on_event, timeout=args.timeout)
+                         on_event=on_event, timeout=args.timeout, previews=args.previews)
     for path in saved:
         print(path)
     return 0

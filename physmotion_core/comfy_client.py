@@ -262,6 +262,9 @@ class ComfyClient:
                     continue
                 if on_event:
                     on_event(kind, data)
+                if kind == "execution_interrupted":
+                    raise ComfyError(f"The run was cancelled on the server (at node {data.get('node_id')}, "
+                                     f"{data.get('node_type')})")
                 if kind == "execution_error":
                     raise ComfyError(f"Node {data.get('node_id')} ({data.get('node_type')}) failed on the server: "
                                      f"{str(data.get('exception_message', '')).strip()}")
@@ -274,7 +277,13 @@ class ComfyClient:
             if ws is not None:
                 ws.close()
 
-    def download_outputs(self, entry: dict, out_dir: Path) -> list[Path]:
+    def interrupt(self) -> None:
+        """Cancel the running prompt (the server checks between substeps/frames/iterations)."""
+        self._request("/interrupt", b"{}")
+
+    def download_outputs(self, entry: dict, out_dir: Path, types: tuple[str, ...] = ("output",)) -> list[Path]:
+        """Download the files the output nodes list. Only saved outputs by default: node previews
+        (type "temp", e.g. Render's and Blend's preview clips) are skipped unless ``types`` names them."""
         out_dir = Path(out_dir)
         out_dir.mkdir(parents=True, exist_ok=True)
         saved = []
@@ -284,6 +293,8 @@ class ComfyClient:
                     continue
                 for it in items:
                     if not (isinstance(it, dict) and "filename" in it):
+                        continue
+                    if it.get("type", "output") not in types:
                         continue
                     q = urllib.parse.urlencode({"filename": it["filename"], "subfolder": it.get("subfolder", ""),
                                                 "type": it.get("type", "output")})
@@ -296,8 +307,10 @@ class ComfyClient:
 
 
 def run_workflow(workflow: Path, server: str, out_dir: Path, *, image: Optional[Path] = None,
-                 sets: Optional[list[str]] = None, on_event=None, timeout: float = 3600.0) -> list[Path]:
-    """Upload, edit, queue, follow and download: the whole headless run. Returns the saved files."""
+                 sets: Optional[list[str]] = None, on_event=None, timeout: float = 3600.0,
+                 previews: bool = False) -> list[Path]:
+    """Upload, edit, queue, follow and download: the whole headless run. Returns the saved files
+    (with ``previews`` also the nodes' preview files from the server's temp folder)."""
     from .workflow import ui_to_api
 
     try:
@@ -322,4 +335,4 @@ def run_workflow(workflow: Path, server: str, out_dir: Path, *, image: Optional[
         if client._ws is not None:
             client._ws.close()
             client._ws = None
-    return client.download_outputs(entry, out_dir)
+    return client.download_outputs(entry, out_dir, ("output", "temp") if previews else ("output",))

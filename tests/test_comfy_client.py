@@ -121,6 +121,9 @@ class FakeComfy:
                               "outputs": {"10": {"images": [{"filename": "push_a_jelly_00001.mp4",
                                                              "subfolder": "PhysMotion", "type": "output"}],
                                                  "animated": [True]},
+                                          "8": {"images": [{"filename": "PhysMotion_render_1a2b.mp4",
+                                                            "subfolder": "", "type": "temp"}],
+                                                "animated": [True]},
                                           "11": {"text": ["not a file"]}}}
         self.events.set()
 
@@ -148,7 +151,7 @@ def test_run_uploads_edits_queues_follows_and_downloads(tmp_path, photo, websock
     prompt = fake.prompts["p0"]
     assert prompt["1"]["inputs"]["image"] == "photo.png"
     assert prompt["10"]["inputs"]["crf"] == 23
-    assert [p.name for p in saved] == ["push_a_jelly_00001.mp4"]
+    assert [p.name for p in saved] == ["push_a_jelly_00001.mp4"]  # the Render preview (type temp) is skipped
     assert saved[0].read_bytes() == b"PhysMotion/push_a_jelly_00001.mp4"
     if websocket:
         assert events == ["executing", "progress", "executing"]

@@ -1,0 +1,149 @@
+"""The pack inside a REAL ComfyUI (skipped unless COMFYUI_DIR is set; see docs/comfyui.md).
+
+Starts ComfyUI on the CPU with only this pack, checks /object_info against the node classes, runs
+every CPU-capable API workflow through /prompt -> websocket/history -> /view with the pack's own
+headless client, decodes the videos and checks that they move; also the CLI with an uploaded
+image, the node previews in /history and Cancel (POST /interrupt) latency.
+"""
+
+from __future__ import annotations
+
+import json
+import subprocess
+import sys
+import threading
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from comfy_harness import ROOT, load_pack
+from comfy_live import comfy_server, cpu_capable, requires_comfyui, shrink  # noqa: F401 - fixture
+
+from physmotion_core.comfy_client import ComfyClient, ComfyError, run_workflow
+from physmotion_core.video import read_video
+
+pytestmark = requires_comfyui
+API = sorted((ROOT / "workflows" / "api").glob("*.json"))
+
+
+def _names(section: dict) -> set:
+    return set(section or {})
+
+
+def test_object_info_lists_every_node_with_its_inputs_outputs_and_category(comfy_server):
+    info = comfy_server.get_json("/object_info")
+    ours = load_pack().NODE_CLASS_MAPPINGS
+    missing = sorted(set(ours) - set(info))
+    assert not missing, f"not registered in ComfyUI: {missing}\n{comfy_server.log_tail()}"
+    for name, cls in ours.items():
+        entry = info[name]
+        types = cls.INPUT_TYPES()
+        for section in ("required", "optional"):
+            assert _names(entry["input"].get(section)) == _names(types.get(section)), (name, section)
+            for inp, spec in (types.get(section) or {}).items():
+                served = entry["input"][section][inp]
+                kind = spec[0]
+                if isinstance(kind, list):
+                    assert isinstance(served[0], list), (name, inp)
+                else:
+                    assert served[0] == kind, (name, inp, served[0], kind)
+                assert served[1].get("tooltip") == spec[1]["tooltip"], (name, inp)
+        assert entry["output"] == list(cls.RETURN_TYPES), name
+        assert entry["category"] == cls.CATEGORY, name
+        assert entry["output_node"] == bool(getattr(cls, "OUTPUT_NODE", False)), name
+    # The frontend extension and the templates are served too.
+    assert any(e.endswith("/ComfyUI-PhysMotion/force_picker.js") for e in comfy_server.get_json("/extensions"))
+    listed = comfy_server.get_json("/workflow_templates").get("ComfyUI-PhysMotion", [])
+    assert sorted(listed) == sorted(p.stem for p in (ROOT / "workflows").glob("*.json")), listed
+
+
+def _video_moves(path, frames: int) -> None:
+    video, fps = read_video(path)
+    assert video.shape[0] == frames, (path, video.shape)
+    diff = np.abs(video[-1].astype(np.float32) - video[0].astype(np.float32)).mean()
+    assert diff > 0.5, f"{path.name}: first and last frames differ by only {diff:.3f} grey levels"
+
+
+@pytest.mark.parametrize("path", [p for p in API if cpu_capable(json.loads(p.read_text()))], ids=lambda p: p.stem)
+def test_api_workflow_runs_on_comfyui_and_its_video_moves(comfy_server, path, tmp_path):
+    prompt = shrink(json.loads(path.read_text()), path.stem)
+    wf = tmp_path / path.name
+    wf.write_text(json.dumps(prompt))
+    events = []
+    saved = run_workflow(wf, comfy_server.url, tmp_path / "out", on_event=lambda k, d: events.append((k, d)),
+                         timeout=600)
+    videos = [p for p in saved if p.suffix == ".mp4"]
+    assert videos, f"no video downloaded: {saved}\n{comfy_server.log_tail()}"
+    for v in videos:
+        _video_moves(v, 6)
+    # The websocket reported the simulation's progress.
+    sim = [nid for nid, n in prompt.items() if n["class_type"] == "PhysMotionMPMSimulate"]
+    progress = [d for k, d in events if k == "progress" and d.get("node") in sim]
+    assert progress and all(d["max"] == 5 and 0 <= d["value"] <= 5 for d in progress), progress[-3:]
+
+
+def test_previews_are_in_the_history_and_served(comfy_server, tmp_path):
+    prompt = shrink(json.loads((ROOT / "workflows/api/push_a_jelly.json").read_text()), "previews")
+    client = ComfyClient(comfy_server.url)
+    client.connect()
+    entry = client.wait(client.queue(prompt), timeout=600)
+    outputs = entry["outputs"]
+    by_class = {prompt[nid]["class_type"]: out for nid, out in outputs.items()}
+    for cls in ("PhysMotionRender", "PhysMotionBlend", "PhysMotionSaveVideo"):
+        ui = by_class[cls]
+        assert ui["animated"] == [True], (cls, ui)
+        item = ui["images"][0]
+        assert item["filename"].endswith(".mp4")
+        assert item["type"] == ("output" if cls == "PhysMotionSaveVideo" else "temp")
+        data = comfy_server.get_bytes(f"/view?filename={item['filename']}&subfolder={item['subfolder']}"
+                                      f"&type={item['type']}")
+        clip = tmp_path / f"{cls}.mp4"
+        clip.write_bytes(data)
+        _video_moves(clip, 6)
+    assert by_class["PhysMotionSegment"]["images"][0]["filename"].endswith(".png")
+    # The .ply the template saves is in the output folder, where Preview3D / Load3D read it.
+    ply = by_class["PhysMotionSaveGaussians"]["text"][0]
+    assert (comfy_server.base / "output" / ply).stat().st_size > 1000
+
+
+def test_cli_uploads_the_image_applies_sets_and_downloads(comfy_server, tmp_path):
+    prompt = shrink(json.loads((ROOT / "workflows/api/push_a_jelly.json").read_text()), "cli")
+    wf = tmp_path / "wf.json"
+    wf.write_text(json.dumps(prompt))
+    out = tmp_path / "out"
+    proc = subprocess.run([sys.executable, "-m", "physmotion_core.cli", "comfy-run", str(wf), "--server",
+                           comfy_server.url, "--image", str(ROOT / "examples" / "ball.png"),
+                           "--set", "PhysMotionForce.region=whole object", "--set", "PhysMotionMPMSimulate.frames=5",
+                           "-o", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr[-3000:] + comfy_server.log_tail()
+    saved = [Path(s) for s in proc.stdout.split() if s.endswith(".mp4")]
+    assert len(saved) == 1 and saved[0].parent == out
+    _video_moves(saved[0], 5)
+    assert (comfy_server.base / "input" / "ball.png").exists()  # uploaded
+    assert "node " in proc.stderr  # progress lines from the websocket
+
+
+def test_cancel_stops_a_running_simulation_within_a_second(comfy_server):
+    prompt = json.loads((ROOT / "workflows/api/push_a_jelly.json").read_text())
+    for node in prompt.values():  # long enough that it is certainly still simulating when cancelled
+        if node["class_type"] == "PhysMotionMPMSimulate":
+            node["inputs"].update(frames=400, grid_res=20)
+        if node["class_type"] == "PhysMotionSilhouetteLift":
+            node["inputs"]["max_gaussians"] = 4000
+    client = ComfyClient(comfy_server.url)
+    client.connect()
+    pid = client.queue(prompt)
+    sim = next(n for n, v in prompt.items() if v["class_type"] == "PhysMotionMPMSimulate")
+    sent = {}
+
+    def on_event(kind, data):
+        if kind == "progress" and data.get("node") == sim and "t" not in sent and data["value"] >= 2:
+            sent["t"] = time.monotonic()
+            threading.Thread(target=client.interrupt, daemon=True).start()
+
+    with pytest.raises(ComfyError, match="cancelled"):
+        client.wait(pid, on_event, timeout=600)
+    latency = time.monotonic() - sent["t"]
+    assert latency < 1.0, f"Cancel took {latency:.2f}s"
