@@ -45,8 +45,15 @@ def _is_link(value) -> bool:
     return isinstance(value, list) and len(value) == 2 and isinstance(value[0], str) and isinstance(value[1], int)
 
 
-def api_to_ui(prompt: dict, schemas: dict, titles: dict | None = None) -> dict:
-    """Build a UI-format workflow (version 0.4) from an API prompt."""
+DEFAULT_SIZE = (340, 260)
+
+
+def api_to_ui(prompt: dict, schemas: dict, titles: dict | None = None, sizes: dict | None = None) -> dict:
+    """Build a UI-format workflow (version 0.4) from an API prompt.
+
+    ``titles`` maps node ids to titles; ``sizes`` maps class names to [width, height] (nodes whose
+    frontend adds a tall widget, e.g. the force picker). Nodes are laid out in columns by their
+    depth in the graph, stacked top to bottom."""
     ids = {nid: int(nid) for nid in prompt}
     # Column of each node = longest path from a source, for a readable left-to-right layout.
     depth: dict[str, int] = {}
@@ -59,7 +66,7 @@ def api_to_ui(prompt: dict, schemas: dict, titles: dict | None = None) -> dict:
 
     for nid in prompt:
         col(nid)
-    rows: dict[int, int] = defaultdict(int)
+    rows: dict[int, int] = defaultdict(lambda: 50)  # next free y in each column
     links, nodes = [], []
     out_links: dict[tuple[str, int], list[int]] = defaultdict(list)
     link_id = 0
@@ -96,10 +103,11 @@ def api_to_ui(prompt: dict, schemas: dict, titles: dict | None = None) -> dict:
             if _is_link(value) or required:
                 inputs.append(entry)
         c = depth[nid]
-        pos = [50 + 380 * c, 50 + 330 * rows[c]]
-        rows[c] += 1
+        size = list((sizes or {}).get(node["class_type"], DEFAULT_SIZE))
+        pos = [50 + 400 * c, rows[c]]
+        rows[c] += size[1] + 70
         nodes.append({
-            "id": ids[nid], "type": node["class_type"], "pos": pos, "size": [340, 260], "flags": {},
+            "id": ids[nid], "type": node["class_type"], "pos": pos, "size": size, "flags": {},
             "order": 0, "mode": 0, "inputs": inputs, "outputs": [], "properties": {"Node name for S&R": node["class_type"]},
             "widgets_values": widgets, "_nid": nid,
         })

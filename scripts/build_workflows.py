@@ -21,6 +21,8 @@ from physmotion_core.workflow import api_to_ui  # noqa: E402
 TITLES = {  # friendlier titles for the core nodes in the templates
     "LoadImage": "Load the photo",
 }
+# Nodes with the force/torque picker (web/force_picker.js) are taller: their widgets plus the photo.
+SIZES = {"PhysMotionForce": [360, 600], "PhysMotionTorque": [360, 600]}
 
 
 def schemas() -> dict:
@@ -31,12 +33,17 @@ def schemas() -> dict:
     return out
 
 
+def build_ui(prompt: dict, sch: dict | None = None) -> dict:
+    """The UI template for an API prompt (what this script writes; the tests regenerate with it)."""
+    titles = {nid: TITLES[n["class_type"]] for nid, n in prompt.items() if n["class_type"] in TITLES}
+    return api_to_ui(prompt, sch or schemas(), titles, SIZES)
+
+
 def main() -> int:
     sch = schemas()
     for api_path in sorted((ROOT / "workflows" / "api").glob("*.json")):
         prompt = json.loads(api_path.read_text())
-        titles = {nid: TITLES[n["class_type"]] for nid, n in prompt.items() if n["class_type"] in TITLES}
-        ui = api_to_ui(prompt, sch, titles)
+        ui = build_ui(prompt, sch)
         out = ROOT / "workflows" / api_path.name
         out.write_text(json.dumps(ui, indent=1) + "\n")
         print(f"wrote {out.relative_to(ROOT)}")

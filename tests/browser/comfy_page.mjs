@@ -1,0 +1,123 @@
+// Drives a real ComfyUI page with Playwright (playwright-core + Debian's chromium) for
+// tests/test_browser.py. Usage:
+//   node tests/browser/comfy_page.mjs <server url> <templates dir> <result.json> [screenshot dir]
+// Prints nothing on success; the result JSON holds what the page reported:
+//   templates: {name: {missing: [...], prompt: {...API prompt the frontend makes...}}}
+//   picker:    {force: {...before/after widgets, expected...}, torque: {...}}
+import { createRequire } from "node:module";
+import { readFileSync, readdirSync, writeFileSync } from "node:fs";
+import path from "node:path";
+
+const require = createRequire(import.meta.url);
+const { chromium } = require(process.env.PLAYWRIGHT_CORE || "playwright-core");
+
+const [url, templatesDir, resultPath, shotDir] = process.argv.slice(2);
+const executablePath = process.env.CHROMIUM || "/usr/bin/chromium";
+
+const browser = await chromium.launch({
+  executablePath,
+  headless: true,
+  args: ["--headless", "--no-sandbox", "--disable-gpu", "--disable-background-networking",
+         "--disable-component-update", "--disable-sync", "--no-first-run"],
+});
+const result = { templates: {}, picker: {}, console_errors: [] };
+try {
+  const page = await browser.newPage({ viewport: { width: 1600, height: 1000 } });
+  page.on("pageerror", (e) => result.console_errors.push(`${e}\n${e.stack ?? ""}`));
+  await page.goto(url, { waitUntil: "domcontentloaded" });
+  await page.waitForFunction(() => window.app?.graph && window.LiteGraph?.registered_node_types?.PhysMotionForce,
+                             null, { timeout: 120000 });
+  // Close whatever a first start shows (template browser, tours).
+  await page.keyboard.press("Escape");
+
+  // Every template as the Templates dialog loads it: listed by the server, fetched from it, opened
+  // as a named workflow. The frontend's own graphToPrompt must give the API twin back.
+  const listing = await page.evaluate(async () => (await (await fetch("/workflow_templates")).json()));
+  result.listed = listing["ComfyUI-PhysMotion"] ?? [];
+  for (const name of [...result.listed].sort()) {
+    // (The JSON is read from the repository: this ComfyUI build answers 404 for a symlinked pack's
+    // template files although it lists them.)
+    const wfText = readFileSync(path.join(templatesDir, `${name}.json`), "utf8");
+    const r = await page.evaluate(async ({ name, wfText }) => {
+      const wf = JSON.parse(wfText);
+      const registered = window.LiteGraph.registered_node_types;
+      const missing = wf.nodes.filter((n) => !(n.type in registered)).map((n) => n.type);
+      await window.app.loadGraphData(wf, true, true, name, { showMissingNodesDialog: false,
+                                                             showMissingModelsDialog: false });
+      const loaded = window.app.graph._nodes.map((n) => n.type);
+      const p = await window.app.graphToPrompt();
+      return { missing, prompt: p.output, loaded };
+    }, { name, wfText });
+    result.templates[name] = r;
+    if (shotDir && name === "push_a_jelly") await page.screenshot({ path: path.join(shotDir, `template_${name}.png`) });
+  }
+
+  // The picker: drag on the photo inside a node, read the widgets, save and reload the workflow.
+  async function drivePicker(template, nodeType, kind, from, to, modifiers = []) {
+    const wf = JSON.parse(readFileSync(path.join(templatesDir, `${template}.json`), "utf8"));
+    await page.evaluate(async ({ wf, nodeType, template }) => {
+      await window.app.loadGraphData(wf, true, false, `${template}_picker`, { showMissingNodesDialog: false,
+                                                                              showMissingModelsDialog: false });
+      const node = window.app.graph._nodes.find((n) => n.type === nodeType);
+      const ds = window.app.canvas.ds;
+      ds.scale = 1;
+      ds.offset[0] = -node.pos[0] + 420;
+      ds.offset[1] = -node.pos[1] + 60;
+      window.app.canvas.setDirty(true, true);
+      window.__pmNode = node;
+    }, { wf, nodeType, template });
+    const sel = `canvas[data-physmotion-picker="${kind}"]`;
+    await page.waitForFunction((sel) => {
+      const n = window.__pmNode;
+      const c = document.querySelector(sel);
+      return n?.physmotionPicker?.image?.naturalWidth > 0 && c && c.getBoundingClientRect().width > 50;
+    }, sel, { timeout: 60000 });
+    await page.waitForTimeout(400); // one more redraw so the DOM widget sits where the node is drawn
+    const geo = await page.evaluate((sel) => {
+      const n = window.__pmNode;
+      const p = n.physmotionPicker;
+      const c = document.querySelector(sel);
+      const r = c.getBoundingClientRect();
+      const widgets = Object.fromEntries(n.widgets.filter((w) => w.serialize !== false)
+        .map((w) => [w.name, w.value]));
+      return { fit: p.fit(), rect: { x: r.x, y: r.y, w: r.width, h: r.height }, cw: c.clientWidth,
+               ch: c.clientHeight, imgW: p.image.naturalWidth, imgH: p.image.naturalHeight, scale: p.scale,
+               widgets };
+    }, sel);
+    const sx = geo.rect.w / geo.cw;
+    const sy = geo.rect.h / geo.ch;
+    const screen = (u, v) => ({ x: geo.rect.x + (geo.fit.offsetX + u * geo.fit.scale) * sx,
+                                y: geo.rect.y + (geo.fit.offsetY + v * geo.fit.scale) * sy });
+    const a = screen(...from);
+    const b = screen(...to);
+    for (const m of modifiers) await page.keyboard.down(m);
+    await page.mouse.move(a.x, a.y);
+    await page.mouse.down();
+    for (let i = 1; i <= 8; i++) await page.mouse.move(a.x + (b.x - a.x) * i / 8, a.y + (b.y - a.y) * i / 8);
+    await page.mouse.up();
+    for (const m of modifiers) await page.keyboard.up(m);
+    if (shotDir) await page.screenshot({ path: path.join(shotDir, `picker_${kind}${modifiers.length ? "_mod" : ""}.png`) });
+    const after = await page.evaluate(async () => {
+      const n = window.__pmNode;
+      const values = (node) => Object.fromEntries(node.widgets.filter((w) => w.serialize !== false)
+        .map((w) => [w.name, w.value]));
+      const widgets = values(n);
+      // Save the workflow and load it back: the picked values must survive.
+      const saved = JSON.parse(JSON.stringify(window.app.graph.serialize()));
+      await window.app.loadGraphData(saved, true, false, "reloaded", { showMissingNodesDialog: false });
+      const reloaded = window.app.graph._nodes.find((x) => x.id === n.id);
+      const prompt = (await window.app.graphToPrompt()).output;
+      return { widgets, saved_widgets_values: saved.nodes.find((x) => x.id === n.id).widgets_values,
+               reloaded: values(reloaded), prompt_inputs: prompt[String(n.id)].inputs };
+    });
+    return { before: geo.widgets, geometry: geo, from, to, modifiers, ...after };
+  }
+
+  result.picker.force = await drivePicker("push_a_jelly", "PhysMotionForce", "force", [300, 200], [400, 120]);
+  result.picker.torque = await drivePicker("torque_spin", "PhysMotionTorque", "torque", [300, 200], [420, 200]);
+  result.picker.twist = await drivePicker("torque_spin", "PhysMotionTorque", "torque", [300, 200], [240, 200],
+                                          ["Shift"]);
+} finally {
+  writeFileSync(resultPath, JSON.stringify(result, null, 1));
+  await browser.close();
+}

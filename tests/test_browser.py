@@ -1,0 +1,123 @@
+"""The ComfyUI page in a real browser (Playwright via npm's playwright-core, Debian's chromium).
+
+Skipped unless COMFYUI_DIR is set (a real ComfyUI, see tests/comfy_live.py), chromium is installed
+(``CHROMIUM``, default /usr/bin/chromium) and playwright-core resolves (``PLAYWRIGHT_CORE``: its
+folder, or installed where Node finds it). tests/browser/comfy_page.mjs loads every UI template the
+way the Templates dialog does, and drives the force/torque picker with the mouse; this file checks
+what it saw:
+
+* no template has a missing node, and the frontend's own graphToPrompt gives exactly the API twin;
+* a drag on the photo in the Force node sets u, v at the press point, region "image point" and
+  (fx, fy) from the arrow; on the Torque node a drag sets the trackball axis, Shift-drag the twist;
+* the values survive saving and reloading the workflow, and are what gets queued.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import shutil
+import subprocess
+from pathlib import Path
+
+import pytest
+
+from comfy_harness import ROOT
+from comfy_live import comfy_server, requires_comfyui  # noqa: F401 - fixture
+
+NODE = shutil.which("node")
+CHROMIUM = os.environ.get("CHROMIUM", "/usr/bin/chromium")
+
+
+def _playwright_core() -> str | None:
+    explicit = os.environ.get("PLAYWRIGHT_CORE")
+    if explicit:
+        return explicit if Path(explicit).exists() else None
+    if NODE is None:
+        return None
+    proc = subprocess.run([NODE, "-e", "console.log(require.resolve('playwright-core'))"], cwd=ROOT,
+                          capture_output=True, text=True)
+    return "playwright-core" if proc.returncode == 0 else None
+
+
+PLAYWRIGHT = _playwright_core()
+pytestmark = [
+    requires_comfyui,
+    pytest.mark.skipif(NODE is None, reason="Node.js is not installed"),
+    pytest.mark.skipif(not Path(CHROMIUM).exists(), reason=f"no chromium at {CHROMIUM} (apt-get install chromium)"),
+    pytest.mark.skipif(PLAYWRIGHT is None, reason="playwright-core not found (npm install playwright-core; "
+                                                  "set PLAYWRIGHT_CORE to its folder)"),
+]
+
+
+@pytest.fixture(scope="module")
+def page_report(comfy_server, tmp_path_factory):
+    out = tmp_path_factory.mktemp("browser")
+    shots = Path(os.environ.get("PHYSMOTION_SCREENSHOTS", out))
+    shots.mkdir(parents=True, exist_ok=True)
+    env = {**os.environ, "PLAYWRIGHT_CORE": PLAYWRIGHT, "CHROMIUM": CHROMIUM}
+    proc = subprocess.run([NODE, str(ROOT / "tests" / "browser" / "comfy_page.mjs"), comfy_server.url,
+                           str(ROOT / "workflows"), str(out / "result.json"), str(shots)],
+                          cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:] + comfy_server.log_tail(2000)
+    return json.loads((out / "result.json").read_text())
+
+
+def test_every_template_loads_without_missing_nodes_and_queues_its_api_twin(page_report):
+    names = sorted(p.stem for p in (ROOT / "workflows").glob("*.json"))
+    assert sorted(page_report["listed"]) == names
+    assert sorted(page_report["templates"]) == names
+    for name, r in page_report["templates"].items():
+        ui = json.loads((ROOT / "workflows" / f"{name}.json").read_text())
+        assert r["missing"] == [], (name, r["missing"])
+        assert sorted(r["loaded"]) == sorted(n["type"] for n in ui["nodes"]), name
+        api = json.loads((ROOT / "workflows" / "api" / f"{name}.json").read_text())
+        queued = {nid: {"class_type": n["class_type"], "inputs": n["inputs"]} for nid, n in r["prompt"].items()}
+        assert queued == api, name
+    ours = [e for e in page_report["console_errors"] if "PhysMotion" in e or "picker" in e]
+    assert not ours, ours
+
+
+def _tolerance(r) -> float:
+    """One screen pixel of drag, in the picker's units (its scale per image height)."""
+    g = r["geometry"]
+    return 1.5 / g["fit"]["scale"] * g["scale"] / g["imgH"]
+
+
+def _persisted(r):
+    assert r["reloaded"] == r["widgets"], "values changed across save/load"
+    for name in ("u", "v", "fx", "fy", "tx", "ty", "tz", "region"):
+        if name in r["widgets"]:
+            assert r["prompt_inputs"][name] == r["widgets"][name], name
+
+
+def test_dragging_on_the_force_node_sets_point_direction_and_strength(page_report):
+    r = page_report["picker"]["force"]
+    (u0, v0), (u1, v1) = r["from"], r["to"]
+    k = r["geometry"]["scale"] / r["geometry"]["imgH"]  # newtons per image pixel of arrow
+    w, tol = r["widgets"], _tolerance(r)
+    assert (w["fx"], w["fy"]) != (r["before"]["fx"], r["before"]["fy"])
+    assert abs(w["u"] - u0) <= 2 and abs(w["v"] - v0) <= 2
+    assert w["region"] == "image point"
+    assert abs(w["fx"] - (u1 - u0) * k) <= tol + 0.05, (w["fx"], (u1 - u0) * k)
+    assert abs(w["fy"] - (v0 - v1) * k) <= tol + 0.05, (w["fy"], (v0 - v1) * k)  # image up = +y
+    assert w["fz"] == r["before"]["fz"]
+    _persisted(r)
+
+
+def test_dragging_on_the_torque_node_sets_the_axis_and_shift_drag_the_twist(page_report):
+    r = page_report["picker"]["torque"]
+    (u0, v0), (u1, v1) = r["from"], r["to"]
+    k = r["geometry"]["scale"] / r["geometry"]["imgH"]
+    w, tol = r["widgets"], _tolerance(r)
+    # A drag to the right turns the front to the right: about +y (axis = z x drag).
+    assert abs(w["ty"] - (u1 - u0) * k) <= tol + 0.05 and abs(w["tx"] - (v1 - v0) * k) <= tol + 0.05
+    assert w["tz"] == 0
+    _persisted(r)
+    t = page_report["picker"]["twist"]
+    (u0, v0), (u1, v1) = t["from"], t["to"]
+    w = t["widgets"]
+    # Shift: about the viewing axis; dragging left turns it counter-clockwise (tz > 0).
+    assert w["tx"] == 0 and w["ty"] == 0
+    assert abs(w["tz"] - (u0 - u1) * k) <= tol + 0.05 and w["tz"] > 0
+    _persisted(t)

@@ -1,0 +1,55 @@
+"""Registry metadata and requirements: what ComfyUI-Manager / the Comfy registry read."""
+
+import re
+import sys
+
+import pytest
+
+from comfy_harness import ROOT
+
+tomllib = pytest.importorskip("tomllib") if sys.version_info >= (3, 11) else pytest.importorskip("tomli")
+
+
+def _requirements():
+    out = []
+    for line in (ROOT / "requirements.txt").read_text().splitlines():
+        line = line.split("#", 1)[0].strip()
+        if line:
+            out.append(line)
+    return out
+
+
+def test_tool_comfy_fields():
+    meta = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    comfy = meta["tool"]["comfy"]
+    assert re.fullmatch(r"[a-z0-9][a-z0-9-]*", comfy["PublisherId"])
+    assert comfy["DisplayName"].strip()
+    assert isinstance(comfy["Icon"], str)
+    assert (ROOT / "web" / "icon.png").is_file()
+    for folder in comfy.get("includes", []):
+        assert (ROOT / folder).is_dir(), folder
+    assert re.fullmatch(r"\d+\.\d+\.\d+", meta["project"]["version"])
+
+
+def test_requirements_never_pin_torch_gsplat_or_upper_bounds():
+    reqs = _requirements()
+    names = [re.split(r"[<>=!~\[ ;]", r, 1)[0].lower() for r in reqs]
+    assert not {"torch", "torchvision", "torchaudio", "gsplat"} & set(names), names
+    for r in reqs:
+        assert "==" not in r and "<" not in r and "~=" not in r, f"pin or upper bound in requirements.txt: {r}"
+        assert ">=" in r, f"give a lower bound: {r}"
+    # Every third-party module the pack imports at load time is in the list (or comes with ComfyUI).
+    with_comfyui = {"torch", "torchvision", "comfy", "folder_paths", "server", "gsplat"}
+    import_names = {"numpy": "numpy", "warp": "warp-lang", "cv2": "opencv-python-headless", "av": "av",
+                    "safetensors": "safetensors", "diffusers": "diffusers", "transformers": "transformers",
+                    "peft": "peft", "segment_anything": "segment-anything"}
+    stdlib = set(sys.stdlib_module_names)
+    found = set()
+    for path in [ROOT / "__init__.py", *(ROOT / "nodes").glob("*.py"), *(ROOT / "physmotion_core").rglob("*.py")]:
+        for m in re.finditer(r"^\s*(?:import\s+(\w+)|from\s+(\w+)[\w.]*\s+import\b)", path.read_text(), re.M):
+            found.add(m.group(1) or m.group(2))
+    third_party = found - stdlib - with_comfyui - {"physmotion_core", "nodes", "__future__"}
+    unknown = sorted(third_party - set(import_names))
+    assert not unknown, f"imported but not in requirements.txt: {unknown}"
+    for mod in third_party:
+        assert import_names[mod] in names, f"{mod} needs {import_names[mod]} in requirements.txt"
