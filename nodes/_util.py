@@ -190,6 +190,9 @@ def first_mask(mask: Optional[torch.Tensor]) -> Optional[torch.Tensor]:
 #: ComfyUI folder name -> physmotion_core.models kind
 COMFY_FOLDERS = {"sams": "sams", "physmotion_lgm": "lgm", "physmotion_imagedream": "imagedream",
                  "physmotion_depth": "depth"}
+#: ComfyUI's own folder names for kinds it already knows (looked up, never re-registered)
+COMFY_CORE_FOLDERS = {"diffusers": "diffusers", "controlnet": "controlnet", "loras": "loras",
+                      "checkpoints": "checkpoints"}
 
 
 def register_model_folders() -> None:
@@ -212,7 +215,7 @@ def model_folders(kind: str) -> list[Path]:
     """Every folder holding weights of ``kind`` (ComfyUI's list, or the library's single folder)."""
     from physmotion_core.models import model_dir
 
-    name = next((n for n, k in COMFY_FOLDERS.items() if k == kind), None)
+    name = next((n for n, k in {**COMFY_FOLDERS, **COMFY_CORE_FOLDERS}.items() if k == kind), None)
     try:
         import folder_paths
 
