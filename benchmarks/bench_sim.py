@@ -4,6 +4,7 @@ breakdown, memory per particle, and whether sorting particles by cell pays.
     python -m benchmarks.bench_sim            # writes the "sim-throughput" section of docs/benchmarks.md
     python -m benchmarks.bench_sim --quick    # smaller sweep
     python -m benchmarks.bench_sim --device cuda:0
+    python -m benchmarks.bench_sim --launch-only [--device cuda:0]   # only the graph-replay comparison
 
 Scene: a jelly cube (fixed-corotated, E 2e4 Pa) falling under gravity, particles on a lattice at
 2 per cell per axis (8 per cell), timed over substeps after warm-up substeps (kernels compiled,
@@ -51,12 +52,56 @@ def time_substeps(s: MPMSolver, steps: int, warm: int = 3) -> float:
     return (time.perf_counter() - t0) / steps
 
 
+def launch_modes(dev: str, n_side: int = 46, frames: int = 6, fps: float = 24.0) -> list:
+    """ms per substep and host round trips when a frame's substeps are launched one kernel at a
+    time (graph off) or replayed from a captured graph (graph on), through MPMSolver.advance."""
+    rows = []
+    for graph in (False, True):
+        s = make_solver(n_side, n_side // 2, dev)
+        s.use_graph = graph
+        s.set_limits(max_dt=1.0 / fps / 8)
+        s.advance(1.0 / fps)  # warm-up: kernels loaded, graphs captured
+        s.wp.synchronize_device(s.device)
+        sub0, launches0 = s.substeps, s.launches
+        t0 = time.perf_counter()
+        for k in range(2, frames + 2):
+            s.begin_frame()
+            s.advance(k / fps)
+        s.wp.synchronize_device(s.device)
+        wall = time.perf_counter() - t0
+        subs = s.substeps - sub0
+        rows.append(("graph replay" if graph else "kernel by kernel", n_side ** 3, subs, wall / subs,
+                     (s.launches - launches0) / frames, s.graph_captures))
+    return rows
+
+
+def write_launch_modes(dev: str, rows: list) -> None:
+    lines = [f"Measured {datetime.date.today()} on {machine_description()}, Warp device `{dev}`. "
+             f"Scene: the falling jelly cube ({rows[0][1]:,} particles), {rows[0][2]} substeps over the timed frames; "
+             "the time step is chosen on the device (`plan_step`), the host reads the clock and the checks back "
+             "once per launch.", "",
+             "| launch mode | ms / substep | host round trips / frame | graphs captured |", "|---|---:|---:|---:|"]
+    lines += [f"| {m} | {t * 1e3:.3f} | {r:.1f} | {c} |" for m, _, _, t, r, c in rows]
+    base = rows[0][3]
+    lines += ["", f"Graph replay: {base / rows[1][3]:.2f}× the kernel-by-kernel speed on this device."]
+    path = update_section("benchmarks.md", f"sim-launch-{dev.split(':')[0]}",
+                          f"## MPM launch modes ({dev.split(':')[0]})\n\n" + "\n".join(lines))
+    print(f"wrote {path}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser()
     ap.add_argument("--quick", action="store_true")
     ap.add_argument("--device", default="cpu")
+    ap.add_argument("--launch-only", action="store_true")
     args = ap.parse_args()
     dev = args.device
+    if args.launch_only:
+        rows = launch_modes(dev, 32 if args.quick else 46)
+        for r in rows:
+            print(r, flush=True)
+        write_launch_modes(dev, rows)
+        return
     sides = (10, 22, 32, 46) if args.quick else (10, 22, 32, 46, 58)  # 1k, 10.6k, 32.8k, 97k, 195k particles
     rows = []
     for n in sides:

@@ -694,8 +694,12 @@ class SimSettings:
     #                        run if above the stable step, shortened during the run wherever the CFL needs it
     max_substeps_per_frame: int = 100_000  # runs estimated to need more are refused before they start,
     #                                        and a frame that needs more stops the run with an explanation
+    graph: str = "auto"  # capture each launch of substeps as a graph: "auto" (on CUDA with conditional graph
+    #                      nodes, CUDA 12.4+), "on" (also on the CPU: Warp replays it there), "off"
 
     def validate(self) -> None:
+        if self.graph not in ("auto", "on", "off"):
+            raise InputError(f"graph must be 'auto', 'on' or 'off'; got {self.graph!r}")
         if not (isinstance(self.frames, int) and 1 <= self.frames <= 100_000):
             raise InputError(f"frames must be an integer between 1 and 100000; got {self.frames}")
         if not (math.isfinite(self.fps) and 0 < self.fps <= 1000):

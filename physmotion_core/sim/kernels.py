@@ -11,9 +11,16 @@ The same kernels run on ``cpu`` and ``cuda``. One substep is:
 Computing the stress at the end of g2p, right after the return mapping, means a plastic model does
 one SVD per substep (the mapping's) instead of two, and elastic models skip the mapping entirely.
 
-Grid kernels are launched over the particles' active box only (``lo`` offset + launch dims), and
-``grid_update`` zeroes the accumulators it consumed, so the next ``p2g`` starts from a clean grid
-without a separate clearing pass over the whole domain.
+Grid kernels are launched over a span of nodes around the particles' active box (``lo`` offset +
+launch dims), and ``grid_update`` zeroes the accumulators it consumed, so the next ``p2g`` starts
+from a clean grid without a separate clearing pass over the whole domain. Every moved particle
+checks that its next stencil stays inside that span (else the host widens it) and inside the
+domain (else the run stops with an error): no kernel ever writes outside the grid.
+
+The step itself is controlled on the device: ``plan_step`` picks dt from the CFL limits using
+the previous substep's reductions, ``end_step`` advances the clock and sets the condition of the
+substep loop, so a launch of many substeps needs no host round trip and can be captured once as
+a (CUDA or CPU) graph with ``wp.capture_while`` and replayed every frame.
 
 Materials are a table of structs indexed by each particle's material id; ``model`` selects the
 constitutive rule (a switch inside ``update_material``), so adding a model touches one function.
@@ -180,6 +187,151 @@ def stencil_base(x: wp.vec3, grid: GridInfo) -> wp.vec3i:
     return wp.vec3i(int(xp[0] - 0.5), int(xp[1] - 0.5), int(xp[2] - 0.5))
 
 
+# ----------------------------------------------------------------------------------------------
+# Step control on the device: the time step, the clock and the checks live in small arrays, so a
+# frame's substeps need no host round trip and can be replayed from a captured graph.
+# ----------------------------------------------------------------------------------------------
+
+# stats (float32, reset by plan_step, filled during the substep)
+S_VMAX = wp.constant(0)  # fastest particle (m/s)
+S_BOX = wp.constant(1)  # 1..3 box min, 4..6 box max (m)
+S_NAN = wp.constant(7)  # 1 when a NaN/Inf speed or stiffness appeared
+S_C2 = wp.constant(8)  # largest wave speed² (m²/s²) at the current deformation
+S_MV2 = wp.constant(9)  # Σ m v² of the deformable particles
+S_WORK = wp.constant(10)  # work of the external forces in this substep (J)
+S_BODY_SPEED = wp.constant(11)  # fastest rigid-body point |V| + |ω| r
+N_STATS = 12
+
+# ctl (float64): the clock, the step limits the host sets, and per-frame / per-run accumulators
+C_T = wp.constant(0)
+C_T_END = wp.constant(1)  # the current launch runs substeps until t reaches this
+C_DT_CAP = wp.constant(2)  # upper bound on dt (frame_dt / min_substeps, fixed_dt)
+C_CFL_DX = wp.constant(3)  # cfl · dx
+C_ACCEL = wp.constant(4)  # bound on the particles' acceleration (gravity + forces + torques)
+C_SPEED_FLOOR = wp.constant(5)  # prescribed speeds (moving anchors) the CFL must also respect
+C_DT_VISC = wp.constant(6)  # explicit-viscosity limit
+C_FORCE_DT = wp.constant(7)  # > 0: take exactly this step (MPMSolver.substep)
+C_DT = wp.constant(8)  # the step taken by the current substep
+C_DT_MIN = wp.constant(9)
+C_DT_MAX = wp.constant(10)
+C_WORK = wp.constant(11)  # cumulative work of the external forces (J)
+C_FRAME_VMAX = wp.constant(12)
+C_FRAME_RMS = wp.constant(13)  # largest RMS speed of the deformable particles (or body speed) this frame
+C_DEF_MASS = wp.constant(14)  # mass of the deformable particles (kg)
+N_CTL = 15
+
+# status (int32)
+I_COND = wp.constant(0)  # capture_while condition: 1 = take another substep
+I_SUBSTEPS = wp.constant(1)
+I_FRAME_SUBSTEPS = wp.constant(2)
+I_LAUNCH_SUBSTEPS = wp.constant(3)
+I_CHUNK = wp.constant(4)  # at most this many substeps per launch (keeps Cancel responsive)
+I_MAX_FRAME_SUBSTEPS = wp.constant(5)
+I_NAN = wp.constant(6)
+I_ESCAPE = wp.constant(7)  # a particle's stencil left the domain
+I_OVERFLOW = wp.constant(8)  # a particle's stencil left the grid span of this launch (the host widens it)
+I_TOO_MANY = wp.constant(9)  # the frame needed more than I_MAX_FRAME_SUBSTEPS substeps
+N_STATUS = 10
+
+
+@wp.func
+def track_position(x: wp.vec3, grid: GridInfo, span_lo: wp.vec3i, span_hi: wp.vec3i,
+                   stats: wp.array(dtype=float), status: wp.array(dtype=int)):
+    """Grow the active box by x and check that x's next stencil lies inside the launch's grid span
+    (else the next p2g would write outside the cleared region, or outside the domain)."""
+    if not (x[0] == x[0] and x[1] == x[1] and x[2] == x[2]) or wp.abs(x[0]) > 1.0e18 or \
+            wp.abs(x[1]) > 1.0e18 or wp.abs(x[2]) > 1.0e18:
+        stats[S_NAN] = 1.0
+        return
+    wp.atomic_min(stats, 1, x[0])
+    wp.atomic_min(stats, 2, x[1])
+    wp.atomic_min(stats, 3, x[2])
+    wp.atomic_max(stats, 4, x[0])
+    wp.atomic_max(stats, 5, x[1])
+    wp.atomic_max(stats, 6, x[2])
+    b = stencil_base(x, grid)
+    if b[0] < span_lo[0] or b[1] < span_lo[1] or b[2] < span_lo[2] or b[0] + 2 > span_hi[0] or \
+            b[1] + 2 > span_hi[1] or b[2] + 2 > span_hi[2]:
+        status[I_OVERFLOW] = 1
+        if b[0] < 0 or b[1] < 0 or b[2] < 0 or b[0] + 2 > grid.nx - 1 or b[1] + 2 > grid.ny - 1 or \
+                b[2] + 2 > grid.nz - 1:
+            status[I_ESCAPE] = 1
+
+
+@wp.kernel
+def plan_step(stats: wp.array(dtype=float), ctl: wp.array(dtype=wp.float64), dt_arr: wp.array(dtype=float)):
+    """The CFL step from the previous substep's fastest particle and stiffest material point, the
+    acceleration and viscosity bounds and the host's caps; then reset the reductions."""
+    c = wp.sqrt(wp.max(wp.float64(stats[S_C2]), wp.float64(0.0)))
+    speed = wp.max(wp.float64(stats[S_VMAX]), ctl[C_SPEED_FLOOR])
+    dt = ctl[C_CFL_DX] / wp.max(c + speed, wp.float64(1.0e-12))
+    if ctl[C_ACCEL] > wp.float64(0.0):
+        dt = wp.min(dt, wp.sqrt(ctl[C_CFL_DX] / ctl[C_ACCEL]))
+    dt = wp.min(wp.min(dt, ctl[C_DT_VISC]), ctl[C_DT_CAP])
+    if ctl[C_FORCE_DT] > wp.float64(0.0):
+        dt = ctl[C_FORCE_DT]
+    dt = wp.min(dt, ctl[C_T_END] - ctl[C_T])
+    dt32 = float(dt)
+    dt_arr[0] = dt32
+    ctl[C_DT] = wp.float64(dt32)
+    stats[S_VMAX] = 0.0
+    for a in range(3):
+        stats[1 + a] = 1.0e30
+        stats[4 + a] = -1.0e30
+    stats[S_NAN] = 0.0
+    stats[S_C2] = 0.0
+    stats[S_MV2] = 0.0
+    stats[S_WORK] = 0.0
+    stats[S_BODY_SPEED] = 0.0
+
+
+@wp.kernel
+def end_step(stats: wp.array(dtype=float), ctl: wp.array(dtype=wp.float64), status: wp.array(dtype=int),
+             cond: wp.array(dtype=int)):
+    """Advance the clock, fold this substep into the frame's and run's accumulators, and decide
+    whether the launch takes another substep."""
+    dt = ctl[C_DT]
+    t = ctl[C_T] + dt
+    if wp.abs(ctl[C_T_END] - t) < wp.float64(1.0e-6) * dt:
+        t = ctl[C_T_END]  # dt went through float32: land exactly on the end instead of a sliver short
+    ctl[C_T] = t
+    status[I_SUBSTEPS] = status[I_SUBSTEPS] + 1
+    status[I_FRAME_SUBSTEPS] = status[I_FRAME_SUBSTEPS] + 1
+    status[I_LAUNCH_SUBSTEPS] = status[I_LAUNCH_SUBSTEPS] + 1
+    ctl[C_DT_MIN] = wp.min(ctl[C_DT_MIN], dt)
+    ctl[C_DT_MAX] = wp.max(ctl[C_DT_MAX], dt)
+    vmax = stats[S_VMAX]
+    if stats[S_NAN] != 0.0 or not (vmax == vmax) or vmax > 1.0e30:
+        status[I_NAN] = 1
+    else:
+        ctl[C_WORK] = ctl[C_WORK] + wp.float64(stats[S_WORK])
+        ctl[C_FRAME_VMAX] = wp.max(ctl[C_FRAME_VMAX], wp.float64(vmax))
+        rms = wp.float64(0.0)
+        if ctl[C_DEF_MASS] > wp.float64(0.0):
+            rms = wp.sqrt(wp.max(wp.float64(stats[S_MV2]), wp.float64(0.0)) / ctl[C_DEF_MASS])
+        rms = wp.max(rms, wp.float64(stats[S_BODY_SPEED]))
+        ctl[C_FRAME_RMS] = wp.max(ctl[C_FRAME_RMS], rms)
+    go = 1
+    if status[I_NAN] != 0 or status[I_ESCAPE] != 0 or status[I_OVERFLOW] != 0:
+        go = 0
+    if t >= ctl[C_T_END] - wp.float64(1.0e-9):
+        go = 0
+    elif status[I_FRAME_SUBSTEPS] >= status[I_MAX_FRAME_SUBSTEPS]:
+        status[I_TOO_MANY] = 1
+        go = 0
+    if status[I_LAUNCH_SUBSTEPS] >= status[I_CHUNK]:
+        go = 0
+    cond[0] = go
+
+
+@wp.kernel
+def body_speed(lin_vel: wp.array(dtype=wp.vec3), ang_vel: wp.array(dtype=wp.vec3),
+               radius: wp.array(dtype=float), stats: wp.array(dtype=float)):
+    """A rigid body's fastest point moves at |V| + |ω| r: a body spinning in place is not at rest."""
+    b = wp.tid()
+    wp.atomic_max(stats, S_BODY_SPEED, wp.length(lin_vel[b]) + wp.length(ang_vel[b]) * radius[b])
+
+
 @wp.kernel
 def p2g(
     x: wp.array(dtype=wp.vec3),
@@ -191,7 +343,7 @@ def p2g(
     flags: wp.array(dtype=int),
     f_ext: wp.array(dtype=wp.vec3),
     grid: GridInfo,
-    dt: float,
+    dt_arr: wp.array(dtype=float),
     grid_m: wp.array3d(dtype=float),
     grid_mv: wp.array3d(dtype=wp.vec3),
     grid_fix: wp.array3d(dtype=int),
@@ -200,6 +352,7 @@ def p2g(
     apic: float,
 ):
     p = wp.tid()
+    dt = dt_arr[0]
     base = stencil_base(x[p], grid)
     xp = (x[p] - grid.origin) * grid.inv_dx
     fx = xp - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
@@ -259,9 +412,10 @@ def grid_update(
     grid: GridInfo,
     bc: Boundary,
     gravity: wp.vec3,
-    dt: float,
+    dt_arr: wp.array(dtype=float),
 ):
     a, b, c = wp.tid()
+    dt = dt_arr[0]
     i = lo[0] + a
     j = lo[1] + b
     k = lo[2] + c
@@ -447,10 +601,14 @@ def g2p(
     f_ext: wp.array(dtype=wp.vec3),
     grid_v: wp.array3d(dtype=wp.vec3),
     grid: GridInfo,
-    dt: float,
+    dt_arr: wp.array(dtype=float),
     stats: wp.array(dtype=float),
+    span_lo: wp.vec3i,
+    span_hi: wp.vec3i,
+    status: wp.array(dtype=int),
 ):
     p = wp.tid()
+    dt = dt_arr[0]
     base = stencil_base(x[p], grid)
     xp = (x[p] - grid.origin) * grid.inv_dx
     fx = xp - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
@@ -476,12 +634,7 @@ def g2p(
         C[p] = wp.mat33(0.0)
         x[p] = x[p] + dt * va
         xa = x[p]
-        wp.atomic_min(stats, 1, xa[0])
-        wp.atomic_min(stats, 2, xa[1])
-        wp.atomic_min(stats, 3, xa[2])
-        wp.atomic_max(stats, 4, xa[0])
-        wp.atomic_max(stats, 5, xa[1])
-        wp.atomic_max(stats, 6, xa[2])
+        track_position(xa, grid, span_lo, span_hi, stats, status)
         wp.atomic_max(stats, 0, wp.length(va))
         return
     mat = materials[mat_id[p]]
@@ -499,33 +652,14 @@ def g2p(
     Ftrial = (wp.identity(n=3, dtype=float) + dt * new_C) * F[p]
     c2 = update_material(mat, Ftrial, new_C, rot[p], plastic[p], dt, p, rot, plastic, F, tau)
 
-    # Reductions the host reads each substep: max speed and stiffness (CFL), active box, NaN flag.
+    # Reductions plan_step reads for the next step: max speed and stiffness (CFL), active box, NaN flag.
     speed = wp.length(new_v)
-    if not (speed == speed) or not (new_x[0] == new_x[0]) or not (c2 == c2):
+    if not (speed == speed) or not (c2 == c2):
         stats[7] = 1.0
     wp.atomic_max(stats, 0, speed)
     wp.atomic_max(stats, 8, c2)
     wp.atomic_add(stats, 9, mass[p] * wp.dot(new_v, new_v))
-    wp.atomic_min(stats, 1, new_x[0])
-    wp.atomic_min(stats, 2, new_x[1])
-    wp.atomic_min(stats, 3, new_x[2])
-    wp.atomic_max(stats, 4, new_x[0])
-    wp.atomic_max(stats, 5, new_x[1])
-    wp.atomic_max(stats, 6, new_x[2])
-
-
-@wp.kernel
-def reset_stats(stats: wp.array(dtype=float)):
-    """Reset the reductions g2p fills: max speed, box min, box max, NaN flag, max wave speed²,
-    Σ m v² of the deformable particles (2 × their kinetic energy), and the external forces' work."""
-    stats[0] = 0.0
-    for a in range(3):
-        stats[1 + a] = 1.0e30
-        stats[4 + a] = -1.0e30
-    stats[7] = 0.0
-    stats[8] = 0.0
-    stats[9] = 0.0
-    stats[10] = 0.0
+    track_position(new_x, grid, span_lo, span_hi, stats, status)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -541,7 +675,7 @@ def rigid_reduce(
     f_ext: wp.array(dtype=wp.vec3),
     body: wp.array(dtype=int),
     centre: wp.array(dtype=wp.vec3),
-    dt: float,
+    dt_arr: wp.array(dtype=float),
     momentum: wp.array(dtype=wp.vec3),
     ang_momentum: wp.array(dtype=wp.vec3),
 ):
@@ -551,7 +685,7 @@ def rigid_reduce(
     b = body[p]
     if b < 0:
         return
-    mv = mass[p] * v[p] + dt * f_ext[p]
+    mv = mass[p] * v[p] + dt_arr[0] * f_ext[p]
     wp.atomic_add(momentum, b, mv)
     wp.atomic_add(ang_momentum, b, wp.cross(x[p] - centre[b], mv))
 
@@ -684,9 +818,10 @@ def rigid_integrate(
     orient: wp.array(dtype=wp.quat),
     lin_vel: wp.array(dtype=wp.vec3),
     ang_vel: wp.array(dtype=wp.vec3),
-    dt: float,
+    dt_arr: wp.array(dtype=float),
 ):
     b = wp.tid()
+    dt = dt_arr[0]
     w = ang_vel[b]
     centre[b] = centre[b] + dt * lin_vel[b]
     angle = wp.length(w) * dt
@@ -706,7 +841,11 @@ def rigid_apply(
     orient: wp.array(dtype=wp.quat),
     lin_vel: wp.array(dtype=wp.vec3),
     ang_vel: wp.array(dtype=wp.vec3),
+    grid: GridInfo,
     stats: wp.array(dtype=float),
+    span_lo: wp.vec3i,
+    span_hi: wp.vec3i,
+    status: wp.array(dtype=int),
 ):
     """Place rigid particles exactly: x = c + R r₀, v = V + ω × (x − c), C = [ω]×, F = R."""
     p = wp.tid()
@@ -723,15 +862,10 @@ def rigid_apply(
     C[p] = wp.skew(w)
     F[p] = R
     speed = wp.length(new_v)
-    if not (speed == speed) or not (new_x[0] == new_x[0]):
+    if not (speed == speed):
         stats[7] = 1.0
     wp.atomic_max(stats, 0, speed)
-    wp.atomic_min(stats, 1, new_x[0])
-    wp.atomic_min(stats, 2, new_x[1])
-    wp.atomic_min(stats, 3, new_x[2])
-    wp.atomic_max(stats, 4, new_x[0])
-    wp.atomic_max(stats, 5, new_x[1])
-    wp.atomic_max(stats, 6, new_x[2])
+    track_position(new_x, grid, span_lo, span_hi, stats, status)
 
 
 # ----------------------------------------------------------------------------------------------

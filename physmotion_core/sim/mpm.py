@@ -22,6 +22,9 @@ _CONTACT_IDS = {"sticky": 0, "slip": 1, "friction": 2}
 PAD = 3  # cells of boundary padding at every face of the domain
 MAX_TORQUES = 30  # torque regions are a per-particle bit mask
 TRANSFERS = ("apic", "pic")  # particle-grid velocity transfer: affine (APIC / MLS-MPM) or plain PIC
+SPAN_QUANTUM = 4  # grid spans are rounded out to multiples of this many nodes (fewer graph captures)
+MAX_SPAN_MARGIN = 32  # nodes of room around the particles' stencils a span may add per side
+MAX_GRAPHS = 8  # captured launch graphs kept per solver (one per grid span and torque state)
 
 
 def _warp():
@@ -30,6 +33,18 @@ def _warp():
     wp.config.quiet = True
     wp.init()
     return wp
+
+
+def _graphs_supported(wp, device: str) -> bool:
+    """Capture each launch of substeps as a graph on CUDA when the driver has conditional nodes
+    (CUDA 12.4+). On the CPU the same kernels are launched one by one: Warp's CPU graphs replay
+    the same launches, and a CPU substep costs milliseconds against microseconds of launch overhead."""
+    if not str(device).startswith("cuda"):
+        return False
+    try:
+        return bool(wp.is_conditional_graph_supported())
+    except Exception:  # noqa: BLE001 - older Warp: no conditional graphs
+        return False
 
 
 def resolve_device(device: str = "auto") -> str:
@@ -120,6 +135,7 @@ class MPMSolver:
         body: Optional[np.ndarray] = None,
         torque_mask: Optional[np.ndarray] = None,
         transfer: str = "apic",
+        graph: Optional[bool] = None,
     ):
         for m in materials:
             m.validate()
@@ -138,16 +154,19 @@ class MPMSolver:
         self.materials = list(materials)
         self.cfl = float(cfl)
         self.gravity = np.asarray(gravity, dtype=np.float64)
+        self._gravity_w = wp.vec3(*self.gravity.astype(np.float32))
         self.ground = ground
         self.walls = walls or Walls()
         n = x.shape[0]
         self.n = n
-        self.t = 0.0
-        self.substeps = 0
-        self.work = 0.0  # J done by the external forces and torques so far
-        self.kernel_times: Optional[dict] = None  # set to {} to time every kernel (benchmarks)
-        self.dt_min = math.inf
-        self.dt_max = 0.0
+        self.kernel_times: Optional[dict] = None  # set to {} to time every kernel (benchmarks; no graphs)
+        self.use_graph = _graphs_supported(wp, device) if graph is None else bool(graph)
+        self.graph_captures = 0  # how many launch graphs were captured (benchmarks / tests)
+        self.launches = 0
+        self.span_changes = 0  # how often the particles outgrew the grid span of a launch
+        self._graphs: dict = {}
+        self._span: Optional[tuple] = None
+        self._chunk = 8
         mat_index = np.asarray(mat_index, dtype=np.int64)
 
         density = np.array([m.density for m in materials], dtype=np.float64)[mat_index]
@@ -155,7 +174,6 @@ class MPMSolver:
         self.mass_np = mass
         self.mat_index = mat_index
         self._c0 = max(m.wave_speed() for m in materials)
-        self._c = self._c0
         # Explicit viscosity is stable for dt <= ρ dx² / (6 η) (diffusion in 3-D); keep half of it.
         visc = [m.density / m.viscosity for m in materials if m.model == "fluid" and m.viscosity > 0]
         self._dt_viscous = 0.5 * min(visc) * domain.dx**2 / 6.0 if visc else math.inf
@@ -200,7 +218,11 @@ class MPMSolver:
             self.grid_fix = wp.zeros(domain.dims, dtype=int)
             self.grid_fix_v = wp.zeros(domain.dims, dtype=wp.vec3)
             self.anchor_v = wp.zeros(n, dtype=wp.vec3)
-            self.stats = wp.zeros(12, dtype=float)
+            self.stats = wp.zeros(K.N_STATS, dtype=float)
+            self.ctl = wp.zeros(K.N_CTL, dtype=wp.float64)
+            self.status = wp.zeros(K.N_STATUS, dtype=int)
+            self.cond = wp.zeros(1, dtype=int)
+            self.dt_arr = wp.zeros(1, dtype=float)
             self.torque_mask = wp.array(tmask, dtype=int)
             self.torque_sums = wp.zeros((max(self.n_torques, 1), 13), dtype=float)
             self.torque_taus = wp.zeros(max(self.n_torques, 1), dtype=wp.vec3)
@@ -224,11 +246,25 @@ class MPMSolver:
         bc.pad = PAD
         self.bc = bc
 
-        self._vmax = 0.0 if v0 is None else float(np.linalg.norm(v0, axis=1).max())
-        self.frame_vmax = self._vmax
-        self.frame_rms = 0.0
-        self._deformable_mass = float(mass[(flags & 3) == 0].astype(np.float64).sum())
-        self._box = (x.min(axis=0), x.max(axis=0))
+        # Host mirrors of the device's step control (uploaded before, read back after each launch).
+        vmax0 = 0.0 if v0 is None or n == 0 else float(np.linalg.norm(v0, axis=1).max())
+        st = np.zeros(K.N_STATS, np.float32)
+        st[K.S_VMAX] = vmax0
+        st[K.S_C2] = self._c0 ** 2
+        st[1:4], st[4:7] = x.min(axis=0), x.max(axis=0)
+        self._stats = st
+        self._ctl = np.zeros(K.N_CTL, np.float64)
+        self._ctl[K.C_DT_CAP] = math.inf
+        self._ctl[K.C_CFL_DX] = self.cfl * domain.dx
+        self._ctl[K.C_ACCEL] = self._accel_static
+        self._ctl[K.C_DT_VISC] = self._dt_viscous
+        self._ctl[K.C_DT_MIN] = math.inf
+        self._ctl[K.C_FRAME_VMAX] = vmax0
+        self._ctl[K.C_DEF_MASS] = float(mass[(flags & 3) == 0].astype(np.float64).sum())
+        self._status = np.zeros(K.N_STATUS, np.int32)
+        self._status[K.I_MAX_FRAME_SUBSTEPS] = 2 ** 31 - 1
+        self.stats.assign(st)
+        self._box = (x.min(axis=0).astype(np.float64), x.max(axis=0).astype(np.float64))
         self._check_box(frame=0)
 
     # -- rigid bodies -------------------------------------------------------------------------
@@ -258,6 +294,7 @@ class MPMSolver:
             offsets[sel] = r
         self.body_centre0 = centres
         self.body_radius = np.array([np.linalg.norm(offsets[self.body_np == b], axis=1).max() for b in range(nb)])
+        self.body_radius_w = wp.array(self.body_radius.astype(np.float32), dtype=float)
         self.body_inertia = inertia
         self.body_mass_np = masses
         self.body = wp.array(self.body_np, dtype=int)
@@ -279,6 +316,7 @@ class MPMSolver:
         self.f_static.assign(self.wp.array(f.astype(np.float32), dtype=self.wp.vec3, device=self.device))
         m = self.mass_np.astype(np.float64)
         self._accel_extra = float((np.linalg.norm(f, axis=1) / m).max()) if len(m) else 0.0
+        self._ctl[K.C_ACCEL] = self._accel_static + self._accel_extra + self._accel_torque
 
     def set_anchors(self, anchored: np.ndarray, velocity: np.ndarray) -> None:
         """Which particles are held now, and their prescribed velocities (P,3) m/s."""
@@ -288,6 +326,7 @@ class MPMSolver:
         self.anchor_v.assign(self.wp.array(np.asarray(velocity, np.float32), dtype=self.wp.vec3, device=self.device))
         held = np.asarray(anchored, bool)
         self._anchor_speed = float(np.linalg.norm(velocity[held], axis=1).max()) if held.any() else 0.0
+        self._ctl[K.C_SPEED_FLOOR] = self._anchor_speed
 
     def set_torques(self, taus: np.ndarray, accel_bound: float = 0.0) -> None:
         """Torque vectors (n_torques, 3) N·m, zero for inactive ones; ``accel_bound`` bounds |α × r|."""
@@ -296,17 +335,64 @@ class MPMSolver:
         if self.n_torques:
             self.torque_taus.assign(self.wp.array(taus.astype(np.float32), dtype=self.wp.vec3, device=self.device))
         self._accel_torque = accel_bound if self._torques_on else 0.0
+        self._ctl[K.C_ACCEL] = self._accel_static + self._accel_extra + self._accel_torque
+
+    def set_limits(self, max_dt: float = math.inf, max_frame_substeps: int = 2 ** 31 - 1) -> None:
+        """Caps on the adaptive step (s) and on the substeps of one frame (see ``advance``)."""
+        self._ctl[K.C_DT_CAP] = float(max_dt)
+        self._status[K.I_MAX_FRAME_SUBSTEPS] = int(min(max_frame_substeps, 2 ** 31 - 1))
+
+    def begin_frame(self) -> None:
+        """Reset the per-frame reductions (fastest particle, RMS speed, substep count)."""
+        self._ctl[K.C_FRAME_VMAX] = 0.0
+        self._ctl[K.C_FRAME_RMS] = 0.0
+        self._status[K.I_FRAME_SUBSTEPS] = 0
+
+    # -- the state the device keeps, as the host last read it ---------------------------------
+    @property
+    def t(self) -> float:
+        return float(self._ctl[K.C_T])
+
+    @property
+    def substeps(self) -> int:
+        return int(self._status[K.I_SUBSTEPS])
+
+    @property
+    def work(self) -> float:
+        """J done by the external forces and torques so far."""
+        return float(self._ctl[K.C_WORK])
+
+    @property
+    def dt_min(self) -> float:
+        return float(self._ctl[K.C_DT_MIN])
+
+    @property
+    def dt_max(self) -> float:
+        return float(self._ctl[K.C_DT_MAX])
+
+    @property
+    def frame_vmax(self) -> float:
+        return float(self._ctl[K.C_FRAME_VMAX])
+
+    @property
+    def frame_rms(self) -> float:
+        return float(self._ctl[K.C_FRAME_RMS])
+
+    @property
+    def frame_substeps(self) -> int:
+        return int(self._status[K.I_FRAME_SUBSTEPS])
 
     def stable_dt(self) -> float:
         """Largest stable step: CFL on the current sound speed plus the fastest particle, an
         acceleration bound (a particle starting from rest must not cross a cell in one step),
-        and the explicit-viscosity limit."""
+        and the explicit-viscosity limit. (``plan_step`` computes the same on the device.)"""
         accel = self._accel_static + self._accel_extra + self._accel_torque
-        return self._dt_limit(self._c, max(self._vmax, self._anchor_speed), accel)
+        vmax = float(self._stats[K.S_VMAX])
+        return self._dt_limit(self.wave_speed(), max(vmax, self._anchor_speed), accel)
 
     def wave_speed(self) -> float:
         """The fastest elastic wave speed among the particles now (m/s)."""
-        return self._c
+        return math.sqrt(max(float(self._stats[K.S_C2]), 0.0))
 
     def _dt_limit(self, c: float, speed: float, accel: float) -> float:
         dx = self.domain.dx
@@ -318,7 +404,7 @@ class MPMSolver:
     def estimate_dt(self, peak_accel: float, peak_speed: float = 0.0) -> tuple[float, str]:
         """The step the run will start with when external accelerations reach ``peak_accel`` (m/s²,
         besides gravity) and driven particles ``peak_speed``; and which limit sets it."""
-        c, speed = self._c0, max(self._vmax, peak_speed)
+        c, speed = self._c0, max(float(self._stats[K.S_VMAX]), peak_speed)
         accel = self._accel_static + peak_accel
         dx = self.domain.dx
         limits = {"wave speed": self.cfl * dx / max(c + speed, 1e-12),
@@ -359,71 +445,191 @@ class MPMSolver:
         key = kernel.key
         self.kernel_times[key] = self.kernel_times.get(key, 0.0) + time.perf_counter() - t0
 
-    def substep(self, dt: float, frame: int = 0) -> None:
+    def _substep_kernels(self, span_lo: tuple, span_hi: tuple, torques: bool) -> None:
+        """One substep as a fixed sequence of launches that read dt and write their checks on the
+        device (so the sequence can be captured): plan → [torques] → p2g → grid → g2p → [rigid] → end."""
         wp = self.wp
-        lo = self._node_lo
-        span = tuple(int(s) for s in (self._node_hi - lo + 1))
-        with wp.ScopedDevice(self.device):
-            forces = self.f_static
-            if self._torques_on:
-                self._launch(K.zero_sums, dim=self.torque_sums.shape, inputs=[self.torque_sums])
-                self._launch(K.torque_reduce, dim=self.n, inputs=[self.x, self.mass, self.torque_mask,
-                                                               self.n_torques, self.torque_sums])
-                self._launch(K.apply_torques, dim=self.n, inputs=[self.x, self.mass, self.torque_mask, self.n_torques,
-                                                               self.torque_sums, self.torque_taus, self.f_static,
-                                                               self.f_total])
-                forces = self.f_total
-            self._launch(K.p2g, dim=self.n, inputs=[self.x, self.v, self.C, self.tau, self.mass, self.vol, self.flags,
-                                                 forces, self.grid, dt, self.grid_m, self.grid_mv, self.grid_fix,
-                                                 self.grid_fix_v, self.anchor_v, self.apic])
-            gvec = wp.vec3(*self.gravity.astype(np.float32))
-            self._launch(K.grid_update, dim=span, inputs=[self.grid_m, self.grid_mv, self.grid_v, self.grid_fix,
-                                                       self.grid_fix_v,
-                                                       wp.vec3i(int(lo[0]), int(lo[1]), int(lo[2])),
-                                                       self.grid, self.bc, gvec, dt])
-            self._launch(K.reset_stats, dim=1, inputs=[self.stats])
-            self._launch(K.g2p, dim=self.n, inputs=[self.x, self.v, self.C, self.F, self.rot, self.plastic, self.tau,
-                                                 self.mat_id, self.material_table, self.flags, self.mass,
-                                                 self.anchor_v, forces, self.grid_v,
-                                                 self.grid, dt, self.stats])
-            if self.n_bodies:
-                self._launch(K.rigid_reduce, dim=self.n, inputs=[self.x, self.v, self.mass, forces, self.body,
-                                                              self.body_centre, dt, self.body_p, self.body_l])
-                self._launch(K.rigid_velocity, dim=self.n_bodies, inputs=[self.body_orient, self.body_inertia_w,
-                                                                        self.body_mass, self.body_p, self.body_l,
-                                                                        self.body_v, self.body_w])
-                self._launch(K.rigid_contacts, dim=self.n_bodies, inputs=[self.x, self.vol, self.body_start,
-                                                                        self.body_end, self.body_centre,
-                                                                        self.body_orient, self.body_inertia_w,
-                                                                        self.body_mass, self.body_v, self.body_w,
-                                                                        self.grid, self.bc, 8])
-                self._launch(K.rigid_integrate, dim=self.n_bodies, inputs=[self.body_centre, self.body_orient,
-                                                                         self.body_v, self.body_w, dt])
-                self._launch(K.rigid_apply, dim=self.n, inputs=[self.x, self.v, self.C, self.F, self.body,
-                                                             self.body_offset, self.body_centre, self.body_orient,
-                                                             self.body_v, self.body_w, self.stats])
-        s = self.stats.numpy()
-        self.t += dt
-        self.substeps += 1
-        self.dt_min = min(self.dt_min, dt)
-        self.dt_max = max(self.dt_max, dt)
-        if s[7] != 0.0 or not np.isfinite(s[0]):
-            self._box = (np.full(3, np.nan), np.full(3, np.nan))
+        lo = wp.vec3i(*span_lo)
+        hi = wp.vec3i(*span_hi)
+        dims = tuple(int(h - l + 1) for l, h in zip(span_lo, span_hi))
+        self._launch(K.plan_step, dim=1, inputs=[self.stats, self.ctl, self.dt_arr])
+        forces = self.f_static
+        if torques:
+            self._launch(K.zero_sums, dim=self.torque_sums.shape, inputs=[self.torque_sums])
+            self._launch(K.torque_reduce, dim=self.n, inputs=[self.x, self.mass, self.torque_mask,
+                                                           self.n_torques, self.torque_sums])
+            self._launch(K.apply_torques, dim=self.n, inputs=[self.x, self.mass, self.torque_mask, self.n_torques,
+                                                           self.torque_sums, self.torque_taus, self.f_static,
+                                                           self.f_total])
+            forces = self.f_total
+        self._launch(K.p2g, dim=self.n, inputs=[self.x, self.v, self.C, self.tau, self.mass, self.vol, self.flags,
+                                             forces, self.grid, self.dt_arr, self.grid_m, self.grid_mv,
+                                             self.grid_fix, self.grid_fix_v, self.anchor_v, self.apic])
+        self._launch(K.grid_update, dim=dims, inputs=[self.grid_m, self.grid_mv, self.grid_v, self.grid_fix,
+                                                   self.grid_fix_v, lo, self.grid, self.bc, self._gravity_w,
+                                                   self.dt_arr])
+        self._launch(K.g2p, dim=self.n, inputs=[self.x, self.v, self.C, self.F, self.rot, self.plastic, self.tau,
+                                             self.mat_id, self.material_table, self.flags, self.mass,
+                                             self.anchor_v, forces, self.grid_v, self.grid, self.dt_arr, self.stats,
+                                             lo, hi, self.status])
+        if self.n_bodies:
+            self._launch(K.rigid_reduce, dim=self.n, inputs=[self.x, self.v, self.mass, forces, self.body,
+                                                          self.body_centre, self.dt_arr, self.body_p, self.body_l])
+            self._launch(K.rigid_velocity, dim=self.n_bodies, inputs=[self.body_orient, self.body_inertia_w,
+                                                                    self.body_mass, self.body_p, self.body_l,
+                                                                    self.body_v, self.body_w])
+            self._launch(K.rigid_contacts, dim=self.n_bodies, inputs=[self.x, self.vol, self.body_start,
+                                                                    self.body_end, self.body_centre,
+                                                                    self.body_orient, self.body_inertia_w,
+                                                                    self.body_mass, self.body_v, self.body_w,
+                                                                    self.grid, self.bc, 8])
+            self._launch(K.rigid_integrate, dim=self.n_bodies, inputs=[self.body_centre, self.body_orient,
+                                                                     self.body_v, self.body_w, self.dt_arr])
+            self._launch(K.rigid_apply, dim=self.n, inputs=[self.x, self.v, self.C, self.F, self.body,
+                                                         self.body_offset, self.body_centre, self.body_orient,
+                                                         self.body_v, self.body_w, self.grid, self.stats, lo, hi,
+                                                         self.status])
+            self._launch(K.body_speed, dim=self.n_bodies, inputs=[self.body_v, self.body_w, self.body_radius_w,
+                                                               self.stats])
+        self._launch(K.end_step, dim=1, inputs=[self.stats, self.ctl, self.status, self.cond])
+
+    def _loop_body(self, span_lo: tuple, span_hi: tuple, torques: bool) -> None:
+        self._substep_kernels(span_lo, span_hi, torques)
+
+    def _grid_span(self, horizon: float) -> tuple[tuple, tuple]:
+        """Grid nodes the next launch works on: the particles' stencils now, plus room for what they
+        can travel in ``horizon`` seconds, rounded outwards to multiples of SPAN_QUANTUM nodes so
+        that a slowly moving scene keeps replaying the same captured graph."""
+        d = self.domain
+        lo, hi = self._box
+        node_lo = np.floor((lo - d.origin) / d.dx - 0.5).astype(np.int64)
+        node_hi = np.floor((hi - d.origin) / d.dx - 0.5).astype(np.int64) + 2
+        speed = max(float(self._stats[K.S_VMAX]), self._anchor_speed)
+        accel = float(self._ctl[K.C_ACCEL])
+        travel = speed * horizon + 0.5 * accel * horizon * horizon
+        margin = int(min(max(math.ceil(travel / d.dx) + 1, 2), MAX_SPAN_MARGIN))
+        q = SPAN_QUANTUM
+        span_lo = np.maximum((node_lo - margin) // q * q, 0)
+        span_hi = np.minimum(-((-(node_hi + margin + 1)) // q) * q - 1, np.asarray(d.dims) - 1)
+        return tuple(int(v) for v in span_lo), tuple(int(v) for v in span_hi)
+
+    def _push(self) -> None:
+        self.ctl.assign(self._ctl)
+        self.status.assign(self._status)
+
+    def _pull(self) -> None:
+        self._ctl = self.ctl.numpy().copy()
+        self._status = self.status.numpy().copy()
+        self._stats = self.stats.numpy().copy()
+        st = self._stats
+        if self._status[K.I_NAN] == 0:
+            self._box = (st[1:4].astype(np.float64), st[4:7].astype(np.float64))
         else:
-            self.work += float(s[10])
-            self._vmax = float(s[0])
-            self.frame_vmax = max(self.frame_vmax, self._vmax)
-            # RMS speed of the deformable particles (a rigid body's speed is its velocity's)
-            rms = math.sqrt(max(float(s[9]), 0.0) / self._deformable_mass) if self._deformable_mass > 0 else 0.0
-            if self.n_bodies:
-                # A rigid body's fastest point moves at |v| + |ω| r: a body spinning in place is not at rest.
-                v_b = np.linalg.norm(self.body_v.numpy(), axis=1)
-                w_b = np.linalg.norm(self.body_w.numpy(), axis=1)
-                rms = max(rms, float((v_b + w_b * self.body_radius).max()))
-            self.frame_rms = max(self.frame_rms, rms)
-            self._c = math.sqrt(float(s[8])) if s[8] > 0 else 0.0  # current stiffness, not the rest value
-            self._box = (s[1:4].astype(np.float64), s[4:7].astype(np.float64))
-        self._check_box(frame)
+            self._box = (np.full(3, np.nan), np.full(3, np.nan))
+
+    def _run_launch(self, span: tuple, eager: bool) -> None:
+        """Substeps until end_step clears the condition: a replay of the captured graph for this
+        span, or the same kernels launched one by one."""
+        wp = self.wp
+        self.cond.fill_(1)
+        self.launches += 1
+        with wp.ScopedDevice(self.device):
+            if eager or not self.use_graph or self.kernel_times is not None:
+                wp.capture_while(self.cond, self._loop_body, span_lo=span[0], span_hi=span[1],
+                                 torques=self._torques_on)
+                return
+            key = (span, self._torques_on)
+            graph = self._graphs.get(key)
+            if graph is None:
+                if len(self._graphs) >= MAX_GRAPHS:
+                    self._graphs.pop(next(iter(self._graphs)))
+                with wp.ScopedCapture(device=self.device) as cap:
+                    wp.capture_while(self.cond, self._loop_body, span_lo=span[0], span_hi=span[1],
+                                     torques=self._torques_on)
+                graph = self._graphs[key] = cap.graph
+                self.graph_captures += 1
+                # A capture on CUDA records without running; on the CPU, APIC recording does not run
+                # either. Reset the condition the capture may have left and replay.
+                self.cond.fill_(1)
+            wp.capture_launch(graph)
+
+    def _raise_invalid(self, frame: int) -> None:
+        name = self.materials[0].name if len(self.materials) == 1 else "/".join(m.name for m in self.materials)
+        if self._status[K.I_NAN]:
+            raise SimulationError(
+                f"Simulation became invalid (NaN/Inf values) at frame {frame}, t={self.t:.4f}s, material "
+                f"'{name}'. Likely cause: a force or stiffness too large for the grid; lower the force or E, "
+                "or raise grid_res.", frame=frame, material=name)
+        if self._status[K.I_ESCAPE]:
+            lo, hi = self._box
+            d = self.domain
+            raise SimulationError(
+                f"Particles left the simulation domain at frame {frame}, t={self.t:.4f}s (material "
+                f"'{name}', box {lo.round(3).tolist()}..{hi.round(3).tolist()} m, domain "
+                f"{d.lo.round(3).tolist()}..{d.hi.round(3).tolist()} m). Likely cause: a force far too strong "
+                "for the object's mass; lower it or enlarge domain_margin.", frame=frame, material=name)
+        if self._status[K.I_TOO_MANY]:
+            raise SimulationError(
+                f"Frame {frame} needed more than max_substeps_per_frame={int(self._status[K.I_MAX_FRAME_SUBSTEPS])} "
+                f"substeps (step now {float(self._ctl[K.C_DT]):.3g} s: fastest particle {self.frame_vmax:.3g} m/s, "
+                f"wave speed {self.wave_speed():.3g} m/s). Likely cause: the material was compressed far stiffer "
+                "than at rest, or a force accelerates it without bound; lower the force or E, or raise "
+                "max_substeps_per_frame.", frame=frame, material=name)
+
+    def advance(self, t_end: float, frame: int = 0, progress: Optional[callable] = None,
+                launch_seconds: float = 0.2) -> None:
+        """Advance to time ``t_end`` with CFL-adaptive substeps chosen on the device.
+
+        Substeps run in launches of up to a few hundred milliseconds each (``progress()`` is called
+        between launches, so it may raise to cancel); on CUDA each launch replays a captured graph
+        (no host synchronisation inside it). Between launches the host reads back the clock and the
+        checks: NaN/Inf, particles leaving the domain and a frame that needs more than its substep
+        limit raise ``SimulationError`` naming the frame, material and likely cause.
+        """
+        while self.t < t_end - 1e-9:
+            if self._status[K.I_FRAME_SUBSTEPS] >= self._status[K.I_MAX_FRAME_SUBSTEPS]:
+                self._status[K.I_TOO_MANY] = 1
+                self._raise_invalid(frame)
+            if self._span is None:
+                self._span = self._grid_span(t_end - self.t)
+            self._ctl[K.C_T_END] = t_end
+            self._status[K.I_LAUNCH_SUBSTEPS] = 0
+            self._status[K.I_CHUNK] = self._chunk
+            self._push()
+            t0 = time.perf_counter()
+            self._run_launch(self._span, eager=False)
+            self._pull()
+            done = int(self._status[K.I_LAUNCH_SUBSTEPS])
+            if done:
+                per = (time.perf_counter() - t0) / done
+                self._chunk = int(min(max(launch_seconds / max(per, 1e-9), 1), 1_000_000))
+            if self._status[K.I_NAN] or self._status[K.I_ESCAPE] or self._status[K.I_TOO_MANY]:
+                self._raise_invalid(frame)
+            if self._status[K.I_OVERFLOW]:
+                self._status[K.I_OVERFLOW] = 0
+                self._span = None  # the particles outgrew the span: the next launch gets a wider one
+                self.span_changes += 1
+            if progress is not None:
+                progress()
+
+    def substep(self, dt: float, frame: int = 0) -> None:
+        """Exactly one substep of length ``dt`` (no CFL limit; for tests and reference runs)."""
+        if self._span is None:
+            self._span = self._grid_span(float(dt))
+        self._ctl[K.C_FORCE_DT] = float(dt)
+        self._ctl[K.C_T_END] = self.t + float(dt)
+        self._status[K.I_LAUNCH_SUBSTEPS] = 0
+        self._status[K.I_CHUNK] = 1
+        self._push()
+        with self.wp.ScopedDevice(self.device):
+            self._substep_kernels(self._span[0], self._span[1], self._torques_on)
+        self._pull()
+        self._ctl[K.C_FORCE_DT] = 0.0
+        if self._status[K.I_NAN] or self._status[K.I_ESCAPE]:
+            self._raise_invalid(frame)
+        if self._status[K.I_OVERFLOW]:
+            self._status[K.I_OVERFLOW] = 0
+            self._span = None
 
     # -- read-back ------------------------------------------------------------------------------
     def positions(self) -> np.ndarray:

@@ -204,7 +204,8 @@ def simulate(
 
     solver = MPMSolver(x0, volume, particle_obj, materials, domain, gravity=conditions.gravity(), ground=ground,
                        walls=conditions.walls(), cfl=settings.cfl, device=device, v0=v0,
-                       body=body, torque_mask=torque_mask, transfer=settings.transfer)
+                       body=body, torque_mask=torque_mask, transfer=settings.transfer,
+                       graph={"auto": None, "on": True, "off": False}[settings.graph])
 
     forces = conditions.of(Force)
     f_terms, schedule = [], _Schedule()
@@ -231,6 +232,8 @@ def simulate(
     peak_anchor = max([float(np.linalg.norm(a.velocity)) for a in anchors], default=0.0)
     frame_dt = 1.0 / settings.fps
     _check_cost(solver, settings, materials, frame_dt, peak_accel, peak_anchor)
+    solver.set_limits(max_dt=min(frame_dt / settings.min_substeps, settings.fixed_dt or math.inf),
+                      max_frame_substeps=settings.max_substeps_per_frame)
 
     def apply_schedule(active: tuple[int, ...]) -> None:
         f = np.zeros((x0.shape[0], 3))
@@ -280,30 +283,17 @@ def simulate(
     for k in range(1, frames):
         t_frame = k * frame_dt
         if rest_from is None:
-            solver.frame_vmax = 0.0
-            solver.frame_rms = 0.0
-            in_frame = 0
+            solver.begin_frame()
             while solver.t < t_frame - 1e-9:
                 now_active = schedule.active(solver.t)
                 if now_active != active:
                     apply_schedule(now_active)
                     active = now_active
-                dt = min(solver.stable_dt(), frame_dt / settings.min_substeps, t_frame - solver.t,
-                         schedule.next_edge(solver.t) - solver.t)
-                if settings.fixed_dt:
-                    dt = min(dt, settings.fixed_dt)
-                in_frame += 1
-                if in_frame > settings.max_substeps_per_frame:
-                    raise SimulationError(
-                        f"Frame {k} needed more than max_substeps_per_frame={settings.max_substeps_per_frame} "
-                        f"substeps (step now {dt:.3g} s: fastest particle {solver.frame_vmax:.3g} m/s, wave speed "
-                        f"{solver.wave_speed():.3g} m/s). Likely cause: the material was compressed far stiffer "
-                        "than at rest, or a force accelerates it without bound; lower the force or E, or raise "
-                        "max_substeps_per_frame.", frame=k, material="/".join(m.name for m in materials))
-                solver.substep(dt, frame=k)
-                # Every substep: the throttle forwards at most one call per 0.2 s, so Cancel acts within
-                # a fraction of a second mid-frame even when each substep is slow (large grids on a CPU).
-                tick(k - 1, frames - 1)
+                # Substeps run on the device up to the frame's end or the next change of the forces;
+                # the step is chosen there from the CFL limits (MPMSolver.advance). Between launches
+                # (a fraction of a second each) the progress callback lets Cancel act mid-frame.
+                solver.advance(min(t_frame, schedule.next_edge(solver.t)), frame=k,
+                               progress=lambda: tick(k - 1, frames - 1))
             still = settings.rest_speed > 0 and solver.frame_rms < settings.rest_speed
             still_frames = still_frames + 1 if still and not schedule.pending(solver.t) else 0
             if still_frames >= REST_FRAMES:
@@ -342,6 +332,9 @@ def simulate(
         "mass_kg": float(solver.mass_np.astype(np.float64).sum()),
         "energy": energy,  # per frame: kinetic, gravitational potential, cumulative external work (J)
         "transfer": settings.transfer,
+        "graph": solver.use_graph,
+        "launches": solver.launches,  # host round trips (one per launch of substeps)
+        "graph_captures": solver.graph_captures,
     }
     log.info("simulated %d frames: %d particles, %d substeps, %.1fs", frames, x0.shape[0], solver.substeps, wall)
     return SimResult(
