@@ -245,14 +245,16 @@ def model_path(kind: str, name: str, *, expected: str) -> Path:
     from physmotion_core.errors import MissingModelError
     from physmotion_core.models import describe_folder
 
+    from physmotion_core.models import safe_child, trust_folder
+
     folders = model_folders(kind)
     if name and name != "(none found)":
-        p = Path(name)
-        if p.is_absolute() and p.exists():
-            return p
+        # Names come from the drop-down, or from an API client: they must stay inside the folders.
         for folder in folders:
-            if (folder / name).exists():
-                return folder / name
+            cand = safe_child(folder, name, f"{kind} model")
+            if cand.exists():
+                trust_folder(folder)  # a ComfyUI model folder: its checkpoints may load
+                return cand
     where = "; ".join(f"{f} ({describe_folder(f)})" for f in folders)
     raise MissingModelError(f"{kind} model {name!r} not found. Expected {expected} in: {where}. "
                             "Weights are never downloaded: put the file there and refresh the node (press R).")

@@ -39,6 +39,43 @@ MODEL_FOLDERS = {
 WEIGHT_SUFFIXES = (".safetensors", ".pth", ".pt", ".bin", ".ckpt")
 
 
+#: Folders whose files the user put there as model weights (the models root and, inside ComfyUI,
+#: its model folders): pickled checkpoints (.pth/.pt/.bin/.ckpt) load from these without opt-in.
+_TRUSTED_FOLDERS: list[Path] = []
+ALLOW_PICKLE_ENV = "PHYSMOTION_ALLOW_PICKLE"
+
+
+def trust_folder(folder: os.PathLike) -> None:
+    """Mark a model folder whose pickled checkpoints may load (still with ``weights_only=True``)."""
+    p = Path(os.path.abspath(Path(folder).expanduser()))
+    if p not in _TRUSTED_FOLDERS:
+        _TRUSTED_FOLDERS.append(p)
+
+
+def _is_within(path: Path, folder: Path) -> bool:
+    try:
+        Path(os.path.abspath(path)).relative_to(Path(os.path.abspath(folder)))
+        return True
+    except ValueError:
+        return False
+
+
+def in_trusted_folder(path: os.PathLike) -> bool:
+    return any(_is_within(Path(path), f) for f in [models_root(), *_TRUSTED_FOLDERS])
+
+
+def safe_child(base: os.PathLike, name: str, what: str) -> Path:
+    """``base / name`` for a model *name* (a file or folder inside a model folder). A name that is
+    absolute or climbs out with '..' is refused: names from a drop-down or an API call can never
+    reach files outside the model folders. (Symbolic links inside the folder are followed, as
+    ComfyUI does: users link large files in from other drives.)"""
+    p = Path(name)
+    if p.is_absolute() or p.drive or any(part == ".." for part in p.parts):
+        raise InputError(f"{what} name {name!r} must be a name inside {base} (no absolute paths, no '..'). "
+                         "Put the file in that folder and pick it by name.")
+    return Path(base) / p
+
+
 def models_root() -> Path:
     """``$PHYSMOTION_MODELS`` if set, else ``./models`` (ComfyUI's layout)."""
     return Path(os.environ.get("PHYSMOTION_MODELS", "models")).expanduser()
@@ -88,8 +125,12 @@ def resolve_weight_file(kind: str, name: Optional[str], *, expected: str,
     base = model_dir(kind, root)
     if name:
         p = Path(name).expanduser()
-        cand = p if p.is_absolute() else base / p
+        # An absolute path is the library caller's own choice of file; a relative name must stay
+        # inside the kind's folder.
+        cand = p if p.is_absolute() else safe_child(base, name, f"{kind} weights")
         if cand.is_file():
+            if not p.is_absolute():
+                trust_folder(base)  # the caller named this models root
             return cand
         where = cand.parent
         raise MissingModelError(
@@ -97,6 +138,7 @@ def resolve_weight_file(kind: str, name: Optional[str], *, expected: str,
             f"{describe_folder(where)}. Weights are never downloaded: place the file there.")
     found = list_models(kind, suffixes=suffixes, root=root)
     if len(found) == 1:
+        trust_folder(base)
         return base / found[0]
     if not found:
         raise MissingModelError(
@@ -111,7 +153,7 @@ def resolve_model_dir(kind: str, name: Optional[str], *, expected: str, required
     base = model_dir(kind, root)
     if name:
         p = Path(name).expanduser()
-        folder = p if p.is_absolute() else base / p
+        folder = p if p.is_absolute() else safe_child(base, name, f"{kind} model folder")
     else:
         subs = list_models(kind, dirs=True, root=root)
         if len(subs) != 1:
@@ -124,6 +166,8 @@ def resolve_model_dir(kind: str, name: Optional[str], *, expected: str, required
         raise MissingModelError(
             f"{kind} model folder {folder} not found. Expected {expected}; in {folder.parent}: "
             f"{describe_folder(folder.parent)}. Weights are never downloaded.")
+    if not Path(name or "").expanduser().is_absolute():
+        trust_folder(folder)  # inside the models root the caller named
     missing = [r for r in required if not (folder / r).exists()]
     if missing:
         raise MissingModelError(
@@ -132,13 +176,26 @@ def resolve_model_dir(kind: str, name: Optional[str], *, expected: str, required
     return folder
 
 
-def load_state_dict_file(path: os.PathLike) -> dict:
-    """Tensors from ``.safetensors`` (preferred) or a torch pickle loaded with ``weights_only=True``."""
+def load_state_dict_file(path: os.PathLike, *, allow_pickle: Optional[bool] = None) -> dict:
+    """Tensors from ``.safetensors`` (preferred) or a torch pickle loaded with ``weights_only=True``.
+
+    A pickle (.pth/.pt/.bin/.ckpt) outside the model folders loads only with ``allow_pickle=True``
+    or ``$PHYSMOTION_ALLOW_PICKLE=1``: even the restricted unpickler is more attack surface than
+    safetensors, so files from arbitrary places must be asked for explicitly.
+    """
     import torch
 
     path = Path(path)
     if not path.is_file():
         raise MissingModelError(f"Weight file {path} not found; {describe_folder(path.parent)}.")
+    if path.suffix != ".safetensors":
+        if allow_pickle is None:
+            allow_pickle = os.environ.get(ALLOW_PICKLE_ENV, "") in ("1", "true", "yes") or in_trusted_folder(path)
+        if not allow_pickle:
+            raise InputError(f"{path} is a pickled checkpoint outside the model folders. Move it into the model "
+                             f"folder ({models_root()} or ComfyUI's models/), convert it to .safetensors, or opt in "
+                             f"with allow_pickle=True / {ALLOW_PICKLE_ENV}=1 (it is then loaded with "
+                             "weights_only=True).")
     try:
         if path.suffix == ".safetensors":
             from safetensors.torch import load_file

@@ -285,7 +285,7 @@ def test_wrong_unet_weights(tiny_dir, tmp_path):
     assert "1 missing" in msg and "image_embed.latents" in msg and "out.2.weight" in msg
 
 
-def test_fp16_variant_and_bin_weights_load(tiny_dir, tmp_path):
+def test_fp16_variant_and_bin_weights_load(tiny_dir, tmp_path, monkeypatch):
     alt = tmp_path / "imagedream"
     shutil.copytree(tiny_dir, alt)
     src = alt / "unet" / "diffusion_pytorch_model.safetensors"
@@ -293,6 +293,10 @@ def test_fp16_variant_and_bin_weights_load(tiny_dir, tmp_path):
     src.unlink()
     from physmotion_core.lift.imagedream import load_unet
 
+    # A pickle in a folder given by absolute path (not a model folder) needs an explicit opt-in.
+    with pytest.raises(InputError, match="pickled checkpoint outside the model folders"):
+        load_unet(alt / "unet", device="cpu")
+    monkeypatch.setenv("PHYSMOTION_ALLOW_PICKLE", "1")
     unet = load_unet(alt / "unet", device="cpu")
     assert unet.dtype == torch.float32 and len(unet.state_dict()) == len(load_file(str(
         tiny_dir / "unet" / "diffusion_pytorch_model.safetensors")))

@@ -1,0 +1,119 @@
+"""Reliability and security: bad weights, path traversal, pickles, atomic output.
+
+Every case asserts the library's own error type (InputError / MissingModelError), a message that
+names the input and the fix, and that nothing outside the intended folders is touched.
+"""
+
+from __future__ import annotations
+
+import os
+import pickle
+
+import pytest
+import torch
+from safetensors.torch import save_file
+
+from physmotion_core.errors import InputError, MissingModelError
+from physmotion_core.models import load_state_dict_file, resolve_model_dir, resolve_weight_file
+
+
+class _Payload:
+    """A pickle that runs code when unpickled (what a malicious .pth would carry)."""
+
+    def __init__(self, marker):
+        self.marker = str(marker)
+
+    def __reduce__(self):
+        return (open, (self.marker, "w"))
+
+
+@pytest.fixture
+def root(tmp_path, monkeypatch):
+    r = tmp_path / "models"
+    (r / "sams").mkdir(parents=True)
+    (r / "physmotion" / "depth" / "dpt").mkdir(parents=True)
+    (r / "physmotion" / "depth" / "dpt" / "config.json").write_text("{}")
+    monkeypatch.setenv("PHYSMOTION_MODELS", str(r))
+    monkeypatch.delenv("PHYSMOTION_ALLOW_PICKLE", raising=False)
+    return r
+
+
+def test_model_names_cannot_climb_out_of_the_model_folder(root, tmp_path):
+    secret = tmp_path / "secret.safetensors"
+    save_file({"w": torch.zeros(1)}, str(secret))
+    for name in ("../../secret.safetensors", "../secret.safetensors", "sub/../../../secret.safetensors"):
+        with pytest.raises(InputError, match="no absolute paths, no '..'"):
+            resolve_weight_file("sams", name, expected="a SAM .pth")
+    with pytest.raises(InputError, match="no absolute paths, no '..'"):
+        resolve_model_dir("depth", "../../../", expected="a transformers folder")
+    # Names inside the folder resolve; an absolute path is the library caller's own choice.
+    save_file({"w": torch.zeros(1)}, str(root / "sams" / "ok.safetensors"))
+    assert resolve_weight_file("sams", "ok.safetensors", expected="x") == root / "sams" / "ok.safetensors"
+    assert resolve_weight_file("sams", str(secret), expected="x") == secret
+    assert resolve_model_dir("depth", "dpt", expected="x", required=["config.json"]).name == "dpt"
+
+
+def test_node_model_paths_refuse_traversal_and_absolute_names(root, tmp_path):
+    from nodes._util import model_path
+
+    (tmp_path / "elsewhere.pth").write_bytes(b"x")
+    for name in ("../../elsewhere.pth", str(tmp_path / "elsewhere.pth")):
+        with pytest.raises((InputError, MissingModelError)):
+            model_path("sams", name, expected="a SAM .pth")
+
+
+def test_pickles_outside_the_model_folders_need_an_opt_in(root, tmp_path, monkeypatch):
+    outside = tmp_path / "download.pth"
+    torch.save({"w": torch.ones(2)}, outside)
+    with pytest.raises(InputError, match="pickled checkpoint outside the model folders.*allow_pickle"):
+        load_state_dict_file(outside)
+    assert torch.equal(load_state_dict_file(outside, allow_pickle=True)["w"], torch.ones(2))
+    monkeypatch.setenv("PHYSMOTION_ALLOW_PICKLE", "1")
+    assert torch.equal(load_state_dict_file(outside)["w"], torch.ones(2))
+    monkeypatch.delenv("PHYSMOTION_ALLOW_PICKLE")
+    inside = root / "sams" / "model.pth"
+    torch.save({"w": torch.ones(3)}, inside)
+    assert load_state_dict_file(inside)["w"].shape == (3,)  # a model folder: no opt-in needed
+
+
+def test_a_malicious_pickle_is_refused_and_runs_nothing(root, tmp_path):
+    marker = tmp_path / "pwned"
+    evil = root / "sams" / "evil.pth"
+    with open(evil, "wb") as f:
+        pickle.dump({"w": _Payload(marker)}, f)
+    with pytest.raises(InputError, match="Could not read weights"):
+        load_state_dict_file(evil)
+    # Even with the opt-in, weights_only=True refuses to call anything.
+    with pytest.raises(InputError, match="Could not read weights"):
+        load_state_dict_file(evil, allow_pickle=True)
+    assert not marker.exists()
+
+
+def test_truncated_corrupt_and_wrong_format_weights_give_clear_errors(root):
+    good = root / "sams" / "good.safetensors"
+    save_file({"w": torch.randn(64, 64)}, str(good))
+    data = good.read_bytes()
+    cases = {
+        "truncated.safetensors": data[: len(data) // 2],
+        "garbage.safetensors": os.urandom(4096),
+        "text.safetensors": b"<html>404 Not Found</html>",
+        "truncated.pth": None,
+        "empty.pth": b"",
+    }
+    buf = root / "sams" / "full.pth"
+    torch.save({"w": torch.randn(64, 64)}, buf)
+    cases["truncated.pth"] = buf.read_bytes()[:300]
+    for name, payload in cases.items():
+        p = root / "sams" / name
+        p.write_bytes(payload)
+        with pytest.raises(InputError) as err:
+            load_state_dict_file(p)
+        msg = str(err.value)
+        assert str(p) in msg and ("truncated" in msg or "not a checkpoint" in msg), msg
+    # Not a state dict at all (a pickled list of tensors).
+    odd = root / "sams" / "list.pth"
+    torch.save([torch.zeros(1)], odd)
+    with pytest.raises(InputError, match="does not hold a state dict"):
+        load_state_dict_file(odd)
+    with pytest.raises(MissingModelError, match="not found"):
+        load_state_dict_file(root / "sams" / "absent.safetensors")
