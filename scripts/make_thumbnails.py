@@ -1,7 +1,7 @@
 """Make each template's .jpg thumbnail from a frame the template really produces.
 
 Runs every API workflow in-process (tests/comfy_harness.py), takes the frame at 40 % of the clip
-and writes workflows/<name>.jpg. CPU-capable workflows only. With --sheet DIR it also writes a
+and writes workflows/<name>.jpg (printing the run time). CPU-capable workflows only. With --sheet DIR it also writes a
 contact sheet of six frames per workflow to DIR (for reviewing the motion). Usage:
     .venv/bin/python scripts/make_thumbnails.py [--sheet DIR] [name ...]
 """
@@ -12,6 +12,7 @@ import json
 import os
 import sys
 import tempfile
+import time
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -53,8 +54,16 @@ def main(names: list[str]) -> int:
         prompt = json.loads(path.read_text())
         with tempfile.TemporaryDirectory() as tmp:
             os.environ["PHYSMOTION_OUTPUT_DIR"] = tmp
+            t0 = time.perf_counter()
             out = run_prompt(prompt)
+            wall = time.perf_counter() - t0
         frames = out["results"][frames_node(prompt)][0]
+        sims = [r[0] for r in out["results"].values() if r and type(r[0]).__name__ == "SimResult"]
+        if sims:
+            st = sims[0].stats
+            print(f"{path.stem}: whole workflow {wall:.1f} s, simulation {st['wall_time_s']:.1f} s, "
+                  f"{st['particles']:,} particles, {st['substeps']:,} substeps, {frames.shape[0]} frames",
+                  flush=True)
         if sheet_dir is not None:
             contact_sheet(frames, sheet_dir / f"{path.stem}.png")
         frame = frames[int(0.4 * (frames.shape[0] - 1))].numpy()
