@@ -317,10 +317,11 @@ def test_bad_inputs(lgm, kwargs, match):
 # ----------------------------------------------------------------------------------------------
 
 @pytest.fixture
-def nodes(models_root, monkeypatch):
+def nodes(models_root, monkeypatch, tmp_path):
     from comfy_harness import node_classes
 
     monkeypatch.setenv("PHYSMOTION_MODELS", str(models_root))
+    monkeypatch.setenv("PHYSMOTION_OUTPUT_DIR", str(tmp_path))             # previews land there
     return node_classes()
 
 

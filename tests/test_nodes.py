@@ -123,7 +123,29 @@ def test_workflow_conversion_detects_a_changed_link():
 
 SMALL = {"3.max_gaussians": 6000, "7.frames": 8, "7.grid_res": 10, "10.filename_prefix": "test/push"}
 TINY = {"PhysMotionSilhouetteLift.max_gaussians": 4000, "PhysMotionMPMSimulate.frames": 5,
-        "PhysMotionMPMSimulate.grid_res": 8}
+        "PhysMotionMPMSimulate.grid_res": 8,
+        # the learned front end on tiny random-weight models (see _learned_models below)
+        "PhysMotionLGMLoader.input_size": 64, "PhysMotionLGMLift.steps": 2, "PhysMotionLGMLift.max_gaussians": 300,
+        "PhysMotionMultiViewGenerate.steps": 2, "PhysMotionHardDepthRefine.iterations": 2,
+        "PhysMotionHardDepthRefine.max_render_side": 128}
+LEARNED_LOADERS = {"PhysMotionSAMLoader", "PhysMotionImageDreamLoader", "PhysMotionLGMLoader"}
+
+
+@pytest.fixture(scope="session")
+def tiny_models_root(tmp_path_factory):
+    from tiny_models import write_tiny_models_root
+
+    return write_tiny_models_root(tmp_path_factory.mktemp("models"))
+
+
+@pytest.fixture(autouse=True)
+def _learned_models(request, monkeypatch):
+    """Workflows with learned loaders get $PHYSMOTION_MODELS = tiny random-weight models in the
+    official file layout and names (tests/tiny_models.py): the loaders list and load them there."""
+    callspec = getattr(request.node, "callspec", None)
+    path = callspec.params.get("path") if callspec is not None else None
+    if path is not None and any(n["class_type"] in LEARNED_LOADERS for n in json.loads(Path(path).read_text()).values()):
+        monkeypatch.setenv("PHYSMOTION_MODELS", str(request.getfixturevalue("tiny_models_root")))
 
 
 @pytest.mark.parametrize("path", API_WORKFLOWS, ids=lambda p: p.stem)
