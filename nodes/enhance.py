@@ -28,18 +28,18 @@ def _entries(kind: str, *, dirs: bool = True, files: bool = True) -> list[str]:
 
 def _find(kinds: tuple, name: str, expected: str) -> Path:
     from physmotion_core.errors import MissingModelError
-    from physmotion_core.models import describe_folder
+    from physmotion_core.models import describe_folder, safe_child, trust_folder
 
     from ._util import model_folders
 
     folders = [f for k in kinds for f in model_folders(k)]
     if name and name not in (NONE, "(none found)"):
-        p = Path(name)
-        if p.is_absolute() and p.exists():
-            return p
+        # names come from the drop-down or an API client: they must stay inside the model folders
         for f in folders:
-            if (f / name).exists():
-                return f / name
+            cand = safe_child(f, name, "model")
+            if cand.exists():
+                trust_folder(f)  # a model folder: its .ckpt files may load (weights_only)
+                return cand
     where = "; ".join(f"{f} ({describe_folder(f)})" for f in folders)
     raise MissingModelError(f"{name!r} not found. Expected {expected} in: {where}. Weights are never downloaded: put "
                             "them there and refresh the node list (press R).")

@@ -156,6 +156,8 @@ def test_missing_and_wrong_weight_files_give_clear_errors(tiny, tmp_path):
     root = tmp_path / "models"
     with pytest.raises(MissingModelError, match=r"not found.*models/diffusers/.*the folder does not exist"):
         load_diffusion("stable-diffusion-2-1", root=root, device="cpu")
+    with pytest.raises(InputError, match="must be a name inside"):  # names cannot climb out of the folders
+        load_diffusion("../../etc", root=root, device="cpu")
     # an incomplete diffusers folder names the missing file and what is there
     broken = root / "diffusers" / "sd21"
     shutil.copytree(tiny["diffusers"], broken)

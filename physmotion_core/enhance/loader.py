@@ -31,7 +31,7 @@ from typing import Optional, Sequence
 import torch
 
 from ..errors import InputError, MissingModelError
-from ..models import default_dtype, describe_folder, model_dir, pick_device
+from ..models import default_dtype, describe_folder, model_dir, pick_device, safe_child, trust_folder
 from .configs import SD21_CONFIG_DIR
 from .schedule import PREDICTION_TYPES
 
@@ -97,13 +97,17 @@ def resolve_sd_source(name: str, root: Optional[os.PathLike] = None) -> tuple[st
             f"{model_dir('checkpoints', root)} ({describe_folder(model_dir('checkpoints', root))}). "
             "Weights are never downloaded.")
     p = Path(name).expanduser()
-    candidates = [p] if p.is_absolute() else [model_dir("diffusers", root) / p, model_dir("checkpoints", root) / p]
+    # an absolute path is the library caller's own choice; a name must stay inside the model folders
+    candidates = [p] if p.is_absolute() else [safe_child(model_dir(k, root), name, "SD model")
+                                              for k in ("diffusers", "checkpoints")]
     for c in candidates:
         if c.is_dir():
             return "folder", c
         if c.is_file():
             if c.suffix.lower() not in SINGLE_FILE_SUFFIXES:
                 raise InputError(f"{c} is not a checkpoint file (expected {', '.join(SINGLE_FILE_SUFFIXES)}).")
+            if not p.is_absolute():
+                trust_folder(c.parent)
             return "file", c
     where = "; ".join(f"{c.parent} ({describe_folder(c.parent)})" for c in candidates)
     raise MissingModelError(f"SD 2.1 model {name!r} not found. Expected {EXPECTED_SD_FOLDER} in models/diffusers/ "
@@ -114,7 +118,9 @@ def resolve_sd_source(name: str, root: Optional[os.PathLike] = None) -> tuple[st
 def resolve_controlnet(name: str, kind: str, root: Optional[os.PathLike] = None) -> Path:
     base = model_dir("controlnet", root)
     p = Path(name).expanduser()
-    c = p if p.is_absolute() else base / p
+    c = p if p.is_absolute() else safe_child(base, name, f"ControlNet ({kind})")
+    if c.is_file() and not p.is_absolute():
+        trust_folder(base)
     if c.is_dir():
         if not (c / "config.json").is_file() or _weights_variant(c, _DIFFUSERS_WEIGHTS) is None:
             raise MissingModelError(
@@ -130,7 +136,7 @@ def resolve_controlnet(name: str, kind: str, root: Optional[os.PathLike] = None)
 def resolve_lora(name: str, root: Optional[os.PathLike] = None) -> Path:
     base = model_dir("loras", root)
     p = Path(name).expanduser()
-    c = p if p.is_absolute() else base / p
+    c = p if p.is_absolute() else safe_child(base, name, "LoRA")
     if not c.is_file():
         raise MissingModelError(f"LoRA {name!r} not found at {c}. Expected a .safetensors LoRA (e.g. one written by "
                                 f"PhysMotion LoRA Personalize) in {c.parent}; {describe_folder(c.parent)}.")
