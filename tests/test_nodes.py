@@ -127,15 +127,23 @@ TINY = {"PhysMotionSilhouetteLift.max_gaussians": 4000, "PhysMotionMPMSimulate.f
         # the learned front end on tiny random-weight models (see _learned_models below)
         "PhysMotionLGMLoader.input_size": 64, "PhysMotionLGMLift.steps": 2, "PhysMotionLGMLift.max_gaussians": 300,
         "PhysMotionMultiViewGenerate.steps": 2, "PhysMotionHardDepthRefine.iterations": 2,
-        "PhysMotionHardDepthRefine.max_render_side": 128}
-LEARNED_LOADERS = {"PhysMotionSAMLoader", "PhysMotionImageDreamLoader", "PhysMotionLGMLoader"}
+        "PhysMotionHardDepthRefine.max_render_side": 128,
+        # the enhancement on tiny random-weight SD 2.1 + ControlNets (physmotion_core/enhance/tiny.py)
+        "PhysMotionLoRAPersonalize.steps": 2, "PhysMotionLoRAPersonalize.resolution": 64,
+        "PhysMotionDDIMInvert.steps": 2, "PhysMotionDDIMInvert.resolution": 64, "PhysMotionDDIMInvert.refine_iterations": 0}
+LEARNED_LOADERS = {"PhysMotionSAMLoader", "PhysMotionImageDreamLoader", "PhysMotionLGMLoader",
+                   "PhysMotionDiffusionLoader"}
 
 
 @pytest.fixture(scope="session")
 def tiny_models_root(tmp_path_factory):
     from tiny_models import write_tiny_models_root
 
-    return write_tiny_models_root(tmp_path_factory.mktemp("models"))
+    from physmotion_core.enhance.tiny import build_tiny_models_root
+
+    root = write_tiny_models_root(tmp_path_factory.mktemp("models"))
+    build_tiny_models_root(root)  # SD 2.1 + depth/canny ControlNets under the template's names
+    return root
 
 
 @pytest.fixture(autouse=True)
