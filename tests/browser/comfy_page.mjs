@@ -72,7 +72,22 @@ try {
       const c = document.querySelector(sel);
       return n?.physmotionPicker?.image?.naturalWidth > 0 && c && c.getBoundingClientRect().width > 50;
     }, sel, { timeout: 60000 });
-    await page.waitForTimeout(400); // one more redraw so the DOM widget sits where the node is drawn
+    // Wait until the DOM widget sits still where the node is drawn (the canvas positions it on a
+    // redraw, which lags on a busy machine) and is what the mouse will hit.
+    let last = null;
+    for (let i = 0; i < 40; i++) {
+      await page.waitForTimeout(250);
+      const probe = await page.evaluate(({ sel, from }) => {
+        const c = document.querySelector(sel);
+        const r = c.getBoundingClientRect();
+        const fit = window.__pmNode.physmotionPicker.fit();
+        const x = r.x + (fit.offsetX + from[0] * fit.scale) * (r.width / c.clientWidth);
+        const y = r.y + (fit.offsetY + from[1] * fit.scale) * (r.height / c.clientHeight);
+        return { key: [r.x, r.y, r.width, r.height].map(Math.round).join(","), hit: document.elementFromPoint(x, y) === c };
+      }, { sel, from });
+      if (probe.hit && last === probe.key) break;
+      last = probe.key;
+    }
     const geo = await page.evaluate((sel) => {
       const n = window.__pmNode;
       const p = n.physmotionPicker;
