@@ -183,7 +183,7 @@ def consistency(args) -> str:
 Models: {label}. Clip: {"your video" if args.coarse else "push_a_jelly's coarse video"}, {inv.frames} frames at
 {W}×{H}, {args.steps} DDIM steps, prompt "{args.prompt}", guidance 7.5, τ_f 0.8, τ_A 0.5, keyframes every 5 frames.
 Inversion took {t_inv:.1f} s. Machine: {machine_description()}. Measured {datetime.date.today().isoformat()}.
-Re-run: `python -m benchmarks.bench_enhance{" --quick" if args.quick else ""}`.
+Re-run: `python -m benchmarks.bench_enhance{"".join(" " + a for a in sys.argv[1:])}`.
 
 Warping error = mean |frame(t+1) − warp(frame t)| in 8-bit levels over the pixels where the coarse
 video's Farneback forward/backward flows agree (the flow is the coarse video's, for every row). The

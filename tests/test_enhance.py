@@ -660,3 +660,66 @@ def test_enhancement_nodes_run_end_to_end(tiny, monkeypatch, tmp_path):
     assert out["ui"]["animated"] == (True,)
     # models are back on the CPU after each node
     assert next(models.unet.parameters()).device.type == "cpu"
+
+
+def test_nodes_report_progress_and_cancel_through_comfyui_hooks(tiny, monkeypatch, tmp_path):
+    """A stand-in `comfy` package with ComfyUI's API: the nodes drive its progress bar, and its
+    interrupt, raised from the progress callback, stops sampling mid-run with the UNet restored."""
+    import sys
+    import types
+
+    sys.path.insert(0, str(Path(__file__).parent))
+    from comfy_harness import node_classes
+
+    class Interrupt(Exception):
+        pass
+
+    state = types.SimpleNamespace(checks=0, cancel_after=None, updates=[])
+
+    def check():
+        state.checks += 1
+        if state.cancel_after is not None and state.checks > state.cancel_after:
+            raise Interrupt()
+
+    mm = types.ModuleType("comfy.model_management")
+    mm.throw_exception_if_processing_interrupted = check
+    mm.get_torch_device = lambda: torch.device("cpu")
+    mm.unet_offload_device = lambda: torch.device("cpu")
+    mm.free_memory = lambda *a, **k: None
+    utils = types.ModuleType("comfy.utils")
+
+    class ProgressBar:
+        def __init__(self, total):
+            self.total = total
+
+        def update_absolute(self, value, total=None, preview=None):
+            state.updates.append((value, total))
+
+    utils.ProgressBar = ProgressBar
+    comfy = types.ModuleType("comfy")
+    comfy.model_management, comfy.utils = mm, utils
+    for name, mod in (("comfy", comfy), ("comfy.model_management", mm), ("comfy.utils", utils)):
+        monkeypatch.setitem(sys.modules, name, mod)
+    monkeypatch.setenv("PHYSMOTION_MODELS", str(tiny["root"]))
+    monkeypatch.setenv("PHYSMOTION_TEMP_DIR", str(tmp_path / "temp"))
+    nodes = node_classes()
+    (models,) = nodes["PhysMotionDiffusionLoader"]().run(TINY_NAMES["diffusers"], TINY_NAMES["controlnet_depth"],
+                                                         TINY_NAMES["controlnet_canny"], "auto", False)
+    frames, depth = _clip(4, seed=6)
+    inv, _ = nodes["PhysMotionDDIMInvert"]().run(models, frames, depth[..., None].expand(-1, -1, -1, 3), "a cube",
+                                                 3, 64, 0, 100, 200, 1.0, 1.0, 2)
+    # 2 frame batches x 3 steps, reported in order up to the total
+    assert state.updates[-1] == (6, 6) and [v for v, _ in state.updates] == sorted(v for v, _ in state.updates)
+    sample = nodes["PhysMotionKeyframeSharedSample"]()
+    args = (models, inv, "", "", 7.5, 0.8, 0.5, 2, "tokenflow", 1, 8, 4096, "refuse", "diffusion")
+    state.updates.clear()
+    sample.run(*args)
+    total = state.updates[-1][1]
+    assert state.updates[-1] == (total, total) and total == 3 * (1 + 2) + 4  # steps x passes + decoded frames
+    state.updates.clear()
+    state.checks, state.cancel_after = 0, 4
+    with pytest.raises(Interrupt):
+        sample.run(*args)
+    assert max(v for v, _ in state.updates) < total
+    assert all(type(p).__name__ != "SharedSelfAttnProcessor" for p in models.unet.attn_processors.values())
+    assert next(models.unet.parameters()).device.type == "cpu"
