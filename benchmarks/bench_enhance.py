@@ -231,43 +231,52 @@ def full_size_models(device: torch.device):
                            dtype=dt, name="random SD 2.1 (full size)")
 
 
-def gpu(args) -> str:
+def throughput(models, resolutions, frame_counts, chunks, steps: int) -> list[tuple]:
+    """(resolution, frames, chunk, s/frame scaled to 50 steps, measured peak GiB, estimated peak GiB)."""
     from physmotion_core.enhance import SampleSettings, keyframe_shared_sample
     from physmotion_core.enhance.invert import Inversion
     from physmotion_core.enhance.schedule import DDIMSchedule
 
-    if not torch.cuda.is_available():
-        raise SystemExit("--gpu needs CUDA")
-    dev = torch.device("cuda")
-    models = full_size_models(dev)
-    steps = args.gpu_steps
+    cuda = torch.device(models.device).type == "cuda"
     sched = DDIMSchedule.from_config(models.scheduler_config, steps)
     rows = []
-    for res in (512, 768):
-        for frames in (16, 48):
-            for chunk in (0, 4096):
+    for res in resolutions:
+        for frames in frame_counts:
+            for chunk in chunks:
                 g = torch.Generator().manual_seed(0)
                 h = w = res // 8
+                kinds = list(models.controlnets)
                 inv = Inversion(latents=torch.randn(steps, frames, 4, h, w, generator=g),
                                 clean=torch.randn(frames, 4, h, w, generator=g), timesteps=sched.timesteps,
                                 prompt="a photo", controls={k: torch.rand(frames, 3, res, res, generator=g)
-                                                            for k in ("depth", "canny")},
-                                control_scales={"depth": 1.0, "canny": 1.0}, size=(res, res), input_size=(res, res),
-                                prediction_type="v_prediction", model_fingerprint=models.fingerprint())
+                                                            for k in kinds},
+                                control_scales={k: 1.0 for k in kinds}, size=(res, res), input_size=(res, res),
+                                prediction_type=models.prediction_type, model_fingerprint=models.fingerprint())
                 st = SampleSettings(attention_chunk=chunk, output_size="diffusion", memory="refuse")
-                torch.cuda.empty_cache()
-                torch.cuda.reset_peak_memory_stats()
+                if cuda:
+                    torch.cuda.empty_cache()
+                    torch.cuda.reset_peak_memory_stats()
                 try:
-                    torch.cuda.synchronize()
+                    if cuda:
+                        torch.cuda.synchronize()
                     r = keyframe_shared_sample(models, inv, st)
-                    torch.cuda.synchronize()
-                    peak = torch.cuda.max_memory_allocated()
-                    per_frame_50 = r.seconds / frames * 50 / steps
-                    rows.append((res, frames, chunk or "off", f"{per_frame_50:.2f}", f"{peak / 2**30:.1f}",
+                    if cuda:
+                        torch.cuda.synchronize()
+                    peak = f"{torch.cuda.max_memory_allocated() / 2**30:.1f}" if cuda else "-"
+                    rows.append((res, frames, chunk or "off", f"{r.seconds / frames * 50 / steps:.2f}", peak,
                                  f"{r.memory.device_peak / 2**30:.1f}"))
                 except Exception as exc:  # noqa: BLE001 - an OOM or a refusal is a result too
-                    rows.append((res, frames, chunk or "off", f"failed: {type(exc).__name__}", "-", "-"))
+                    rows.append((res, frames, chunk or "off", f"failed: {type(exc).__name__}: {exc}"[:120], "-", "-"))
                 print(rows[-1], flush=True)
+    return rows
+
+
+def gpu(args) -> str:
+    if not torch.cuda.is_available():
+        raise SystemExit("--gpu needs CUDA")
+    models = full_size_models(torch.device("cuda"))
+    steps = args.gpu_steps
+    rows = throughput(models, (512, 768), (16, 48), (0, 4096), steps)
     table = "\n".join("| " + " | ".join(str(c) for c in r) + " |" for r in rows)
     return f"""## GPU: seconds per frame and peak memory
 
