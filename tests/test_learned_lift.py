@@ -249,6 +249,10 @@ def test_end_to_end_frame_and_views(lifted, lgm):
         torch.testing.assert_close(v.image, res.view_images[[0, 90, 180, 270].index(az)] * v.mask[..., None])
     assert [v.name for v in views_for_refine(res.views)] == ["imagedream_az090", "imagedream_az180",
                                                             "imagedream_az270"]
+    assert len(views_for_refine(res.views, include_front=True)) == 4
+    blank = RefineView(camera=res.views[1].camera, image=torch.zeros(64, 64, 3), mask=torch.zeros(64, 64),
+                       name="imagedream_az090")
+    assert views_for_refine([blank]) == []                              # nothing to compare against
 
 
 def test_end_to_end_is_deterministic_and_seeded(lifted, pipe, lgm):

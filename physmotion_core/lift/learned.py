@@ -278,8 +278,17 @@ def generated_views(view_images: torch.Tensor, scale: float, shift: torch.Tensor
 
 def views_for_refine(views: Sequence[RefineView], include_front: bool = False) -> list:
     """The generated views to refine against: by default without the azimuth-0 one, whose
-    direction the real photo already covers (its generated mask would prune real Gaussians)."""
-    return [v for v in views if include_front or not v.name.endswith("az000")]
+    direction the real photo already covers (its generated mask would prune real Gaussians), and
+    never a view in which no object was found (an all-white view has nothing to compare)."""
+    out = []
+    for v in views:
+        if not include_front and v.name.endswith("az000"):
+            continue
+        if v.mask is not None and not bool((v.mask > 0.5).any()):
+            log.warning("learned lift: generated view %s shows no object; it is left out of refinement", v.name)
+            continue
+        out.append(v)
+    return out
 
 
 # ----------------------------------------------------------------------------------------------
