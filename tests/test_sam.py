@@ -282,7 +282,9 @@ def test_sam_nodes_list_load_and_segment(sam_root, photo, monkeypatch):
     assert loader.INPUT_TYPES()["required"]["sam_name"][0] == ["sam_tiny.pth"]
     (sam,) = loader().run("sam_tiny.pth")
     image = torch.from_numpy(photo)[None]
-    fg, mask, bg, objs = seg().run(sam, image, "0.55, 0.52", "", "fraction", True)
+    out = seg().run(sam, image, "0.55, 0.52", "", "fraction", True)
+    fg, mask, bg, objs = out["result"]
+    assert len(out["ui"]["images"]) == 1  # the foreground | background preview shown in the node
     H, W = photo.shape[:2]
     assert fg.shape == (1, H, W, 3) and mask.shape == (1, H, W) and bg.shape == (1, H, W, 3)
     assert objs.shape == (1, H, W) and torch.equal(objs.amax(0), mask[0])
