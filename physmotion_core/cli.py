@@ -56,6 +56,9 @@ def _build_parser() -> argparse.ArgumentParser:
                    help="ground contact under the object (default: Coulomb friction)")
     g.add_argument("--friction", type=float, default=0.5, help="ground friction coefficient μ (default 0.5)")
     g.add_argument("--device", default="auto", help="simulation device: auto, cpu, cuda")
+    g.add_argument("--max-side", type=int, default=1024,
+                   help="scale a larger photo down so its long side is this many pixels (--at points are in the "
+                        "original photo's pixels); 0 keeps the full size (default 1024)")
     g.add_argument("--save-ply", type=Path, help="also write the lifted Gaussians as a 3DGS .ply")
     g.add_argument("--stats", type=Path, help="write timings and simulation statistics as JSON")
     g.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
@@ -93,7 +96,7 @@ def _generate(args) -> int:
     progress = None if args.quiet else (lambda name: TextBar(name))
     res = generate(args.image, conditions=Conditions(conds), material=args.material, material_params=params,
                    mask=mask, ground=ground, object_height=args.object_height, settings=settings,
-                   output=args.output, progress=progress)
+                   output=args.output, progress=progress, max_side=args.max_side)
     if args.save_ply is not None:
         from .ply import write_ply
 
@@ -236,6 +239,14 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except PhysMotionError as exc:
         print(f"physmotion: error: {exc}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt:
+        # Outputs are written atomically: nothing half-written is left behind.
+        print("physmotion: interrupted; no output was written for the unfinished step", file=sys.stderr)
+        return 130
+    except OSError as exc:  # disk full, permissions, a path that is a folder, ...
+        print(f"physmotion: error: {exc.strerror or exc} ({exc.filename or 'file system'}); check that the output "
+              "folder exists, is writable and has free space", file=sys.stderr)
+        return 1
     return 1
 
 

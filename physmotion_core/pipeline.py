@@ -38,6 +38,59 @@ class PipelineResult:
     video_path: Optional[Path] = None
 
 
+DEFAULT_MAX_SIDE = 1024  # pixels: larger photos are scaled down first (CPU-friendly; 0 keeps them)
+
+
+def _resize(t: torch.Tensor, w: int, h: int) -> torch.Tensor:
+    """(H,W[,C]) float tensor to (h,w[,C]) with area averaging (no aliasing when shrinking)."""
+    import cv2
+
+    arr = cv2.resize(t.detach().float().cpu().numpy(), (w, h), interpolation=cv2.INTER_AREA)
+    return torch.from_numpy(np.ascontiguousarray(arr))
+
+
+def _scale_image_regions(conditions: Conditions, scale: float, size_hw: tuple[int, int]) -> Conditions:
+    """Image-space regions (pixel points, radii, masks) given for the full-size photo, mapped onto
+    the scaled one."""
+    import dataclasses
+
+    from .types import Region
+
+    out = []
+    for c in conditions:
+        r = getattr(c, "region", None)
+        if isinstance(r, Region) and r.kind == "image":
+            m = r.mask
+            if m is not None:
+                m = _resize(torch.as_tensor(np.asarray(m), dtype=torch.float32), size_hw[1], size_hw[0]).numpy()
+            r = dataclasses.replace(r, points=tuple((u * scale, v * scale) for u, v in r.points),
+                                    radius_px=r.radius_px * scale, mask=m)
+            c = dataclasses.replace(c, region=r)
+        out.append(c)
+    return Conditions(out)
+
+
+def _as_rgb_tensor(image) -> torch.Tensor:
+    """An in-memory image as float (H,W,C) in 0..1: integer pixels are divided by their type's
+    maximum (8-bit by 255, 16-bit by 65535); float pixels must already be in 0..1."""
+    arr = image.detach().cpu().numpy() if isinstance(image, torch.Tensor) else np.asarray(image)
+    if arr.dtype == bool:
+        raise InputError("image is a boolean array; pass the photo, and give a mask through mask=")
+    if np.issubdtype(arr.dtype, np.integer):
+        top = np.iinfo(arr.dtype).max
+        return torch.from_numpy(arr.astype(np.float32) / float(top))
+    if not np.issubdtype(arr.dtype, np.floating):
+        raise InputError(f"image must hold numbers; got dtype {arr.dtype}")
+    t = torch.from_numpy(np.ascontiguousarray(arr, dtype=np.float32))
+    if not torch.isfinite(t).all():
+        raise InputError("image contains NaN or Inf values; pass an image with values in 0..1")
+    lo, hi = float(t.min()), float(t.max())
+    if lo < -1e-3 or hi > 1 + 1e-3:
+        raise InputError(f"image values must be in 0..1 (found {lo:.3g}..{hi:.3g}); divide 8-bit data by 255 "
+                         "or pass the uint8 array itself")
+    return t.clamp(0.0, 1.0)
+
+
 def generate(
     image: Union[str, Path, torch.Tensor, np.ndarray],
     *,
@@ -52,11 +105,16 @@ def generate(
     settings: SimSettings | None = None,
     output: Union[str, Path, None] = None,
     progress: Optional[StageProgress] = None,
+    max_side: int = DEFAULT_MAX_SIDE,
 ) -> PipelineResult:
     """Animate the object in ``image`` under ``conditions`` and return (and optionally save) the video.
 
     ``ground`` is added to the conditions unless they already contain a Ground; pass None for no
     ground (the object then falls out of the domain floor's reach only as far as its walls allow).
+
+    ``max_side``: a photo whose long side is larger is scaled down to it first (logged), with its
+    alpha and mask, and pixel regions (``Region.at_pixel``) refer to the scaled image; 0 keeps the
+    full size. The clip's memory is checked before the simulation starts.
     """
     from .image_io import load_image
     from .lift import silhouette_lift
@@ -73,13 +131,34 @@ def generate(
     if isinstance(image, (str, Path)):
         rgb, alpha = load_image(image)
     else:
-        rgb = torch.as_tensor(np.asarray(image) if isinstance(image, np.ndarray) else image).float()
+        rgb = _as_rgb_tensor(image)
         if rgb.ndim != 3 or rgb.shape[-1] not in (3, 4):
             raise InputError(f"image must be (H, W, 3) or (H, W, 4) in 0..1; got shape {tuple(rgb.shape)}")
         if rgb.shape[-1] == 4:
             rgb, alpha = rgb[..., :3], rgb[..., 3]
     settings = settings or SimSettings()
     settings.validate()
+    if isinstance(max_side, bool) or not isinstance(max_side, int) or max_side < 0 or 0 < max_side < 16:
+        raise InputError(f"max_side must be 0 (keep the photo's size) or an integer >= 16 pixels; got {max_side!r}")
+    if not torch.isfinite(rgb).all():
+        raise InputError("image contains NaN or Inf values; pass an image with values in 0..1")
+    H, W = int(rgb.shape[0]), int(rgb.shape[1])
+    if max_side and max(H, W) > max_side:
+        scale = max_side / max(H, W)
+        w, h = max(1, round(W * scale)), max(1, round(H * scale))
+        log.warning("image is %dx%d: scaled down to %dx%d (max_side=%d; pass max_side=0 to keep the full size)",
+                    W, H, w, h, max_side)
+        rgb = _resize(rgb, w, h)
+        alpha = None if alpha is None else _resize(alpha, w, h)
+        if mask is not None:
+            mask = _resize(torch.as_tensor(np.asarray(mask), dtype=torch.float32), w, h)
+        H, W = h, w
+        if conditions is not None:
+            conditions = _scale_image_regions(conditions, scale, (h, w))
+    # The whole clip (render: colour, alpha, depth; composite; encode) must fit before anything runs.
+    from .render.frames import FRAME_BYTES_PER_PIXEL, check_frames_fit
+
+    check_frames_fit(settings.frames, W, H, "This video", per_pixel=FRAME_BYTES_PER_PIXEL + 12 + 3)
     mat = material if isinstance(material, Material) else Material.preset(material, **(material_params or {}))
     conditions = conditions or Conditions()
     if ground is not None and conditions.ground() is None:

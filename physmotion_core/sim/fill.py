@@ -142,8 +142,14 @@ def fill_particles(
     seed: int = 0,
     fill_interior: bool = True,
     min_opacity: float = 0.1,
+    floor: float | None = None,
 ) -> ParticleSet:
-    """Sample physics particles filling the solid the Gaussians enclose (see module docstring)."""
+    """Sample physics particles filling the solid the Gaussians enclose (see module docstring).
+
+    ``floor`` (a height in metres, e.g. the ground's): no particle is placed below it. The splats
+    of an object resting on the ground reach a little below it (a ball's lowest splat is centred on
+    the ground), and particles there would start inside the ground.
+    """
     if len(gaussians) == 0:
         raise InputError("Cannot simulate an empty set of Gaussians: the object has no Gaussians")
     if not (math.isfinite(spacing) and spacing > 0):
@@ -164,13 +170,18 @@ def fill_particles(
     occ = _occupancy(gaussians, origin, dims, spacing, min_opacity)
     occ = _close(occ)
     solid = occ | _interior(occ) if fill_interior else occ
+    if floor is not None:
+        rows = origin[1] + (np.arange(solid.shape[1]) + 0.5) * spacing
+        solid[:, rows < float(floor), :] = False
+        if not solid.any():
+            raise InputError(f"The whole object lies below the floor at y={floor:.4g} m; raise it or lower the ground")
 
     count = int(solid.sum())
     if count > max_particles:
         # Coarsen rather than run out of memory; the caller logs the adaptation via the returned spacing.
         factor = (count / max_particles) ** (1.0 / 3.0) * 1.02
         return fill_particles(gaussians, spacing * factor, max_particles=max_particles, jitter=jitter,
-                              seed=seed, fill_interior=fill_interior, min_opacity=min_opacity)
+                              seed=seed, fill_interior=fill_interior, min_opacity=min_opacity, floor=floor)
 
     vox = np.argwhere(solid)
     # Particle index of every solid voxel, for binding.
@@ -178,6 +189,8 @@ def fill_particles(
     index_grid[vox[:, 0], vox[:, 1], vox[:, 2]] = np.arange(vox.shape[0])
     rng = np.random.default_rng(seed)
     x = origin + (vox + 0.5 + rng.uniform(-jitter, jitter, size=vox.shape)) * spacing
+    if floor is not None:
+        x[:, 1] = np.maximum(x[:, 1], float(floor))  # the jitter must not push a particle under it
 
     centre_idx = np.clip(np.floor((means - origin) / spacing).astype(np.int64), 0, dims - 1)
     binding = index_grid[centre_idx[:, 0], centre_idx[:, 1], centre_idx[:, 2]]

@@ -132,12 +132,18 @@ def simulate(
     weights = np.ones((len(gaussians), 1), np.float32)
     offset = 0
     budget = settings.max_particles
+    ground = conditions.ground()
+    if ground is not None and float(means[:, 1].min()) < ground.height - 0.5 * dx:
+        raise InputError(f"The object reaches below the ground (lowest Gaussian centre y={float(means[:, 1].min()):.4f} m, "
+                         f"ground at {ground.height:.4f} m). Raise the object or lower the ground.")
     for o in objects:
         sel = np.nonzero(obj_ids == o)[0]
         g_o = gaussians.subset(torch.from_numpy(sel))
         g_o.object_ids = None
         share = max(1, int(budget * len(sel) / len(gaussians)))
-        parts = fill_particles(g_o, spacing, max_particles=share, seed=settings.seed + int(o))
+        # Splats resting on the ground reach below it; the particles start at the ground.
+        parts = fill_particles(g_o, spacing, max_particles=share, seed=settings.seed + int(o),
+                               floor=None if ground is None else ground.height)
         if parts.spacing > spacing * 1.001:
             log.warning("object %d: particle count capped (max_particles=%d): spacing raised from %.4g m to %.4g m",
                         o, settings.max_particles, spacing, parts.spacing)
@@ -155,7 +161,6 @@ def simulate(
     volume = np.concatenate(vols)
     particle_obj = np.concatenate(obj_of)
 
-    ground = conditions.ground()
     domain = Domain.around(x0.min(0), x0.max(0), dx, settings.domain_margin, ground)
     recorded = np.arange(len(x0)) if record_all else np.unique(neighbours)
     need = estimate_bytes(x0.shape[0], domain.dims, settings.frames, recorded.shape[0])
