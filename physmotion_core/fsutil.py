@@ -27,3 +27,40 @@ def atomic_output(path: str | os.PathLike, suffix: str = ".tmp") -> Iterator[Pat
         with contextlib.suppress(OSError):
             os.unlink(tmp)
         raise
+
+
+def tensors_digest(tensors: dict) -> str:
+    """SHA-256 over a dict of tensors (names, dtypes, shapes and bytes, in name order): stored in a
+    cache file's metadata when it is written and recomputed when it is read, so a cache file that
+    was damaged after writing (a bad disk, a copy cut short that still parses) is never trusted."""
+    import hashlib
+
+    import torch
+
+    h = hashlib.sha256()
+    for name in sorted(tensors):
+        t = tensors[name].detach().cpu().contiguous()
+        h.update(name.encode())
+        h.update(str(t.dtype).encode())
+        h.update(str(tuple(t.shape)).encode())
+        h.update(t.view(torch.uint8).numpy().tobytes() if t.numel() else b"")
+    return h.hexdigest()
+
+
+def load_verified_safetensors(path: str | os.PathLike, key: str | None = None) -> tuple[dict, dict]:
+    """(tensors, metadata) of a cache file written with ``content_sha256`` (and ``cache_key``) in its
+    metadata. Raises ValueError when the file does not parse, lacks the digest, was written for
+    another key, or its tensors no longer match the digest."""
+    from safetensors import safe_open
+
+    with safe_open(str(path), framework="pt") as fh:
+        meta = dict(fh.metadata() or {})
+        # Copies, not views of the file's memory map: the caller keeps them after the file is replaced.
+        tensors = {k: fh.get_tensor(k).clone() for k in fh.keys()}
+    if "content_sha256" not in meta:
+        raise ValueError("no content digest in the metadata (not written by this version)")
+    if key is not None and meta.get("cache_key") != key:
+        raise ValueError("written for other inputs")
+    if tensors_digest(tensors) != meta["content_sha256"]:
+        raise ValueError("contents do not match the digest written with them (damaged)")
+    return tensors, meta

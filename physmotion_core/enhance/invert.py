@@ -78,10 +78,10 @@ def _hash_inputs(frames: torch.Tensor, depth: Optional[torch.Tensor], settings: 
     return h.hexdigest()
 
 
-def _save(inv: Inversion, path: Path) -> None:
+def _save(inv: Inversion, path: Path, key: Optional[str] = None) -> None:
     from safetensors.torch import save_file
 
-    from ..fsutil import atomic_output
+    from ..fsutil import atomic_output, tensors_digest
 
     tensors = {"latents": inv.latents.contiguous(), "clean": inv.clean.contiguous()}
     tensors.update({f"control_{k}": v.contiguous() for k, v in inv.controls.items()})
@@ -89,16 +89,17 @@ def _save(inv: Inversion, path: Path) -> None:
             "size": json.dumps(list(inv.size)), "input_size": json.dumps(list(inv.input_size)),
             "prediction_type": inv.prediction_type, "fingerprint": inv.model_fingerprint,
             "refine_iterations": str(inv.refine_iterations)}
+    meta["content_sha256"] = tensors_digest(tensors)
+    if key is not None:
+        meta["cache_key"] = key
     with atomic_output(path, suffix=".safetensors") as tmp:
         save_file(tensors, str(tmp), metadata=meta)
 
 
-def _load(path: Path) -> Inversion:
-    from safetensors import safe_open
+def _load(path: Path, key: Optional[str] = None) -> Inversion:
+    from ..fsutil import load_verified_safetensors
 
-    with safe_open(str(path), framework="pt") as fh:
-        meta = fh.metadata()
-        t = {k: fh.get_tensor(k) for k in fh.keys()}
+    t, meta = load_verified_safetensors(path, key)
     return Inversion(latents=t["latents"], clean=t["clean"], timesteps=json.loads(meta["timesteps"]),
                      prompt=meta["prompt"], controls={k[8:]: v for k, v in t.items() if k.startswith("control_")},
                      control_scales=json.loads(meta["scales"]), size=tuple(json.loads(meta["size"])),
@@ -139,7 +140,7 @@ def invert_frames(models: DiffusionModels, frames, depth=None, *, prompt: str, s
         cache_path = Path(cache_dir) / f"inversion_{key[:24]}.safetensors"
         if cache_path.is_file():
             try:
-                inv = _load(cache_path)
+                inv = _load(cache_path, key)
                 log.info("DDIM+ Invert: loaded %s from the cache", cache_path.name)
                 report(progress, 1, 1)
                 return inv
@@ -190,7 +191,7 @@ def invert_frames(models: DiffusionModels, frames, depth=None, *, prompt: str, s
                     prediction_type=sched.prediction_type, model_fingerprint=fingerprint,
                     refine_iterations=int(refine_iterations), notes=notes)
     if cache_path is not None:
-        _save(inv, cache_path)
+        _save(inv, cache_path, key)
     for n_ in notes:
         log.info("DDIM+ Invert: %s", n_)
     return inv

@@ -232,7 +232,7 @@ def personalize(models, images: Sequence, masks: Sequence = (), settings: Option
     models/loras/). Returns the adapter file; the models are left with the adapter loaded."""
     from safetensors.torch import save_file
 
-    from ..fsutil import atomic_output
+    from ..fsutil import atomic_output, tensors_digest
     from ..models import model_dir
     from .ops import encode_prompts
     from .schedule import DDIMSchedule
@@ -244,11 +244,15 @@ def personalize(models, images: Sequence, masks: Sequence = (), settings: Option
     folder = Path(folder) if folder is not None else model_dir("loras")
     path = lora_path_for(key, folder)
     if path.is_file() and not force:
-        meta = read_metadata(path)
-        if meta.get("cache_key") == key:
+        from ..fsutil import load_verified_safetensors
+
+        try:
+            load_verified_safetensors(path, key)
             log.info("LoRA Personalize: %s already trained for these inputs; not training again", path.name)
             report(progress, 1, 1)
             return LoraResult(path=path, trained=False, key=key)
+        except Exception as exc:  # noqa: BLE001 - a damaged or foreign file is retrained and replaced
+            log.warning("LoRA Personalize: not using %s (%s); training again", path.name, exc)
     from peft import LoraConfig, get_peft_model_state_dict
 
     t0 = time.monotonic()
@@ -336,6 +340,7 @@ def personalize(models, images: Sequence, masks: Sequence = (), settings: Option
         meta = {"format": FORMAT, "cache_key": key, "lora_config": json.dumps(cfg_dict),
                 "settings": json.dumps(asdict(st), default=str), "base_model": models.name,
                 "final_loss": f"{losses[-1]:.6g}" if losses else "nan", "images": str(int(imgs.shape[0]))}
+        meta["content_sha256"] = tensors_digest(state)
         with atomic_output(path, suffix=".safetensors") as tmp:
             save_file(state, str(tmp), metadata=meta)
     finally:
