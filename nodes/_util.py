@@ -269,11 +269,22 @@ def offload_device() -> torch.device:
         return torch.device("cpu")
 
 
-def free_memory_for(model_bytes: int, device: torch.device) -> None:
-    """Ask ComfyUI to make room on ``device`` before one of our models moves there."""
+def free_memory_for(model_bytes: int, device: torch.device, what: str = "This node") -> None:
+    """Ask ComfyUI to make room on ``device`` before one of our models moves there; then refuse
+    clearly (InputError naming the sizes and what to do) if the weights still cannot fit, instead
+    of failing with a CUDA out-of-memory traceback half-way through the move."""
+    if device.type != "cuda":
+        return  # the weights already live in RAM (the offload device)
     try:
         import comfy.model_management as mm
-    except ImportError:
-        return
-    if device.type == "cuda":
+
         mm.free_memory(int(model_bytes * 1.2) + (512 << 20), device)
+    except ImportError:
+        pass
+    from physmotion_core.memory import check_device_fits
+
+    check_device_fits(int(model_bytes), device, what)
+
+
+def ensure_room_for(model_bytes: int, device: torch.device, what: str) -> None:
+    free_memory_for(model_bytes, device, what)

@@ -233,17 +233,20 @@ class PhysMotionMultiViewGenerate:
     def run(self, imagedream, image, mask, seed, steps, guidance, border_ratio):
         from physmotion_core.lift.imagedream import generate_views, views_for_lgm
         from physmotion_core.lift.learned import recenter
+        from physmotion_core.memory import oom_as_input_error
 
-        from ._util import free_memory_for, offload_device, progress_callback, torch_device
+        from ._util import ensure_room_for, offload_device, progress_callback, torch_device
 
         canvas, _, _ = recenter(first_image(image), first_mask(mask), border_ratio=float(border_ratio),
                                 size=imagedream.image_size)
         dev = torch_device()
-        free_memory_for(_param_bytes(*(getattr(imagedream, n) for n in imagedream.MODULES)), dev)
+        ensure_room_for(_param_bytes(*(getattr(imagedream, n) for n in imagedream.MODULES)), dev, "ImageDream")
         try:
             imagedream.to(dev)
-            views = generate_views(imagedream, canvas, guidance_scale=float(guidance), num_inference_steps=int(steps),
-                                   seed=int(seed), progress=progress_callback(), cancel=_cancel_check())
+            with oom_as_input_error("Multi-View Generate", "Free GPU memory (unload other models) or run on the CPU."):
+                views = generate_views(imagedream, canvas, guidance_scale=float(guidance),
+                                       num_inference_steps=int(steps), seed=int(seed), progress=progress_callback(),
+                                       cancel=_cancel_check())
         finally:
             imagedream.to(offload_device())
         return (views_for_lgm(views).float().cpu(),)
@@ -294,26 +297,29 @@ class PhysMotionLGMLift:
     def run(self, lgm, image, mask, object_height, on_ground, prune_opacity, max_gaussians, seed, steps, guidance,
             border_ratio, imagedream=None, views=None):
         from physmotion_core.lift.learned import learned_lift, views_for_refine
+        from physmotion_core.memory import oom_as_input_error
 
-        from ._util import free_memory_for, offload_device, progress_callback, torch_device
+        from ._util import ensure_room_for, offload_device, progress_callback, torch_device
 
         if imagedream is None and views is None:
             raise ValueError("LGM Lift: connect an ImageDream Loader (imagedream) or 4 views (views)")
         dev = torch_device()
         modules = [lgm] + ([getattr(imagedream, n) for n in imagedream.MODULES]
                            if imagedream is not None and views is None else [])
-        free_memory_for(_param_bytes(*modules), dev)
+        ensure_room_for(_param_bytes(*modules), dev, "LGM Lift")
         try:
             lgm.to(dev)
             if imagedream is not None and views is None:
                 imagedream.to(dev)
-            res = learned_lift(first_image(image), first_mask(mask), lgm=lgm,
-                               imagedream=imagedream if views is None else None, views=views,
-                               object_height=float(object_height), on_ground=bool(on_ground),
-                               border_ratio=float(border_ratio), seed=int(seed), steps=int(steps),
-                               guidance_scale=float(guidance), prune_opacity=float(prune_opacity),
-                               max_gaussians=int(max_gaussians), progress=progress_callback(),
-                               cancel=_cancel_check())
+            with oom_as_input_error("LGM Lift", "Free GPU memory (unload other models), connect pre-generated "
+                                                "views instead of ImageDream, or run on the CPU."):
+                res = learned_lift(first_image(image), first_mask(mask), lgm=lgm,
+                                   imagedream=imagedream if views is None else None, views=views,
+                                   object_height=float(object_height), on_ground=bool(on_ground),
+                                   border_ratio=float(border_ratio), seed=int(seed), steps=int(steps),
+                                   guidance_scale=float(guidance), prune_opacity=float(prune_opacity),
+                                   max_gaussians=int(max_gaussians), progress=progress_callback(),
+                                   cancel=_cancel_check())
         finally:
             lgm.to(offload_device())
             if imagedream is not None:

@@ -117,3 +117,57 @@ def test_truncated_corrupt_and_wrong_format_weights_give_clear_errors(root):
         load_state_dict_file(odd)
     with pytest.raises(MissingModelError, match="not found"):
         load_state_dict_file(root / "sams" / "absent.safetensors")
+
+
+def test_an_interrupted_write_leaves_the_previous_file_and_no_debris(tmp_path, monkeypatch):
+    """A Cancel (KeyboardInterrupt) or crash while a video is being encoded: the previous video
+    stays byte-identical, and no temporary file is left beside it."""
+    import av
+
+    from physmotion_core.video import read_video, write_mp4
+
+    target = tmp_path / "clip.mp4"
+    frames = torch.rand(6, 32, 48, 3)
+    write_mp4(target, frames, fps=12)
+    before = target.read_bytes()
+    real = av.VideoFrame.from_ndarray
+    calls = {"n": 0}
+
+    def dying(*a, **kw):
+        calls["n"] += 1
+        if calls["n"] == 3:
+            raise KeyboardInterrupt  # Cancel mid-encode
+        return real(*a, **kw)
+
+    monkeypatch.setattr(av.VideoFrame, "from_ndarray", staticmethod(dying))
+    with pytest.raises(KeyboardInterrupt):
+        write_mp4(target, torch.rand(6, 32, 48, 3), fps=12)
+    monkeypatch.undo()
+    assert target.read_bytes() == before
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["clip.mp4"]
+    video, fps = read_video(target)
+    assert video.shape == (6, 32, 48, 3) and fps == pytest.approx(12)
+
+
+def test_node_weights_must_fit_on_the_gpu_or_the_node_refuses(monkeypatch):
+    """Before a model moves to the GPU: ComfyUI is asked for room, then weights that still do not fit
+    are refused with the sizes (instead of an out-of-memory traceback mid-move)."""
+    import nodes._util as util
+    from physmotion_core import memory
+
+    monkeypatch.setattr(memory, "device_available_bytes", lambda dev: 2 << 30)
+    with pytest.raises(InputError, match=r"LGM Lift needs about 3.0 GiB of GPU memory.*only 2.0 GiB is free"):
+        util.free_memory_for(3 << 30, torch.device("cuda", 0), "LGM Lift")
+    util.free_memory_for(1 << 30, torch.device("cuda", 0), "LGM Lift")  # fits: no error
+    util.free_memory_for(64 << 30, torch.device("cpu"), "LGM Lift")  # on the CPU the weights are already in RAM
+
+
+def test_out_of_memory_inside_a_stage_becomes_a_clear_error():
+    from physmotion_core.memory import oom_as_input_error
+
+    with pytest.raises(InputError, match="Multi-View Generate ran out of memory.*unload other models"):
+        with oom_as_input_error("Multi-View Generate", "Free GPU memory (unload other models)."):
+            raise torch.cuda.OutOfMemoryError("CUDA out of memory. Tried to allocate 2.00 GiB")
+    with pytest.raises(ZeroDivisionError):  # anything else passes through unchanged
+        with oom_as_input_error("x", "y"):
+            raise ZeroDivisionError
