@@ -773,6 +773,7 @@ class SimResult:
     plastic: Optional[torch.Tensor] = None  # (T, P) per-particle plastic state of the recorded particles
     particle_object: Optional[torch.Tensor] = None  # (P,) object id of each recorded particle
     rotation_free: Optional[torch.Tensor] = None  # (P,) bool: the particle's material flows (see gaussians_at)
+    liquid: Optional[torch.Tensor] = None  # (P,) bool: a liquid, whose splats are round (see gaussians_at)
     neighbours: Optional[torch.Tensor] = None  # (N, K) particles each Gaussian interpolates from
     weights: Optional[torch.Tensor] = None  # (N, K) their weights (rows sum to 1)
 
@@ -792,6 +793,10 @@ class SimResult:
           slumping heap would otherwise turn thin surface splats edge-on to the camera.
         * Each principal stretch applied to a splat is clamped to [1/MAX_SPLAT_STRETCH,
           MAX_SPLAT_STRETCH].
+        * Liquids (``liquid``): a liquid has no shape memory, so its splats are round, of the radius
+          of the splat's two larger axes at rest (√(s₁s₂): a surface disc of radius a becomes a
+          ball of radius a, covering the same area face-on), scaled by J^(1/3). Thin surface discs
+          kept at their rest orientation would otherwise show up edge-on as flat plates in a splash.
         Solids (elastic, metal, plasticine, fracture before it tears, rigid) follow F fully.
         """
         if not (-self.num_frames <= frame < self.num_frames):
@@ -817,7 +822,16 @@ class SimResult:
         pos = x[nb] + (Fk @ (Xg[:, None, :] - X[nb])[..., None])[..., 0]
         means = (w[..., None] * pos).sum(dim=1)
         Fg = (w[..., None, None] * Fk).sum(dim=1)
-        covars = Fg @ self.rest.covariance() @ Fg.transpose(-1, -2)
+        rest_cov = self.rest.covariance()
+        if self.liquid is not None and bool(self.liquid.any()):
+            own = self.liquid[nb[:, 0]]
+            if bool(own.any()):
+                s = torch.linalg.eigvalsh(rest_cov[own].double()).clamp_min(0).sqrt()  # ascending σ
+                r2 = (s[:, 1] * s[:, 2]).to(dtype)
+                ball = r2[:, None, None] * torch.eye(3, dtype=dtype)
+                rest_cov = rest_cov.clone()
+                rest_cov[own] = ball
+        covars = Fg @ rest_cov @ Fg.transpose(-1, -2)
         return dataclasses.replace(self.rest, means=means, covars=covars)
 
 

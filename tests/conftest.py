@@ -12,6 +12,21 @@ if str(ROOT) not in sys.path:
 os.environ.setdefault("PHYSMOTION_DEVICE", "cpu")
 
 
+@pytest.fixture(scope="session", autouse=True)
+def _outputs_outside_the_repository(tmp_path_factory):
+    """Nodes called outside ComfyUI write to $PHYSMOTION_OUTPUT_DIR (default ./output): keep every
+    test's videos, .ply files and previews in a temporary folder, never in the checkout."""
+    out = tmp_path_factory.mktemp("physmotion_output")
+    old = {k: os.environ.get(k) for k in ("PHYSMOTION_OUTPUT_DIR",)}
+    os.environ["PHYSMOTION_OUTPUT_DIR"] = str(out)  # previews follow it (<output>/.previews)
+    yield out
+    for k, v in old.items():
+        if v is None:
+            os.environ.pop(k, None)
+        else:
+            os.environ[k] = v
+
+
 @pytest.fixture(autouse=True)
 def _seed():
     import numpy as np

@@ -220,3 +220,18 @@ def test_gaussians_follow_particles_with_deformation_gradient():
     g1 = res.gaussians_at(1)
     assert torch.allclose(g1.means, g.means @ F.T + torch.tensor([0.5, 0.0, 0.0]), atol=1e-6)
     assert torch.allclose(g1.covariance(), F @ g.covariance() @ F.T, atol=1e-9)
+
+
+def test_liquid_splats_are_round_and_solid_splats_keep_their_shape():
+    """gaussians_at's rule for liquids: a thin surface disc (σ = a, a, 0.2a) becomes a ball of
+    radius a scaled by J^(1/3); a solid's splats follow F (here: unchanged at rest)."""
+    g = block(n=4)
+    g.scales = torch.tensor([0.01, 0.01, 0.002]).expand(len(g), 3).clone()
+    water = simulate(g, Material.preset("water"), Conditions(), SimSettings(frames=2, grid_res=6, device="cpu"))
+    jelly = simulate(g, Material.preset("jelly"), Conditions(), SimSettings(frames=2, grid_res=6, device="cpu"))
+    ev_w = torch.linalg.eigvalsh(water.gaussians_at(0).covariance().double())
+    ev_j = torch.linalg.eigvalsh(jelly.gaussians_at(0).covariance().double())
+    assert torch.allclose(ev_w, torch.full_like(ev_w, 1e-4), rtol=1e-3)  # round, radius a = 1 cm
+    assert torch.allclose(ev_j, torch.tensor([4e-6, 1e-4, 1e-4], dtype=torch.float64).expand_as(ev_j), rtol=1e-3)
+    later = torch.linalg.eigvalsh(water.gaussians_at(1).covariance().double())
+    assert torch.allclose(later[:, 0], later[:, 2], rtol=1e-3)  # still round after it moved

@@ -357,4 +357,5 @@ def simulate(
         plastic=plastic_t,
         particle_object=torch.from_numpy(particle_obj[recorded]),
         rotation_free=torch.from_numpy(np.array([m.model in FLOWING_MODELS for m in materials])[particle_obj[recorded]]),
+        liquid=torch.from_numpy(np.array([m.model == "fluid" for m in materials])[particle_obj[recorded]]),
     )
