@@ -56,6 +56,12 @@ def _build_parser() -> argparse.ArgumentParser:
                    help="ground contact under the object (default: Coulomb friction)")
     g.add_argument("--friction", type=float, default=0.5, help="ground friction coefficient μ (default 0.5)")
     g.add_argument("--device", default="auto", help="simulation device: auto, cpu, cuda")
+    g.add_argument("--models", default="auto", choices=["auto", "none"],
+                   help="auto: use SAM / LGM + ImageDream when their weights are in the models folder "
+                        "($PHYSMOTION_MODELS, default ./models); none: never load a model (default auto)")
+    g.add_argument("--seed", type=int, default=0, help="seed of the learned stages (default 0)")
+    g.add_argument("--object-point", metavar="U,V", help="a pixel on the object for SAM (default: SAM picks the "
+                                                           "most salient object)")
     g.add_argument("--max-side", type=int, default=1024,
                    help="scale a larger photo down so its long side is this many pixels (--at points are in the "
                         "original photo's pixels); 0 keeps the full size (default 1024)")
@@ -96,12 +102,14 @@ def _generate(args) -> int:
     progress = None if args.quiet else (lambda name: TextBar(name))
     res = generate(args.image, conditions=Conditions(conds), material=args.material, material_params=params,
                    mask=mask, ground=ground, object_height=args.object_height, settings=settings,
-                   output=args.output, progress=progress, max_side=args.max_side)
+                   output=args.output, progress=progress, max_side=args.max_side, models=args.models,
+                   seed=args.seed,
+                   object_point=_floats(args.object_point, 2, "--object-point") if args.object_point else None)
     if args.save_ply is not None:
         from .ply import write_ply
 
         write_ply(args.save_ply, res.gaussians)
-    summary = {"output": str(res.video_path), "frames": int(res.frames.shape[0]),
+    summary = {"output": str(res.video_path), "frames": int(res.frames.shape[0]), "stages": res.stages,
                "size": [int(res.frames.shape[2]), int(res.frames.shape[1])],
                "timings_s": {k: round(v, 3) for k, v in res.timings.items()},
                "simulation": {k: v for k, v in res.sim.stats.items()}}

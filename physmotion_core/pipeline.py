@@ -36,6 +36,27 @@ class PipelineResult:
     render: FrameSet
     timings: dict = field(default_factory=dict)
     video_path: Optional[Path] = None
+    stages: dict = field(default_factory=dict)  # which path each stage took, e.g. {"segment": "sam", "lift": "lgm"}
+
+
+MODEL_CHOICES = ("auto", "none")
+
+
+def _pick(names: list[str], preferred: tuple[str, ...]) -> Optional[str]:
+    for want in preferred:
+        for n in names:
+            if want in n:
+                return n
+    return names[0] if names else None
+
+
+def available_models() -> dict:
+    """The learned models the models root (``$PHYSMOTION_MODELS``) holds, by stage."""
+    from .models import list_models
+
+    return {"sam": _pick(list_models("sams", suffixes=(".pth", ".pt", ".safetensors")), ("vit_h", "vit_l", "vit_b")),
+            "lgm": _pick(list_models("lgm", suffixes=(".safetensors",)), ("fixrot",)),
+            "imagedream": _pick(list_models("imagedream", dirs=True), ("imagedream",))}
 
 
 DEFAULT_MAX_SIDE = 1024  # pixels: larger photos are scaled down first (CPU-friendly; 0 keeps them)
@@ -106,6 +127,11 @@ def generate(
     output: Union[str, Path, None] = None,
     progress: Optional[StageProgress] = None,
     max_side: int = DEFAULT_MAX_SIDE,
+    models: str = "auto",
+    seed: int = 0,
+    multiview_steps: int = 30,
+    lgm_input_size: int = 256,
+    object_point: Optional[tuple[float, float]] = None,
 ) -> PipelineResult:
     """Animate the object in ``image`` under ``conditions`` and return (and optionally save) the video.
 
@@ -115,6 +141,14 @@ def generate(
     ``max_side``: a photo whose long side is larger is scaled down to it first (logged), with its
     alpha and mask, and pixel regions (``Region.at_pixel``) refer to the scaled image; 0 keeps the
     full size. The clip's memory is checked before the simulation starts.
+
+    ``models="auto"`` uses the learned stages whose weights are in the models root and skips what
+    the scene does not need: an alpha channel or a mask → no segmentation model; else SAM (its
+    most salient object) if present, else GrabCut. LGM + ImageDream both present → the learned lift
+    (``seed``, ``multiview_steps``, ``lgm_input_size``), else the silhouette lift. ``"none"`` never
+    loads a model. ``result.stages`` says which path each stage took. ``object_point`` (u, v pixels
+    of the photo as given) prompts SAM with a point on the object instead of its automatic mode; when
+    SAM's automatic mode finds no object, GrabCut takes over (logged).
     """
     from .image_io import load_image
     from .lift import silhouette_lift
@@ -138,11 +172,16 @@ def generate(
             rgb, alpha = rgb[..., :3], rgb[..., 3]
     settings = settings or SimSettings()
     settings.validate()
+    if models not in MODEL_CHOICES:
+        raise InputError(f"models must be one of {MODEL_CHOICES} ('auto' uses the weights found in the models "
+                         f"folder, 'none' never loads a model); got {models!r}")
+    found = available_models() if models == "auto" else {"sam": None, "lgm": None, "imagedream": None}
     if isinstance(max_side, bool) or not isinstance(max_side, int) or max_side < 0 or 0 < max_side < 16:
         raise InputError(f"max_side must be 0 (keep the photo's size) or an integer >= 16 pixels; got {max_side!r}")
     if not torch.isfinite(rgb).all():
         raise InputError("image contains NaN or Inf values; pass an image with values in 0..1")
     H, W = int(rgb.shape[0]), int(rgb.shape[1])
+    H0, W0 = H, W
     if max_side and max(H, W) > max_side:
         scale = max_side / max(H, W)
         w, h = max(1, round(W * scale)), max(1, round(H * scale))
@@ -164,14 +203,62 @@ def generate(
     if ground is not None and conditions.ground() is None:
         conditions = conditions + ground
 
-    seg = segment(rgb, alpha=alpha, mask=mask)
+    stages: dict[str, str] = {}
+    from .models import default_dtype, pick_device
+
+    device = pick_device()
+    if alpha is None and mask is None and found["sam"]:
+        from .segment.sam import load_sam, sam_segment
+
+        from .segment.sam import ObjectPrompt
+
+        prompts = []
+        if object_point is not None:
+            u, v = float(object_point[0]) * W / W0, float(object_point[1]) * H / H0  # into the scaled photo
+            prompts = [ObjectPrompt(points=[(u, v)], labels=[1])]
+        log.info("segmenting with SAM (%s): %s", found["sam"], "the prompted point" if prompts else
+                 "the most salient object")
+        sam = load_sam(found["sam"], device=device)
+        try:
+            seg = sam_segment(sam, rgb, prompts).segmentation
+            stages["segment"] = "sam"
+        except InputError as exc:
+            if prompts:
+                raise
+            log.warning("SAM: %s; segmenting with GrabCut instead", exc)
+            seg = segment(rgb)
+            stages["segment"] = "grabcut"
+        del sam
+    else:
+        seg = segment(rgb, alpha=alpha, mask=mask)
+        stages["segment"] = "alpha" if alpha is not None and mask is None else "mask" if mask is not None else "grabcut"
     timings["segment_s"] = time.perf_counter() - t0
 
     t = time.perf_counter()
     g_ground = conditions.ground()
-    lift = silhouette_lift(seg.image, seg.mask, object_height=object_height, fov_y_deg=fov_y_deg,
-                           max_gaussians=max_gaussians, on_ground=g_ground is not None,
-                           ground_height=g_ground.height if g_ground is not None else 0.0)
+    if found["lgm"] and found["imagedream"]:
+        from .lift.imagedream import load_imagedream
+        from .lift.learned import learned_lift
+        from .lift.lgm import load_lgm
+
+        log.info("lifting with ImageDream (%s) + LGM (%s)", found["imagedream"], found["lgm"])
+        dtype = default_dtype(device)
+        lgm = load_lgm(found["lgm"], device=device, dtype=dtype, input_size=int(lgm_input_size))
+        dream = load_imagedream(found["imagedream"], device=device, dtype=dtype)
+        lift = learned_lift(rgb, seg.mask, lgm=lgm, imagedream=dream, object_height=object_height,
+                            on_ground=g_ground is not None, ground_height=g_ground.height if g_ground is not None else 0.0,
+                            seed=int(seed), steps=int(multiview_steps), max_gaussians=int(max_gaussians),
+                            progress=stage("lift"))
+        del lgm, dream
+        stages["lift"] = "lgm"
+    else:
+        if models == "auto" and (found["lgm"] or found["imagedream"]):
+            log.warning("the learned lift needs both LGM and ImageDream weights (found only %s): using the "
+                        "silhouette lift", "LGM" if found["lgm"] else "ImageDream")
+        lift = silhouette_lift(seg.image, seg.mask, object_height=object_height, fov_y_deg=fov_y_deg,
+                               max_gaussians=max_gaussians, on_ground=g_ground is not None,
+                               ground_height=g_ground.height if g_ground is not None else 0.0)
+        stages["lift"] = "silhouette"
     timings["lift_s"] = time.perf_counter() - t
 
     t = time.perf_counter()
@@ -184,7 +271,7 @@ def generate(
 
     video = composite(frames.rgb, frames.alpha, seg.background)
     result = PipelineResult(frames=video, fps=settings.fps, segmentation=seg, gaussians=lift.gaussians,
-                            camera=lift.camera, sim=sim, render=frames, timings=timings)
+                            camera=lift.camera, sim=sim, render=frames, timings=timings, stages=stages)
     if output is not None:
         from .video import write_mp4
 
