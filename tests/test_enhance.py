@@ -666,40 +666,13 @@ def test_nodes_report_progress_and_cancel_through_comfyui_hooks(tiny, monkeypatc
     """A stand-in `comfy` package with ComfyUI's API: the nodes drive its progress bar, and its
     interrupt, raised from the progress callback, stops sampling mid-run with the UNet restored."""
     import sys
-    import types
 
     sys.path.insert(0, str(Path(__file__).parent))
     from comfy_harness import node_classes
+    from fake_comfy import InterruptProcessingException as Interrupt
+    from fake_comfy import install_fake_comfy
 
-    class Interrupt(Exception):
-        pass
-
-    state = types.SimpleNamespace(checks=0, cancel_after=None, updates=[])
-
-    def check():
-        state.checks += 1
-        if state.cancel_after is not None and state.checks > state.cancel_after:
-            raise Interrupt()
-
-    mm = types.ModuleType("comfy.model_management")
-    mm.throw_exception_if_processing_interrupted = check
-    mm.get_torch_device = lambda: torch.device("cpu")
-    mm.unet_offload_device = lambda: torch.device("cpu")
-    mm.free_memory = lambda *a, **k: None
-    utils = types.ModuleType("comfy.utils")
-
-    class ProgressBar:
-        def __init__(self, total):
-            self.total = total
-
-        def update_absolute(self, value, total=None, preview=None):
-            state.updates.append((value, total))
-
-    utils.ProgressBar = ProgressBar
-    comfy = types.ModuleType("comfy")
-    comfy.model_management, comfy.utils = mm, utils
-    for name, mod in (("comfy", comfy), ("comfy.model_management", mm), ("comfy.utils", utils)):
-        monkeypatch.setitem(sys.modules, name, mod)
+    state = install_fake_comfy(monkeypatch)
     monkeypatch.setenv("PHYSMOTION_MODELS", str(tiny["root"]))
     monkeypatch.setenv("PHYSMOTION_TEMP_DIR", str(tmp_path / "temp"))
     nodes = node_classes()

@@ -11,7 +11,6 @@ import re
 import sys
 import threading
 import time
-import types
 
 import numpy as np
 import pytest
@@ -165,42 +164,12 @@ def test_pack_loads_without_gsplat(monkeypatch):
 # Progress and Cancel through ComfyUI's hooks (a stand-in `comfy` package with the same API).
 # ------------------------------------------------------------------------------------------------
 
-class InterruptProcessingException(Exception):
-    pass
+from fake_comfy import InterruptProcessingException, install_fake_comfy  # noqa: E402
 
 
 @pytest.fixture
 def fake_comfy(monkeypatch):
-    state = types.SimpleNamespace(interrupt=False, updates=[], checks=0, interrupt_at=None)
-    mm = types.ModuleType("comfy.model_management")
-
-    def throw_exception_if_processing_interrupted():
-        state.checks += 1
-        if state.interrupt:
-            state.raised_at = time.monotonic()
-            raise InterruptProcessingException()
-
-    mm.throw_exception_if_processing_interrupted = throw_exception_if_processing_interrupted
-    mm.InterruptProcessingException = InterruptProcessingException
-    mm.get_torch_device = lambda: torch.device("cpu")
-    mm.unet_offload_device = lambda: torch.device("cpu")
-    mm.free_memory = lambda *a, **k: None
-    utils = types.ModuleType("comfy.utils")
-
-    class ProgressBar:
-        def __init__(self, total):
-            self.total = total
-
-        def update_absolute(self, value, total=None, preview=None):
-            state.updates.append((value, total))
-
-    utils.ProgressBar = ProgressBar
-    comfy = types.ModuleType("comfy")
-    comfy.model_management, comfy.utils = mm, utils
-    monkeypatch.setitem(sys.modules, "comfy", comfy)
-    monkeypatch.setitem(sys.modules, "comfy.model_management", mm)
-    monkeypatch.setitem(sys.modules, "comfy.utils", utils)
-    return state
+    return install_fake_comfy(monkeypatch)
 
 
 def _block(n=6):
