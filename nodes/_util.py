@@ -40,6 +40,34 @@ def progress_callback():
     return callback
 
 
+def preview_payload(image: torch.Tensor, max_side: int = 512):
+    """An (H, W, 3) image in 0..1 as the preview ComfyUI's progress bar shows beside it
+    (``ProgressBar.update_absolute(value, total, preview)``): ("JPEG", PIL image, max size)."""
+    import numpy as np
+    from PIL import Image
+
+    arr = (image.detach().float().cpu().clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
+    return ("JPEG", Image.fromarray(arr), int(max_side))
+
+
+def progress_with_previews():
+    """(progress, preview) callbacks for a library loop that reports progress every step and a
+    preview image now and then: the latest preview rides along with the next progress update."""
+    cb = progress_callback()
+    if cb is None:
+        return None, None
+    latest: dict = {}
+
+    def preview(_step, image) -> None:
+        latest["image"] = image
+
+    def progress(done, total) -> None:
+        img = latest.pop("image", None)
+        cb(done, total, preview_payload(img) if img is not None else None)
+
+    return progress, preview
+
+
 def temp_directory() -> Path:
     """ComfyUI's temp folder (previews, cleared on restart); outside ComfyUI $PHYSMOTION_TEMP_DIR or
     ``.previews`` in the output folder."""

@@ -249,7 +249,21 @@ class PhysMotionMultiViewGenerate:
                                        cancel=_cancel_check())
         finally:
             imagedream.to(offload_device())
-        return (views_for_lgm(views).float().cpu(),)
+        ordered = views_for_lgm(views).float().cpu()
+        return {"ui": _views_grid_preview(ordered, "PhysMotion_views"), "result": (ordered,)}
+
+
+def _views_grid_preview(views, stem: str) -> dict:
+    """The 4 views as one 2x2 grid shown in the node (front, 90° / 180°, 270°)."""
+    import torch
+
+    from ._util import preview_images
+
+    v = views.float().clamp(0, 1)
+    if v.shape[0] != 4:
+        return preview_images(v, stem)
+    grid = torch.cat([torch.cat([v[0], v[1]], dim=1), torch.cat([v[2], v[3]], dim=1)], dim=0)
+    return preview_images(grid[None], stem)
 
 
 class PhysMotionLGMLift:
@@ -324,7 +338,8 @@ class PhysMotionLGMLift:
             lgm.to(offload_device())
             if imagedream is not None:
                 imagedream.to(offload_device())
-        return (res.gaussians, res.camera, views_for_refine(res.views), res.view_images)
+        return {"ui": _views_grid_preview(res.view_images, "PhysMotion_lgm_views"),
+                "result": (res.gaussians, res.camera, views_for_refine(res.views), res.view_images)}
 
 
 NODE_CLASS_MAPPINGS = {

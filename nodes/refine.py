@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ._util import CATEGORY, first_image, first_mask, log, preview_images, progress_callback, save_ply_output
+from ._util import CATEGORY, first_image, first_mask, log, preview_images, progress_with_previews, save_ply_output
 
 
 class PhysMotionDepthLoader:
@@ -149,7 +149,9 @@ class PhysMotionHardDepthRefine:
                             lr_opacity=float(learning_rate), lr_scale=float(learning_rate),
                             lr_rotation=float(learning_rate), prune_floaters=bool(prune_floaters),
                             max_render_side=int(max_render_side), max_seconds=float(time_limit_s), seed=int(seed))
-        res = refine_gaussians(gaussians.to(dev), rviews, st, progress=progress_callback())
+        # The progress bar shows the current render beside the photo (every 50 iterations).
+        progress, preview = progress_with_previews()
+        res = refine_gaussians(gaussians.to(dev), rviews, st, progress=progress, preview=preview)
         for note in res.notes:
             log.info("Hard-Depth Refine: %s", note)
         log.info("Hard-Depth Refine: %d iterations in %.1f s (%.2f it/s), %d pruned", res.iterations_done,

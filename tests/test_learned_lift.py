@@ -343,18 +343,26 @@ def test_loader_nodes_list_and_load(nodes):
         nodes["PhysMotionLGMLoader"]().run("model_fp16.safetensors", "auto", 256)
 
 
-def test_lift_nodes_feed_hard_depth_refine(nodes, pipe, lgm):
+def test_lift_nodes_feed_hard_depth_refine(nodes, pipe, lgm, tmp_path):
     img, mask = _photo()
     image, m = torch.from_numpy(img)[None], torch.from_numpy(mask)[None]
-    views, = nodes["PhysMotionMultiViewGenerate"]().run(pipe, image, m, seed=3, steps=2, guidance=5.0,
-                                                        border_ratio=0.2)
+    out = nodes["PhysMotionMultiViewGenerate"]().run(pipe, image, m, seed=3, steps=2, guidance=5.0,
+                                                     border_ratio=0.2)
+    views, = out["result"]
     assert views.shape == (4, 64, 64, 3)
+    # the node shows the 4 views as one 2x2 grid
+    import cv2
+
+    (shown,) = out["ui"]["images"]
+    grid = cv2.imread(str(tmp_path / ".previews" / shown["filename"]))[..., ::-1] / 255.0
+    assert grid.shape == (128, 128, 3)
+    assert abs(grid[64:, :64] - views[2].numpy()).max() < 1.5 / 255  # bottom-left: the back view (180°)
     lift = nodes["PhysMotionLGMLift"]()
     common = dict(object_height=0.3, on_ground=True, prune_opacity=0.005, max_gaussians=0, seed=3, steps=2,
                   guidance=5.0, border_ratio=0.2)
-    g, cam, pm_views, images = lift.run(lgm, image, m, imagedream=pipe, **common)
+    g, cam, pm_views, images = lift.run(lgm, image, m, imagedream=pipe, **common)["result"]
     assert torch.equal(images, views)                                   # the node generated the same views
-    g2, _, _, _ = lift.run(lgm, image, m, views=views, **common)
+    g2, _, _, _ = lift.run(lgm, image, m, views=views, **common)["result"]
     assert torch.equal(g.means, g2.means)
     assert isinstance(cam, Camera) and (cam.width, cam.height) == (W, H)
     assert len(pm_views) == 3 and all(isinstance(v, RefineView) for v in pm_views)

@@ -42,7 +42,7 @@ def test_requirements_never_pin_torch_gsplat_or_upper_bounds():
     with_comfyui = {"torch", "torchvision", "comfy", "folder_paths", "server", "gsplat"}
     import_names = {"numpy": "numpy", "warp": "warp-lang", "cv2": "opencv-python-headless", "av": "av",
                     "safetensors": "safetensors", "diffusers": "diffusers", "transformers": "transformers",
-                    "peft": "peft", "segment_anything": "segment-anything"}
+                    "peft": "peft", "segment_anything": "segment-anything", "PIL": "pillow"}
     stdlib = set(sys.stdlib_module_names)
     found = set()
     for path in [ROOT / "__init__.py", *(ROOT / "nodes").glob("*.py"), *(ROOT / "physmotion_core").rglob("*.py")]:

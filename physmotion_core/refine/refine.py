@@ -287,6 +287,7 @@ def refine_gaussians(gaussians: Gaussians, views: Sequence[RefineView], settings
                 out = rasterize(g, v.camera, opacity_override=HARD_DEPTH_OPACITY, depth_mode="distance")
                 m = v.mask.to(dev, dtype) if v.mask is not None else (out.alpha.detach() > 0.5).to(dtype)
                 dl = dl + hard_depth_loss(out.depth, v.depth.to(dev, dtype), m, patch, st.tolerance)
+                report(progress, it, n_it)  # a depth step renders every view: let Cancel act between them
             dl.backward()
             if st.depth_optimizer == "scaled":
                 with torch.no_grad():
