@@ -163,7 +163,11 @@ def main() -> None:
               "", f"**Memory**: {per_particle:.0f} bytes of device state per particle (the estimate used for the "
               f"up-front memory check says {est / s.n:.0f} with the grid's share), plus "
               f"{grid_bytes / np.prod(s.domain.dims):.0f} bytes per grid node over the whole domain box."]
-    path = update_section("benchmarks.md", "sim-throughput", "## MPM throughput\n\n" + "\n".join(lines))
+    # The CPU table keeps its section; a GPU run writes its own beside it.
+    kind = dev.split(":")[0]
+    name, title = ("sim-throughput", "## MPM throughput") if kind == "cpu" else (f"sim-throughput-{kind}",
+                                                                                   f"## MPM throughput ({kind})")
+    path = update_section("benchmarks.md", name, title + "\n\n" + "\n".join(lines))
     print(f"wrote {path}")
 
 
