@@ -171,3 +171,21 @@ def test_out_of_memory_inside_a_stage_becomes_a_clear_error():
     with pytest.raises(ZeroDivisionError):  # anything else passes through unchanged
         with oom_as_input_error("x", "y"):
             raise ZeroDivisionError
+
+
+def test_atomic_outputs_get_the_usual_file_mode(tmp_path):
+    """Temporary files are private (0600); the finished file must be readable like any other
+    (0666 minus the umask), or keep the mode of the file it replaces."""
+    from physmotion_core.fsutil import atomic_output
+
+    umask = os.umask(0o022)
+    try:
+        with atomic_output(tmp_path / "a.bin") as tmp:
+            tmp.write_bytes(b"1")
+        assert (tmp_path / "a.bin").stat().st_mode & 0o777 == 0o644
+        os.chmod(tmp_path / "a.bin", 0o640)
+        with atomic_output(tmp_path / "a.bin") as tmp:
+            tmp.write_bytes(b"2")
+        assert (tmp_path / "a.bin").stat().st_mode & 0o777 == 0o640 and (tmp_path / "a.bin").read_bytes() == b"2"
+    finally:
+        os.umask(umask)
