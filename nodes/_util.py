@@ -312,7 +312,3 @@ def free_memory_for(model_bytes: int, device: torch.device, what: str = "This no
     from physmotion_core.memory import check_device_fits
 
     check_device_fits(int(model_bytes), device, what)
-
-
-def ensure_room_for(model_bytes: int, device: torch.device, what: str) -> None:
-    free_memory_for(model_bytes, device, what)

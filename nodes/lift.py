@@ -235,12 +235,12 @@ class PhysMotionMultiViewGenerate:
         from physmotion_core.lift.learned import recenter
         from physmotion_core.memory import oom_as_input_error
 
-        from ._util import ensure_room_for, offload_device, progress_callback, torch_device
+        from ._util import free_memory_for, offload_device, progress_callback, torch_device
 
         canvas, _, _ = recenter(first_image(image), first_mask(mask), border_ratio=float(border_ratio),
                                 size=imagedream.image_size)
         dev = torch_device()
-        ensure_room_for(_param_bytes(*(getattr(imagedream, n) for n in imagedream.MODULES)), dev, "ImageDream")
+        free_memory_for(_param_bytes(*(getattr(imagedream, n) for n in imagedream.MODULES)), dev, "ImageDream")
         try:
             imagedream.to(dev)
             with oom_as_input_error("Multi-View Generate", "Free GPU memory (unload other models) or run on the CPU."):
@@ -313,14 +313,14 @@ class PhysMotionLGMLift:
         from physmotion_core.lift.learned import learned_lift, views_for_refine
         from physmotion_core.memory import oom_as_input_error
 
-        from ._util import ensure_room_for, offload_device, progress_callback, torch_device
+        from ._util import free_memory_for, offload_device, progress_callback, torch_device
 
         if imagedream is None and views is None:
             raise ValueError("LGM Lift: connect an ImageDream Loader (imagedream) or 4 views (views)")
         dev = torch_device()
         modules = [lgm] + ([getattr(imagedream, n) for n in imagedream.MODULES]
                            if imagedream is not None and views is None else [])
-        ensure_room_for(_param_bytes(*modules), dev, "LGM Lift")
+        free_memory_for(_param_bytes(*modules), dev, "LGM Lift")
         try:
             lgm.to(dev)
             if imagedream is not None and views is None:

@@ -493,9 +493,6 @@ class MPMSolver:
                                                                self.stats])
         self._launch(K.end_step, dim=1, inputs=[self.stats, self.ctl, self.status, self.cond])
 
-    def _loop_body(self, span_lo: tuple, span_hi: tuple, torques: bool) -> None:
-        self._substep_kernels(span_lo, span_hi, torques)
-
     def _grid_span(self, horizon: float) -> tuple[tuple, tuple]:
         """Grid nodes the next launch works on: the particles' stencils now, plus room for what they
         can travel in ``horizon`` seconds, rounded outwards to multiples of SPAN_QUANTUM nodes so
@@ -535,7 +532,7 @@ class MPMSolver:
         self.launches += 1
         with wp.ScopedDevice(self.device):
             if eager or not self.use_graph or self.kernel_times is not None:
-                wp.capture_while(self.cond, self._loop_body, span_lo=span[0], span_hi=span[1],
+                wp.capture_while(self.cond, self._substep_kernels, span_lo=span[0], span_hi=span[1],
                                  torques=self._torques_on)
                 return
             key = (span, self._torques_on)
@@ -544,7 +541,7 @@ class MPMSolver:
                 if len(self._graphs) >= MAX_GRAPHS:
                     self._graphs.pop(next(iter(self._graphs)))
                 with wp.ScopedCapture(device=self.device) as cap:
-                    wp.capture_while(self.cond, self._loop_body, span_lo=span[0], span_hi=span[1],
+                    wp.capture_while(self.cond, self._substep_kernels, span_lo=span[0], span_hi=span[1],
                                      torques=self._torques_on)
                 graph = self._graphs[key] = cap.graph
                 self.graph_captures += 1
