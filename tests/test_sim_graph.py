@@ -9,6 +9,8 @@ carry no mass: tolerance 0), and escaping particles must be caught on the device
 writes outside the grid.
 """
 
+import re
+
 import numpy as np
 import pytest
 import torch
@@ -138,3 +140,35 @@ def test_cuda_graph_run_matches_the_cpu_run():
     assert gpu.stats["graph"] == bool(wp.is_conditional_graph_supported())
     assert float((cpu.x - gpu.x).abs().max()) < 1e-4
     assert gpu.stats["launches"] < gpu.stats["substeps"] / 2
+
+
+def _nvrtc_available() -> bool:
+    try:
+        import warp as wp
+
+        wp.config.quiet = True
+        wp.init()
+        from warp._src import context
+
+        return bool(context.runtime.toolkit_version) and 90 in context.runtime.nvrtc_supported_archs
+    except Exception:  # noqa: BLE001
+        return False
+
+
+@pytest.mark.skipif(not _nvrtc_available(), reason="needs Warp's NVRTC (the CUDA-enabled warp-lang wheel)")
+def test_every_kernel_compiles_to_cuda_without_a_gpu(tmp_path):
+    """The kernels run on the CPU in this suite; the CUDA build is a separate code path (codegen for
+    device functions, atomics, launch bounds). Warp's bundled NVRTC compiles the module ahead of time
+    for an H100/H200 (sm_90) with no driver, so a kernel that would only fail to build on a GPU fails
+    here. Every kernel must appear as a CUDA entry point in the PTX."""
+    import warp as wp
+
+    from physmotion_core.sim import kernels
+
+    paths = wp.compile_aot_module(kernels, arch=90, module_dir=str(tmp_path), use_ptx=True)
+    ptx = "".join(p.read_text() for p in paths if str(p).endswith(".ptx"))
+    assert ".target sm_90" in ptx
+    names = [k.key for k in vars(kernels).values() if isinstance(k, wp.Kernel)]
+    assert len(names) >= 10
+    missing = [n for n in names if not re.search(rf"\.entry {n}_[0-9a-f]+_cuda_kernel_forward", ptx)]
+    assert not missing, f"kernels without a CUDA entry point: {missing}"
