@@ -696,8 +696,12 @@ class SimSettings:
     #                                        and a frame that needs more stops the run with an explanation
     graph: str = "auto"  # capture each launch of substeps as a graph: "auto" (on CUDA with conditional graph
     #                      nodes, CUDA 12.4+), "on" (also on the CPU: Warp replays it there), "off"
+    cpu_threads: int = 0  # threads for the CPU kernels; 0 = every core (PHYSMOTION_CPU_THREADS overrides 0).
+    #                       The result does not depend on it (the work is split by particle count)
 
     def validate(self) -> None:
+        if not (isinstance(self.cpu_threads, int) and 0 <= self.cpu_threads <= 1024):
+            raise InputError(f"cpu_threads must be an integer in [0, 1024] (0 = every core); got {self.cpu_threads!r}")
         if self.graph not in ("auto", "on", "off"):
             raise InputError(f"graph must be 'auto', 'on' or 'off'; got {self.graph!r}")
         if not (isinstance(self.frames, int) and 1 <= self.frames <= 100_000):

@@ -22,6 +22,12 @@ the previous substep's reductions, ``end_step`` advances the clock and sets the 
 substep loop, so a launch of many substeps needs no host round trip and can be captured once as
 a (CUDA or CPU) graph with ``wp.capture_while`` and replayed every frame.
 
+On the CPU, where Warp runs a kernel on one thread and its atomics are plain adds, the solver
+splits the particles into contiguous chunks and launches p2g and g2p once per chunk on a thread
+pool: each chunk scatters into its own layer of the grid accumulators (``grid_update`` sums the
+layers in order, over the box of nodes each layer's particles reach) and reduces into its own row
+of statistics (``merge_stats``). On CUDA there is one chunk and one layer.
+
 Materials are a table of structs indexed by each particle's material id; ``model`` selects the
 constitutive rule (a switch inside ``update_material``), so adding a model touches one function.
 """
@@ -259,9 +265,11 @@ def track_position(x: wp.vec3, grid: GridInfo, span_lo: wp.vec3i, span_hi: wp.ve
 
 
 @wp.kernel
-def plan_step(stats: wp.array(dtype=float), ctl: wp.array(dtype=wp.float64), dt_arr: wp.array(dtype=float)):
+def plan_step(stats: wp.array(dtype=float), ctl: wp.array(dtype=wp.float64), dt_arr: wp.array(dtype=float),
+              layer_box: wp.array2d(dtype=int)):
     """The CFL step from the previous substep's fastest particle and stiffest material point, the
-    acceleration and viscosity bounds and the host's caps; then reset the reductions."""
+    acceleration and viscosity bounds and the host's caps; then reset the reductions (and the
+    node boxes the chunks of p2g will scatter into)."""
     c = wp.sqrt(wp.max(wp.float64(stats[S_C2]), wp.float64(0.0)))
     speed = wp.max(wp.float64(stats[S_VMAX]), ctl[C_SPEED_FLOOR])
     dt = ctl[C_CFL_DX] / wp.max(c + speed, wp.float64(1.0e-12))
@@ -283,6 +291,10 @@ def plan_step(stats: wp.array(dtype=float), ctl: wp.array(dtype=wp.float64), dt_
     stats[S_MV2] = 0.0
     stats[S_WORK] = 0.0
     stats[S_BODY_SPEED] = 0.0
+    for l in range(layer_box.shape[0]):
+        for a in range(3):
+            layer_box[l, a] = 2147483647
+            layer_box[l, 3 + a] = -2147483647
 
 
 @wp.kernel
@@ -344,16 +356,26 @@ def p2g(
     f_ext: wp.array(dtype=wp.vec3),
     grid: GridInfo,
     dt_arr: wp.array(dtype=float),
-    grid_m: wp.array3d(dtype=float),
-    grid_mv: wp.array3d(dtype=wp.vec3),
-    grid_fix: wp.array3d(dtype=int),
-    grid_fix_v: wp.array3d(dtype=wp.vec3),
+    grid_m: wp.array4d(dtype=float),
+    grid_mv: wp.array4d(dtype=wp.vec3),
+    grid_fix: wp.array4d(dtype=int),
+    grid_fix_v: wp.array4d(dtype=wp.vec3),
     anchor_v: wp.array(dtype=wp.vec3),
     apic: float,
+    offset: int,
+    layer: int,
+    layer_box: wp.array2d(dtype=int),
 ):
-    p = wp.tid()
+    """Scatter particles offset .. offset + launch dim into accumulator layer ``layer`` (see
+    ``grid_update``: the layers of one substep are summed there). With several layers, also grow
+    the layer's box of stencil bases, so grid_update reads only the nodes a layer can hold."""
+    p = wp.tid() + offset
     dt = dt_arr[0]
     base = stencil_base(x[p], grid)
+    if grid_m.shape[0] > 1:
+        for a in range(3):
+            wp.atomic_min(layer_box, layer, a, base[a])
+            wp.atomic_max(layer_box, layer, 3 + a, base[a])
     xp = (x[p] - grid.origin) * grid.inv_dx
     fx = xp - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
     wx = bspline_weights(fx, 0)
@@ -376,11 +398,11 @@ def p2g(
                 ix = base[0] + i
                 iy = base[1] + j
                 iz = base[2] + k
-                wp.atomic_add(grid_m, ix, iy, iz, w * m)
-                wp.atomic_add(grid_mv, ix, iy, iz, w * (mv + affine * dpos))
+                wp.atomic_add(grid_m, layer, ix, iy, iz, w * m)
+                wp.atomic_add(grid_mv, layer, ix, iy, iz, w * (mv + affine * dpos))
                 if anchored:
-                    grid_fix[ix, iy, iz] = 1
-                    grid_fix_v[ix, iy, iz] = anchor_v[p]
+                    grid_fix[layer, ix, iy, iz] = 1
+                    grid_fix_v[layer, ix, iy, iz] = anchor_v[p]
 
 
 @wp.func
@@ -403,28 +425,53 @@ def contact_velocity(v: wp.vec3, n: wp.vec3, contact: int, mu: float) -> wp.vec3
 
 @wp.kernel
 def grid_update(
-    grid_m: wp.array3d(dtype=float),
-    grid_mv: wp.array3d(dtype=wp.vec3),
+    grid_m: wp.array4d(dtype=float),
+    grid_mv: wp.array4d(dtype=wp.vec3),
     grid_v: wp.array3d(dtype=wp.vec3),
-    grid_fix: wp.array3d(dtype=int),
-    grid_fix_v: wp.array3d(dtype=wp.vec3),
+    grid_fix: wp.array4d(dtype=int),
+    grid_fix_v: wp.array4d(dtype=wp.vec3),
     lo: wp.vec3i,
     grid: GridInfo,
     bc: Boundary,
     gravity: wp.vec3,
     dt_arr: wp.array(dtype=float),
+    layer_box: wp.array2d(dtype=int),
 ):
+    """Node velocities from the accumulated mass and momentum. The accumulators have one layer per
+    particle chunk (one in all on CUDA, where p2g's atomics are real; a chunk each for the CPU's
+    threads, whose adds are not atomic); they are summed here in layer order, so the result does
+    not depend on which thread scattered which chunk."""
     a, b, c = wp.tid()
     dt = dt_arr[0]
     i = lo[0] + a
     j = lo[1] + b
     k = lo[2] + c
-    m = grid_m[i, j, k]
+    m = float(0.0)
+    mv = wp.vec3(0.0, 0.0, 0.0)
+    fix = int(0)
+    fix_v = wp.vec3(0.0, 0.0, 0.0)
+    layers = grid_m.shape[0]
+    for l in range(layers):
+        if layers > 1:
+            # Nodes outside this layer's stencils were never written: skip them.
+            if i < layer_box[l, 0] or i > layer_box[l, 3] + 2 or j < layer_box[l, 1] or j > layer_box[l, 4] + 2 or \
+                    k < layer_box[l, 2] or k > layer_box[l, 5] + 2:
+                continue
+        m += grid_m[l, i, j, k]
+        mv += grid_mv[l, i, j, k]
+        if grid_fix[l, i, j, k] != 0:
+            fix = 1
+            fix_v = grid_fix_v[l, i, j, k]  # the last chunk's anchor, as a single pass would leave it
+        # Leave the accumulators clean for the next substep's p2g.
+        grid_m[l, i, j, k] = 0.0
+        grid_mv[l, i, j, k] = wp.vec3(0.0, 0.0, 0.0)
+        grid_fix[l, i, j, k] = 0
+        grid_fix_v[l, i, j, k] = wp.vec3(0.0, 0.0, 0.0)
     v = wp.vec3(0.0, 0.0, 0.0)
-    if grid_fix[i, j, k] != 0:
-        v = grid_fix_v[i, j, k]  # held by an anchor: fixed or moved at its prescribed velocity
+    if fix != 0:
+        v = fix_v  # held by an anchor: fixed or moved at its prescribed velocity
     elif m > 0.0:
-        v = grid_mv[i, j, k] / m + dt * gravity
+        v = mv / m + dt * gravity
         # Domain walls (x, z sides and the top; the bottom too when there is no ground).
         if i < bc.pad:
             v = contact_velocity(v, wp.vec3(1.0, 0.0, 0.0), bc.wall_contact, bc.wall_friction)
@@ -442,11 +489,6 @@ def grid_update(
         elif j < bc.pad:
             v = contact_velocity(v, wp.vec3(0.0, 1.0, 0.0), bc.wall_contact, bc.wall_friction)
     grid_v[i, j, k] = v
-    # Leave the accumulators clean for the next substep's p2g.
-    grid_m[i, j, k] = 0.0
-    grid_mv[i, j, k] = wp.vec3(0.0, 0.0, 0.0)
-    grid_fix[i, j, k] = 0
-    grid_fix_v[i, j, k] = wp.vec3(0.0, 0.0, 0.0)
 
 
 @wp.func
@@ -606,8 +648,11 @@ def g2p(
     span_lo: wp.vec3i,
     span_hi: wp.vec3i,
     status: wp.array(dtype=int),
+    offset: int,
 ):
-    p = wp.tid()
+    """Gather particles offset .. offset + launch dim; ``stats`` takes their reductions (a chunk's
+    own row on the CPU, folded in by ``merge_stats``)."""
+    p = wp.tid() + offset
     dt = dt_arr[0]
     base = stencil_base(x[p], grid)
     xp = (x[p] - grid.origin) * grid.inv_dx
@@ -660,6 +705,39 @@ def g2p(
     wp.atomic_max(stats, 8, c2)
     wp.atomic_add(stats, 9, mass[p] * wp.dot(new_v, new_v))
     track_position(new_x, grid, span_lo, span_hi, stats, status)
+
+
+@wp.func
+def reset_chunk_stats(rows: wp.array2d(dtype=float), r: int):
+    rows[r, S_VMAX] = 0.0
+    for a in range(3):
+        rows[r, 1 + a] = 1.0e30
+        rows[r, 4 + a] = -1.0e30
+    rows[r, S_NAN] = 0.0
+    rows[r, S_C2] = 0.0
+    rows[r, S_MV2] = 0.0
+    rows[r, S_WORK] = 0.0
+
+
+@wp.kernel
+def merge_stats(rows: wp.array2d(dtype=float), stats: wp.array(dtype=float)):
+    """Fold the per-chunk reductions of a chunked g2p into ``stats`` in chunk order (maxima, box,
+    NaN flag, sums), and reset the rows for the next substep."""
+    for r in range(rows.shape[0]):
+        stats[S_VMAX] = wp.max(stats[S_VMAX], rows[r, S_VMAX])
+        for a in range(3):
+            stats[1 + a] = wp.min(stats[1 + a], rows[r, 1 + a])
+            stats[4 + a] = wp.max(stats[4 + a], rows[r, 4 + a])
+        stats[S_NAN] = wp.max(stats[S_NAN], rows[r, S_NAN])
+        stats[S_C2] = wp.max(stats[S_C2], rows[r, S_C2])
+        stats[S_MV2] = stats[S_MV2] + rows[r, S_MV2]
+        stats[S_WORK] = stats[S_WORK] + rows[r, S_WORK]
+        reset_chunk_stats(rows, r)
+
+
+@wp.kernel
+def init_chunk_stats(rows: wp.array2d(dtype=float)):
+    reset_chunk_stats(rows, wp.tid())
 
 
 # ----------------------------------------------------------------------------------------------

@@ -6,6 +6,8 @@ import logging
 import math
 import os
 import time
+import weakref
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Optional, Sequence
 
@@ -25,6 +27,17 @@ TRANSFERS = ("apic", "pic")  # particle-grid velocity transfer: affine (APIC / M
 SPAN_QUANTUM = 4  # grid spans are rounded out to multiples of this many nodes (fewer graph captures)
 MAX_SPAN_MARGIN = 32  # nodes of room around the particles' stencils a span may add per side
 MAX_GRAPHS = 8  # captured launch graphs kept per solver (one per grid span and torque state)
+# CPU parallelism. Warp runs a CPU kernel on one thread, and its atomics there are plain adds, so the
+# CPU splits the particles into contiguous chunks: each chunk's p2g scatters into its own layer of
+# grid accumulators (summed by grid_update in layer order) and each chunk's g2p reduces into its own
+# row of statistics (folded by merge_stats). Chunks run concurrently on a thread pool (Warp releases
+# the GIL while a kernel runs). How many chunks depends only on the scene, never on the number of
+# threads, so a run gives the same bits on any machine.
+MIN_CHUNK_PARTICLES = 4096
+MAX_CPU_CHUNKS = 16
+LAYER_BYTES = 32  # per grid node and chunk: mass (4) + momentum (12) + anchor flag (4) + anchor velocity (12)
+CHUNK_GRID_BUDGET = 512 * 2 ** 20  # bytes all chunks' accumulator layers may take together
+ROW_PAD = 32  # 4-byte values per row of chunk-private reductions: no false sharing between threads
 
 
 def _warp():
@@ -101,11 +114,37 @@ class Domain:
         return cls(origin=origin.astype(np.float64), dx=float(dx), dims=dims, ground_node=ground_node)
 
 
-def estimate_bytes(num_particles: int, dims: Sequence[int], frames: int, recorded: int) -> dict:
-    """Memory the run will need: device arrays, and the host copy of the recorded trajectory."""
+def cpu_chunks(num_particles: int, dims: Sequence[int], device: str) -> int:
+    """How many particle chunks p2g and g2p are split into: 1 on CUDA; on the CPU one per
+    MIN_CHUNK_PARTICLES particles, at most MAX_CPU_CHUNKS and within CHUNK_GRID_BUDGET."""
+    if str(device) != "cpu":
+        return 1
+    by_memory = CHUNK_GRID_BUDGET // max(int(np.prod(dims)) * LAYER_BYTES, 1)
+    return int(max(1, min(MAX_CPU_CHUNKS, num_particles // MIN_CHUNK_PARTICLES, by_memory)))
+
+
+def cpu_threads(requested: int = 0) -> int:
+    """Worker threads for the CPU kernels: ``requested``, or with 0 every core this process may
+    use (PHYSMOTION_CPU_THREADS overrides 0)."""
+    if requested <= 0:
+        env = os.environ.get("PHYSMOTION_CPU_THREADS", "").strip()
+        if env:
+            if not env.isdigit() or int(env) < 1:
+                raise InputError(f"PHYSMOTION_CPU_THREADS must be a positive integer; got {env!r}")
+            return int(env)
+        try:
+            return max(len(os.sched_getaffinity(0)), 1)
+        except AttributeError:  # macOS, Windows
+            return max(os.cpu_count() or 1, 1)
+    return int(requested)
+
+
+def estimate_bytes(num_particles: int, dims: Sequence[int], frames: int, recorded: int, layers: int = 1) -> dict:
+    """Memory the run will need: device arrays, and the host copy of the recorded trajectory.
+    ``layers``: the grid accumulators' chunk layers (``cpu_chunks``)."""
     nodes = int(np.prod(dims))
     # x v f_ext (vec3) + C F tau (mat33) + rot (quat) + mass vol plastic mat flags body torque (scalars)
-    device = num_particles * (12 * 3 + 36 * 3 + 16 + 4 * 7) + nodes * 32
+    device = num_particles * (12 * 3 + 36 * 3 + 16 + 4 * 7) + nodes * (12 + LAYER_BYTES * layers)
     host = (frames + 1) * recorded * (12 + 36)
     return {"device": device, "host": host, "nodes": nodes}
 
@@ -136,6 +175,7 @@ class MPMSolver:
         torque_mask: Optional[np.ndarray] = None,
         transfer: str = "apic",
         graph: Optional[bool] = None,
+        threads: int = 0,
     ):
         for m in materials:
             m.validate()
@@ -167,6 +207,13 @@ class MPMSolver:
         self._graphs: dict = {}
         self._span: Optional[tuple] = None
         self._chunk = 8
+        # Particle chunks (see MIN_CHUNK_PARTICLES) and the threads that run them.
+        self.chunks = cpu_chunks(n, domain.dims, device)
+        edges = np.linspace(0, n, self.chunks + 1).astype(np.int64)
+        self._chunk_ranges = [(int(a), int(b - a)) for a, b in zip(edges[:-1], edges[1:])]
+        self.threads = min(cpu_threads(threads), self.chunks) if device == "cpu" else 1
+        self._pool: Optional[ThreadPoolExecutor] = None
+        self._capturing = False
         mat_index = np.asarray(mat_index, dtype=np.int64)
 
         density = np.array([m.density for m in materials], dtype=np.float64)[mat_index]
@@ -212,13 +259,23 @@ class MPMSolver:
             self.f_static = wp.zeros(n, dtype=wp.vec3)
             self.f_total = wp.zeros(n, dtype=wp.vec3)
             self.material_table = wp.array([kernel_params(m) for m in materials], dtype=K.MaterialParams)
-            self.grid_m = wp.zeros(domain.dims, dtype=float)
-            self.grid_mv = wp.zeros(domain.dims, dtype=wp.vec3)
+            layers = (self.chunks, *domain.dims)
+            self.grid_m = wp.zeros(layers, dtype=float)
+            self.grid_mv = wp.zeros(layers, dtype=wp.vec3)
             self.grid_v = wp.zeros(domain.dims, dtype=wp.vec3)
-            self.grid_fix = wp.zeros(domain.dims, dtype=int)
-            self.grid_fix_v = wp.zeros(domain.dims, dtype=wp.vec3)
+            self.grid_fix = wp.zeros(layers, dtype=int)
+            self.grid_fix_v = wp.zeros(layers, dtype=wp.vec3)
+            # Each layer's box of stencil bases (p2g). Rows of chunk-private data are padded to
+            # ROW_PAD values (128 bytes), so threads never share a cache line.
+            self.layer_box = wp.zeros((self.chunks, ROW_PAD), dtype=int)
             self.anchor_v = wp.zeros(n, dtype=wp.vec3)
             self.stats = wp.zeros(K.N_STATS, dtype=float)
+            self.stats_rows = None  # per-chunk reductions of a chunked g2p
+            self._stats_of = [self.stats]
+            if self.chunks > 1:
+                self.stats_rows = wp.zeros((self.chunks, max(K.N_STATS, ROW_PAD)), dtype=float)
+                wp.launch(K.init_chunk_stats, dim=self.chunks, inputs=[self.stats_rows])
+                self._stats_of = [self.stats_rows[k] for k in range(self.chunks)]
             self.ctl = wp.zeros(K.N_CTL, dtype=wp.float64)
             self.status = wp.zeros(K.N_STATUS, dtype=int)
             self.cond = wp.zeros(1, dtype=int)
@@ -445,6 +502,38 @@ class MPMSolver:
         key = kernel.key
         self.kernel_times[key] = self.kernel_times.get(key, 0.0) + time.perf_counter() - t0
 
+    def _parallel(self) -> bool:
+        """Run chunks on the thread pool: on the CPU with more than one thread, outside a capture
+        (a captured graph replays its launches one after another)."""
+        if self.threads <= 1 or self._capturing:
+            return False
+        if self._pool is None:
+            self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="physmotion-mpm")
+            weakref.finalize(self, self._pool.shutdown, wait=False)
+        return True
+
+    def _launch_parts(self, kernel, parts: list) -> None:
+        """Launch ``kernel`` once per (dim, inputs) part: concurrently on the CPU's threads, else in
+        order. The parts must not write the same memory (chunks have their own layers and rows)."""
+        if len(parts) == 1 or not self._parallel():
+            for dim, inputs in parts:
+                self._launch(kernel, dim, inputs)
+            return
+        t0 = time.perf_counter()
+        wp, device = self.wp, self.device
+        list(self._pool.map(lambda part: wp.launch(kernel, dim=part[0], inputs=part[1], device=device), parts))
+        if self.kernel_times is not None:
+            self.kernel_times[kernel.key] = self.kernel_times.get(kernel.key, 0.0) + time.perf_counter() - t0
+
+    def _grid_parts(self, span_lo: tuple, dims: tuple, inputs_for) -> list:
+        """grid_update over the span, cut into slabs along x for the threads (nodes are independent,
+        so the cut cannot change a result)."""
+        wp = self.wp
+        slabs = min(self.threads, dims[0]) if self.threads > 1 and not self._capturing else 1
+        edges = np.linspace(0, dims[0], slabs + 1).astype(np.int64)
+        return [((int(b - a), dims[1], dims[2]), inputs_for(wp.vec3i(span_lo[0] + int(a), span_lo[1], span_lo[2])))
+                for a, b in zip(edges[:-1], edges[1:]) if b > a]
+
     def _substep_kernels(self, span_lo: tuple, span_hi: tuple, torques: bool) -> None:
         """One substep as a fixed sequence of launches that read dt and write their checks on the
         device (so the sequence can be captured): plan → [torques] → p2g → grid → g2p → [rigid] → end."""
@@ -452,7 +541,7 @@ class MPMSolver:
         lo = wp.vec3i(*span_lo)
         hi = wp.vec3i(*span_hi)
         dims = tuple(int(h - l + 1) for l, h in zip(span_lo, span_hi))
-        self._launch(K.plan_step, dim=1, inputs=[self.stats, self.ctl, self.dt_arr])
+        self._launch(K.plan_step, dim=1, inputs=[self.stats, self.ctl, self.dt_arr, self.layer_box])
         forces = self.f_static
         if torques:
             self._launch(K.zero_sums, dim=self.torque_sums.shape, inputs=[self.torque_sums])
@@ -462,16 +551,21 @@ class MPMSolver:
                                                            self.torque_sums, self.torque_taus, self.f_static,
                                                            self.f_total])
             forces = self.f_total
-        self._launch(K.p2g, dim=self.n, inputs=[self.x, self.v, self.C, self.tau, self.mass, self.vol, self.flags,
-                                             forces, self.grid, self.dt_arr, self.grid_m, self.grid_mv,
-                                             self.grid_fix, self.grid_fix_v, self.anchor_v, self.apic])
-        self._launch(K.grid_update, dim=dims, inputs=[self.grid_m, self.grid_mv, self.grid_v, self.grid_fix,
-                                                   self.grid_fix_v, lo, self.grid, self.bc, self._gravity_w,
-                                                   self.dt_arr])
-        self._launch(K.g2p, dim=self.n, inputs=[self.x, self.v, self.C, self.F, self.rot, self.plastic, self.tau,
-                                             self.mat_id, self.material_table, self.flags, self.mass,
-                                             self.anchor_v, forces, self.grid_v, self.grid, self.dt_arr, self.stats,
-                                             lo, hi, self.status])
+        chunks = list(enumerate(self._chunk_ranges))
+        self._launch_parts(K.p2g, [(count, [self.x, self.v, self.C, self.tau, self.mass, self.vol, self.flags, forces,
+                                            self.grid, self.dt_arr, self.grid_m, self.grid_mv, self.grid_fix,
+                                            self.grid_fix_v, self.anchor_v, self.apic, start, c, self.layer_box])
+                                   for c, (start, count) in chunks])
+        self._launch_parts(K.grid_update, self._grid_parts(span_lo, dims, lambda slab_lo: [
+            self.grid_m, self.grid_mv, self.grid_v, self.grid_fix, self.grid_fix_v, slab_lo, self.grid, self.bc,
+            self._gravity_w, self.dt_arr, self.layer_box]))
+        self._launch_parts(K.g2p, [(count, [self.x, self.v, self.C, self.F, self.rot, self.plastic, self.tau,
+                                            self.mat_id, self.material_table, self.flags, self.mass, self.anchor_v,
+                                            forces, self.grid_v, self.grid, self.dt_arr, self._stats_of[c], lo, hi,
+                                            self.status, start])
+                                   for c, (start, count) in chunks])
+        if self.stats_rows is not None:
+            self._launch(K.merge_stats, dim=1, inputs=[self.stats_rows, self.stats])
         if self.n_bodies:
             self._launch(K.rigid_reduce, dim=self.n, inputs=[self.x, self.v, self.mass, forces, self.body,
                                                           self.body_centre, self.dt_arr, self.body_p, self.body_l])
@@ -540,9 +634,13 @@ class MPMSolver:
             if graph is None:
                 if len(self._graphs) >= MAX_GRAPHS:
                     self._graphs.pop(next(iter(self._graphs)))
-                with wp.ScopedCapture(device=self.device) as cap:
-                    wp.capture_while(self.cond, self._substep_kernels, span_lo=span[0], span_hi=span[1],
-                                     torques=self._torques_on)
+                self._capturing = True
+                try:
+                    with wp.ScopedCapture(device=self.device) as cap:
+                        wp.capture_while(self.cond, self._substep_kernels, span_lo=span[0], span_hi=span[1],
+                                         torques=self._torques_on)
+                finally:
+                    self._capturing = False
                 graph = self._graphs[key] = cap.graph
                 self.graph_captures += 1
                 # A capture on CUDA records without running; on the CPU, APIC recording does not run

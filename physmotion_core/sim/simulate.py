@@ -16,7 +16,7 @@ from ..progress import ProgressFn, Throttle
 from ..types import (Anchor, Camera, Conditions, Force, Gaussians, InitialVelocity, Material, SimResult,
                      SimSettings, Torque)
 from .fill import fill_particles
-from .mpm import MAX_TORQUES, Domain, MPMSolver, estimate_bytes, resolve_device
+from .mpm import MAX_TORQUES, Domain, MPMSolver, cpu_chunks, estimate_bytes, resolve_device
 from .regions import select
 
 log = logging.getLogger("physmotion.sim")
@@ -163,7 +163,8 @@ def simulate(
 
     domain = Domain.around(x0.min(0), x0.max(0), dx, settings.domain_margin, ground)
     recorded = np.arange(len(x0)) if record_all else np.unique(neighbours)
-    need = estimate_bytes(x0.shape[0], domain.dims, settings.frames, recorded.shape[0])
+    need = estimate_bytes(x0.shape[0], domain.dims, settings.frames, recorded.shape[0],
+                          layers=cpu_chunks(x0.shape[0], domain.dims, device))
     dev_free = device_available_bytes(device)
     if device.startswith("cuda"):
         if need["device"] > 0.9 * dev_free:
@@ -210,7 +211,8 @@ def simulate(
     solver = MPMSolver(x0, volume, particle_obj, materials, domain, gravity=conditions.gravity(), ground=ground,
                        walls=conditions.walls(), cfl=settings.cfl, device=device, v0=v0,
                        body=body, torque_mask=torque_mask, transfer=settings.transfer,
-                       graph={"auto": None, "on": True, "off": False}[settings.graph])
+                       graph={"auto": None, "on": True, "off": False}[settings.graph],
+                       threads=settings.cpu_threads)
 
     forces = conditions.of(Force)
     f_terms, schedule = [], _Schedule()
@@ -340,8 +342,11 @@ def simulate(
         "graph": solver.use_graph,
         "launches": solver.launches,  # host round trips (one per launch of substeps)
         "graph_captures": solver.graph_captures,
+        "cpu_chunks": solver.chunks,  # particle chunks of p2g / g2p (1 on CUDA); fixed by the scene
+        "threads": solver.threads,  # CPU threads that ran them
     }
-    log.info("simulated %d frames: %d particles, %d substeps, %.1fs", frames, x0.shape[0], solver.substeps, wall)
+    log.info("simulated %d frames: %d particles, %d substeps, %.1fs (%d thread%s)", frames, x0.shape[0],
+             solver.substeps, wall, solver.threads, "" if solver.threads == 1 else "s")
     return SimResult(
         rest=gaussians.detach(),
         times=torch.arange(frames, dtype=torch.float64) * frame_dt,

@@ -1,0 +1,137 @@
+"""The CPU runs p2g, grid_update and g2p on several threads (MPMSolver.chunks / threads).
+
+Warp runs a CPU kernel on one thread and its CPU atomics are plain adds, so the solver splits the
+particles into chunks with their own grid-accumulator layers and reduction rows. The split depends
+on the scene only, never on the thread count, so the thread count cannot change a single bit
+(tolerance 0). Against one unsplit pass the sums only run in another order: float32 round-off.
+"""
+
+import threading
+
+import numpy as np
+import pytest
+import torch
+
+from physmotion_core.errors import InputError
+from physmotion_core.sim import mpm, simulate
+from physmotion_core.sim.mpm import Domain, MPMSolver, cpu_chunks, cpu_threads
+from physmotion_core.sim.materials import material_preset
+from physmotion_core.types import Anchor, Conditions, Force, Gaussians, Ground, Material, SimSettings, Torque
+from physmotion_core.validate.harness import lattice as lattice_points
+
+from test_materials import box, lattice
+
+# A jelly pushed on its left half, twisted, held on its right edge, with a rigid cube dropped on it:
+# every kernel of a substep runs (anchors fill grid_fix, torques, rigid bodies), and about 14k
+# particles make 3 chunks, so 2 threads split them unevenly.
+SCENE = Conditions([Force((0.5, 0.0, 0.0), box((-1, -1, -1), (0, 0.11, 1)), 0.0, 0.05),
+                    Torque((0.0, 0.001, 0.0), box((-1, -1, -1), (1, 0.11, 1)), 0.0, 0.08),
+                    Anchor(box((0.045, -1, -1), (1, 0.11, 1))), Ground(0.0, "friction", 0.4)])
+
+
+def scene() -> Gaussians:
+    jelly = lattice((-0.06, 0.0, -0.06), (0.06, 0.1, 0.06), (12, 10, 12), 0)
+    cube = lattice((-0.02, 0.13, -0.02), (0.02, 0.17, 0.02), (5, 5, 5), 1)
+    return Gaussians.cat([jelly, cube])
+
+
+def run(threads: int, graph: str = "off", frames: int = 3):
+    st = SimSettings(frames=frames, fps=24, device="cpu", grid_res=16, cpu_threads=threads, rest_speed=0, graph=graph)
+    return simulate(scene(), [Material.preset("jelly"), Material.preset("rigid")], SCENE, st, record_all=True)
+
+
+def test_thread_count_does_not_change_a_bit():
+    one, two, three = run(1), run(2), run(3)
+    assert one.stats["cpu_chunks"] == 3 and (one.stats["threads"], two.stats["threads"]) == (1, 2)
+    for other in (two, three):
+        assert torch.equal(one.x, other.x) and torch.equal(one.F, other.F)
+        assert one.stats["substeps"] == other.stats["substeps"]
+        assert one.stats["energy"] == other.stats["energy"]
+
+
+def test_chunked_run_matches_one_unsplit_pass_to_round_off(monkeypatch):
+    """Same kernels, sums in another order: the difference is float32 round-off (~1e-8 m per
+    substep on a 0.1 m scene) accumulated over ~100 substeps; 1e-6 m leaves a margin of 10."""
+    chunked = run(2)
+    monkeypatch.setattr(mpm, "MIN_CHUNK_PARTICLES", 10 ** 9)
+    single = run(2)
+    assert chunked.stats["substeps"] == single.stats["substeps"]
+    assert float((chunked.x - single.x).abs().max()) < 1e-6
+
+
+def test_graph_replay_of_a_chunked_run_is_bit_identical_to_the_threaded_run():
+    """A captured graph replays the chunks one after another; the threads run them at once."""
+    eager = run(2, "off", frames=2)
+    graph = run(2, "on", frames=2)
+    assert graph.stats["graph"] and graph.stats["graph_captures"] >= 1
+    assert torch.equal(eager.x, graph.x) and torch.equal(eager.F, graph.F)
+
+
+class _RecordingWarp:
+    """Warp, with the thread of every per-particle kernel launch recorded."""
+
+    def __init__(self, wp):
+        self._wp = wp
+        self.threads: dict = {}
+
+    def launch(self, kernel, *a, **kw):
+        self.threads.setdefault(kernel.key, set()).add(threading.get_ident())
+        return self._wp.launch(kernel, *a, **kw)
+
+    def __getattr__(self, name):
+        return getattr(self._wp, name)
+
+
+def test_chunks_run_on_the_worker_threads_and_cover_every_particle_once():
+    x, vol = lattice_points((0.0, 0.3, 0.0), (0.25, 0.55, 0.25), 0.25 / 26)
+    dom = Domain.around(x.min(0), x.max(0), 0.25 / 13, 0.5, None)
+    solver = MPMSolver(x, vol, np.zeros(len(x), np.int64), [material_preset("jelly")], dom, device="cpu", threads=2)
+    assert solver.chunks == len(x) // mpm.MIN_CHUNK_PARTICLES and solver.threads == 2
+    starts = [a for a, _ in solver._chunk_ranges]
+    counts = [c for _, c in solver._chunk_ranges]
+    assert starts[0] == 0 and sum(counts) == len(x) and all(s + c == t for s, c, t in
+                                                           zip(starts, counts, starts[1:] + [len(x)]))
+    rec = solver.wp = _RecordingWarp(solver.wp)
+    for _ in range(3):
+        solver.substep(1e-4)
+    main = threading.get_ident()
+    for key in ("p2g", "g2p", "grid_update"):
+        assert main not in rec.threads[key] and len(rec.threads[key]) == 2, (key, rec.threads)
+    # Free fall, no contact yet: every particle has the same velocity -g t.
+    v = solver.velocities()
+    assert np.allclose(v[:, 1], -9.81 * 3e-4, rtol=1e-4) and np.abs(v[:, [0, 2]]).max() < 1e-6
+
+
+def test_chunk_count_depends_on_the_scene_only(monkeypatch):
+    assert cpu_chunks(1000, (20, 20, 20), "cpu") == 1
+    assert cpu_chunks(3 * mpm.MIN_CHUNK_PARTICLES + 5, (20, 20, 20), "cpu") == 3
+    assert cpu_chunks(10 ** 7, (20, 20, 20), "cpu") == mpm.MAX_CPU_CHUNKS
+    assert cpu_chunks(10 ** 7, (20, 20, 20), "cuda:0") == 1  # CUDA atomics are real: one layer
+    # A huge grid gets fewer layers: all of them within CHUNK_GRID_BUDGET.
+    dims = (200, 200, 200)
+    k = cpu_chunks(10 ** 7, dims, "cpu")
+    assert k == 2 and k * np.prod(dims) * mpm.LAYER_BYTES <= mpm.CHUNK_GRID_BUDGET
+    assert cpu_chunks(10 ** 7, (400, 400, 400), "cpu") == 1  # one layer, whatever it costs
+    for threads in ("1", "7"):
+        monkeypatch.setenv("PHYSMOTION_CPU_THREADS", threads)
+        assert cpu_threads(0) == int(threads)
+        assert cpu_chunks(10 ** 7, (20, 20, 20), "cpu") == mpm.MAX_CPU_CHUNKS
+    assert cpu_threads(5) == 5  # an explicit setting wins over the environment
+
+
+def test_memory_estimate_counts_the_layers():
+    one = mpm.estimate_bytes(10 ** 5, (50, 50, 50), 1, 0, layers=1)["device"]
+    eight = mpm.estimate_bytes(10 ** 5, (50, 50, 50), 1, 0, layers=8)["device"]
+    assert eight - one == 7 * 50 ** 3 * mpm.LAYER_BYTES
+
+
+@pytest.mark.parametrize("value", [-1, 2.5, "4", 5000])
+def test_bad_thread_counts_are_refused_with_the_range(value):
+    with pytest.raises(InputError, match=r"cpu_threads must be an integer in \[0, 1024\]"):
+        SimSettings(cpu_threads=value).validate()
+
+
+def test_bad_thread_environment_is_refused(monkeypatch):
+    monkeypatch.setenv("PHYSMOTION_CPU_THREADS", "many")
+    with pytest.raises(InputError, match="PHYSMOTION_CPU_THREADS must be a positive integer"):
+        cpu_threads(0)
