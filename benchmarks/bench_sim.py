@@ -156,6 +156,7 @@ def main() -> None:
         order_rows.append((order, time_substeps(s, 15)))
 
     s = make_solver(32, 16, dev)
+    s.substep(1e-4)  # allocates the accumulator layers over the grid span
     arrays = [s.x, s.v, s.C, s.F, s.tau, s.rot, s.plastic, s.mass, s.vol, s.mat_id, s.flags, s.f_static, s.f_total,
               s.anchor_v, s.torque_mask]
     per_particle = sum(a.capacity for a in arrays) / s.n
@@ -193,7 +194,9 @@ def main() -> None:
               "every chunk cover the whole object. The solver does not re-sort. On CUDA it is untested.",
               "", f"**Memory**: {per_particle:.0f} bytes of device state per particle (the estimate used for the "
               f"up-front memory check says {est / s.n:.0f} with the grid's share), plus "
-              f"{grid_bytes / np.prod(s.domain.dims):.0f} bytes per grid node over the whole domain box."]
+              f"{grid_bytes / np.prod(s.domain.dims):.0f} bytes per grid node of the whole domain box "
+              f"({s.layers} accumulator layer(s) over a span of {np.prod(s.grid_m.shape[1:]):,} of its "
+              f"{np.prod(s.domain.dims):,} nodes)."]
     # The CPU table keeps its section; a GPU run writes its own beside it.
     kind = dev.split(":")[0]
     name, title = ("sim-throughput", "## MPM throughput") if kind == "cpu" else (f"sim-throughput-{kind}",

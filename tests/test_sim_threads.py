@@ -102,27 +102,72 @@ def test_chunks_run_on_the_worker_threads_and_cover_every_particle_once():
     assert np.allclose(v[:, 1], -9.81 * 3e-4, rtol=1e-4) and np.abs(v[:, [0, 2]]).max() < 1e-6
 
 
-def test_chunk_count_depends_on_the_scene_only(monkeypatch):
-    assert cpu_chunks(1000, (20, 20, 20), "cpu") == 1
-    assert cpu_chunks(3 * mpm.MIN_CHUNK_PARTICLES + 5, (20, 20, 20), "cpu") == 3
-    assert cpu_chunks(10 ** 7, (20, 20, 20), "cpu") == mpm.MAX_CPU_CHUNKS
-    assert cpu_chunks(10 ** 7, (20, 20, 20), "cuda:0") == 1  # CUDA atomics are real: one layer
-    # A huge grid gets fewer layers: all of them within CHUNK_GRID_BUDGET.
-    dims = (200, 200, 200)
-    k = cpu_chunks(10 ** 7, dims, "cpu")
-    assert k == 2 and k * np.prod(dims) * mpm.LAYER_BYTES <= mpm.CHUNK_GRID_BUDGET
-    assert cpu_chunks(10 ** 7, (400, 400, 400), "cpu") == 1  # one layer, whatever it costs
+def test_chunk_count_depends_on_the_particle_count_only(monkeypatch):
+    assert cpu_chunks(1000, "cpu") == 1
+    assert cpu_chunks(3 * mpm.MIN_CHUNK_PARTICLES + 5, "cpu") == 3
+    assert cpu_chunks(10 ** 7, "cpu") == mpm.MAX_CPU_CHUNKS
+    assert cpu_chunks(10 ** 7, "cuda:0") == 1  # CUDA atomics are real: one chunk, one layer
     for threads in ("1", "7"):
         monkeypatch.setenv("PHYSMOTION_CPU_THREADS", threads)
         assert cpu_threads(0) == int(threads)
-        assert cpu_chunks(10 ** 7, (20, 20, 20), "cpu") == mpm.MAX_CPU_CHUNKS
+        assert cpu_chunks(10 ** 7, "cpu") == mpm.MAX_CPU_CHUNKS
     assert cpu_threads(5) == 5  # an explicit setting wins over the environment
+    # Layers: one per chunk while they fit the budget, else one.
+    assert mpm.layer_count(16, mpm.CHUNK_GRID_BUDGET // (16 * mpm.LAYER_BYTES)) == 16
+    assert mpm.layer_count(16, mpm.CHUNK_GRID_BUDGET // (16 * mpm.LAYER_BYTES) + 1) == 1
 
 
-def test_memory_estimate_counts_the_layers():
-    one = mpm.estimate_bytes(10 ** 5, (50, 50, 50), 1, 0, layers=1)["device"]
-    eight = mpm.estimate_bytes(10 ** 5, (50, 50, 50), 1, 0, layers=8)["device"]
-    assert eight - one == 7 * 50 ** 3 * mpm.LAYER_BYTES
+def test_memory_estimate_bounds_the_layers():
+    nodes = 50 ** 3
+    one = mpm.estimate_bytes(10 ** 5, (50, 50, 50), 1, 0, chunks=1)["device"]
+    eight = mpm.estimate_bytes(10 ** 5, (50, 50, 50), 1, 0, chunks=8)["device"]
+    assert eight - one == 7 * nodes * mpm.LAYER_BYTES  # 8 layers over the whole domain fit the budget
+    big = (400, 400, 400)  # 64 M nodes: one layer over it is more than the budget
+    assert (mpm.estimate_bytes(10 ** 5, big, 1, 0, chunks=16)["device"]
+            == mpm.estimate_bytes(10 ** 5, big, 1, 0, chunks=1)["device"])
+
+
+def falling_cube(threads=2, side=24, cells=12, margin=2.0):
+    x, vol = lattice_points((0.0, 0.3, 0.0), (0.25, 0.55, 0.25), 0.25 / side)
+    dom = Domain.around(x.min(0), x.max(0), 0.25 / cells, margin, None)
+    return MPMSolver(x, vol, np.zeros(len(x), np.int64), [material_preset("jelly")], dom, device="cpu",
+                     threads=threads)
+
+
+def test_layers_cover_the_span_and_follow_it_as_it_grows():
+    s = falling_cube()
+    assert s.chunks == 3
+    s.substep(1e-4)
+    dims = np.asarray(s.domain.dims)
+    layer_dims = np.asarray(s.grid_m.shape[1:])
+    assert s.grid_m.shape[0] == s.layers == 3
+    assert np.prod(layer_dims) < 0.5 * np.prod(dims)  # far less than the domain (2 sizes of room)
+    lo, hi = np.asarray(s._span[0]), np.asarray(s._span[1])
+    assert np.all(np.asarray(s._layer_lo) <= lo) and np.all(hi <= np.asarray(s._layer_hi))
+    # Fall 0.3 s: the span moves down and the layers are reallocated to follow it.
+    s.advance(0.3)
+    assert s.layer_reallocations >= 1
+    lo, hi = np.asarray(s._span[0]), np.asarray(s._span[1])
+    assert np.all(np.asarray(s._layer_lo) <= lo) and np.all(hi <= np.asarray(s._layer_hi))
+    # Free fall without contact: every particle drops by the same g t²/2, plus symplectic Euler's
+    # lead of at most g t dt_max / 2 (x is advanced with the velocity at the end of each step).
+    drop = falling_cube().positions()[:, 1] - s.positions()[:, 1]
+    g = 9.81
+    assert np.ptp(drop) < 1e-5
+    assert 0.5 * g * s.t ** 2 - 1e-5 <= drop.mean() <= 0.5 * g * s.t ** 2 + 0.5 * g * s.t * s.dt_max + 1e-5
+
+
+def test_a_span_over_the_budget_gets_one_layer_and_the_unsplit_result(monkeypatch):
+    """Chunks taking turns on one layer add in particle order, exactly as one pass does: tolerance 0."""
+    monkeypatch.setattr(mpm, "CHUNK_GRID_BUDGET", 1)
+    few = falling_cube()
+    few.advance(0.05)
+    assert few.chunks == 3 and few.layers == 1
+    monkeypatch.setattr(mpm, "MIN_CHUNK_PARTICLES", 10 ** 9)
+    one = falling_cube()
+    one.advance(0.05)
+    assert one.chunks == 1
+    assert np.array_equal(few.positions(), one.positions()) and np.array_equal(few.velocities(), one.velocities())
 
 
 @pytest.mark.parametrize("value", [-1, 2.5, "4", 5000])

@@ -26,7 +26,8 @@ On the CPU, where Warp runs a kernel on one thread and its atomics are plain add
 splits the particles into contiguous chunks and launches p2g and g2p once per chunk on a thread
 pool: each chunk scatters into its own layer of the grid accumulators (``grid_update`` sums the
 layers in order, over the box of nodes each layer's particles reach) and reduces into its own row
-of statistics (``merge_stats``). On CUDA there is one chunk and one layer.
+of statistics (``merge_stats``). The layers cover the launch's span from node ``layer_lo``. On CUDA
+there is one chunk and one layer over the whole domain.
 
 Materials are a table of structs indexed by each particle's material id; ``model`` selects the
 constitutive rule (a switch inside ``update_material``), so adding a model touches one function.
@@ -365,10 +366,12 @@ def p2g(
     offset: int,
     layer: int,
     layer_box: wp.array2d(dtype=int),
+    layer_lo: wp.vec3i,
 ):
     """Scatter particles offset .. offset + launch dim into accumulator layer ``layer`` (see
-    ``grid_update``: the layers of one substep are summed there). With several layers, also grow
-    the layer's box of stencil bases, so grid_update reads only the nodes a layer can hold."""
+    ``grid_update``: the layers of one substep are summed there). The layers start at node
+    ``layer_lo``. With several layers, also grow the layer's box of stencil bases, so grid_update
+    reads only the nodes a layer can hold."""
     p = wp.tid() + offset
     dt = dt_arr[0]
     base = stencil_base(x[p], grid)
@@ -395,9 +398,9 @@ def p2g(
             for k in range(3):
                 w = wx[i] * wy[j] * wz[k]
                 dpos = (wp.vec3(float(i), float(j), float(k)) - fx) * grid.dx
-                ix = base[0] + i
-                iy = base[1] + j
-                iz = base[2] + k
+                ix = base[0] + i - layer_lo[0]
+                iy = base[1] + j - layer_lo[1]
+                iz = base[2] + k - layer_lo[2]
                 wp.atomic_add(grid_m, layer, ix, iy, iz, w * m)
                 wp.atomic_add(grid_mv, layer, ix, iy, iz, w * (mv + affine * dpos))
                 if anchored:
@@ -436,6 +439,7 @@ def grid_update(
     gravity: wp.vec3,
     dt_arr: wp.array(dtype=float),
     layer_box: wp.array2d(dtype=int),
+    layer_lo: wp.vec3i,
 ):
     """Node velocities from the accumulated mass and momentum. The accumulators have one layer per
     particle chunk (one in all on CUDA, where p2g's atomics are real; a chunk each for the CPU's
@@ -457,16 +461,19 @@ def grid_update(
             if i < layer_box[l, 0] or i > layer_box[l, 3] + 2 or j < layer_box[l, 1] or j > layer_box[l, 4] + 2 or \
                     k < layer_box[l, 2] or k > layer_box[l, 5] + 2:
                 continue
-        m += grid_m[l, i, j, k]
-        mv += grid_mv[l, i, j, k]
-        if grid_fix[l, i, j, k] != 0:
+        li = i - layer_lo[0]
+        lj = j - layer_lo[1]
+        lk = k - layer_lo[2]
+        m += grid_m[l, li, lj, lk]
+        mv += grid_mv[l, li, lj, lk]
+        if grid_fix[l, li, lj, lk] != 0:
             fix = 1
-            fix_v = grid_fix_v[l, i, j, k]  # the last chunk's anchor, as a single pass would leave it
+            fix_v = grid_fix_v[l, li, lj, lk]  # the last chunk's anchor, as a single pass would leave it
         # Leave the accumulators clean for the next substep's p2g.
-        grid_m[l, i, j, k] = 0.0
-        grid_mv[l, i, j, k] = wp.vec3(0.0, 0.0, 0.0)
-        grid_fix[l, i, j, k] = 0
-        grid_fix_v[l, i, j, k] = wp.vec3(0.0, 0.0, 0.0)
+        grid_m[l, li, lj, lk] = 0.0
+        grid_mv[l, li, lj, lk] = wp.vec3(0.0, 0.0, 0.0)
+        grid_fix[l, li, lj, lk] = 0
+        grid_fix_v[l, li, lj, lk] = wp.vec3(0.0, 0.0, 0.0)
     v = wp.vec3(0.0, 0.0, 0.0)
     if fix != 0:
         v = fix_v  # held by an anchor: fixed or moved at its prescribed velocity

@@ -31,12 +31,16 @@ MAX_GRAPHS = 8  # captured launch graphs kept per solver (one per grid span and 
 # CPU splits the particles into contiguous chunks: each chunk's p2g scatters into its own layer of
 # grid accumulators (summed by grid_update in layer order) and each chunk's g2p reduces into its own
 # row of statistics (folded by merge_stats). Chunks run concurrently on a thread pool (Warp releases
-# the GIL while a kernel runs). How many chunks depends only on the scene, never on the number of
-# threads, so a run gives the same bits on any machine.
+# the GIL while a kernel runs). How many chunks depends only on the particle count, never on the
+# number of threads, so a run gives the same bits on any machine. The layers cover the launch's grid
+# span (plus LAYER_SLACK), not the whole domain, and are reallocated when the span outgrows them; a
+# span too large for CHUNK_GRID_BUDGET gets one layer, filled by the chunks one after another (what
+# one unsplit pass computes), while g2p stays parallel.
 MIN_CHUNK_PARTICLES = 4096
 MAX_CPU_CHUNKS = 16
 LAYER_BYTES = 32  # per grid node and chunk: mass (4) + momentum (12) + anchor flag (4) + anchor velocity (12)
-CHUNK_GRID_BUDGET = 512 * 2 ** 20  # bytes all chunks' accumulator layers may take together
+CHUNK_GRID_BUDGET = 256 * 2 ** 20  # bytes all chunks' accumulator layers may take together
+LAYER_SLACK = 8  # nodes of room the layers get around a span, so a growing scene reallocates rarely
 ROW_PAD = 32  # 4-byte values per row of chunk-private reductions: no false sharing between threads
 
 
@@ -114,13 +118,17 @@ class Domain:
         return cls(origin=origin.astype(np.float64), dx=float(dx), dims=dims, ground_node=ground_node)
 
 
-def cpu_chunks(num_particles: int, dims: Sequence[int], device: str) -> int:
+def cpu_chunks(num_particles: int, device: str) -> int:
     """How many particle chunks p2g and g2p are split into: 1 on CUDA; on the CPU one per
-    MIN_CHUNK_PARTICLES particles, at most MAX_CPU_CHUNKS and within CHUNK_GRID_BUDGET."""
+    MIN_CHUNK_PARTICLES particles, at most MAX_CPU_CHUNKS."""
     if str(device) != "cpu":
         return 1
-    by_memory = CHUNK_GRID_BUDGET // max(int(np.prod(dims)) * LAYER_BYTES, 1)
-    return int(max(1, min(MAX_CPU_CHUNKS, num_particles // MIN_CHUNK_PARTICLES, by_memory)))
+    return int(max(1, min(MAX_CPU_CHUNKS, num_particles // MIN_CHUNK_PARTICLES)))
+
+
+def layer_count(chunks: int, span_nodes: int) -> int:
+    """Accumulator layers for a span of ``span_nodes`` nodes: one per chunk within the budget, else one."""
+    return chunks if chunks > 1 and chunks * span_nodes * LAYER_BYTES <= CHUNK_GRID_BUDGET else 1
 
 
 def cpu_threads(requested: int = 0) -> int:
@@ -139,12 +147,16 @@ def cpu_threads(requested: int = 0) -> int:
     return int(requested)
 
 
-def estimate_bytes(num_particles: int, dims: Sequence[int], frames: int, recorded: int, layers: int = 1) -> dict:
+def estimate_bytes(num_particles: int, dims: Sequence[int], frames: int, recorded: int, chunks: int = 1) -> dict:
     """Memory the run will need: device arrays, and the host copy of the recorded trajectory.
-    ``layers``: the grid accumulators' chunk layers (``cpu_chunks``)."""
+    ``chunks`` (``cpu_chunks``) > 1: the accumulator layers take at most CHUNK_GRID_BUDGET, or one
+    layer over the whole domain, whichever is more."""
     nodes = int(np.prod(dims))
+    accumulators = nodes * LAYER_BYTES
+    if chunks > 1:
+        accumulators = max(min(chunks * accumulators, CHUNK_GRID_BUDGET), accumulators)
     # x v f_ext (vec3) + C F tau (mat33) + rot (quat) + mass vol plastic mat flags body torque (scalars)
-    device = num_particles * (12 * 3 + 36 * 3 + 16 + 4 * 7) + nodes * (12 + LAYER_BYTES * layers)
+    device = num_particles * (12 * 3 + 36 * 3 + 16 + 4 * 7) + nodes * 12 + accumulators
     host = (frames + 1) * recorded * (12 + 36)
     return {"device": device, "host": host, "nodes": nodes}
 
@@ -208,7 +220,7 @@ class MPMSolver:
         self._span: Optional[tuple] = None
         self._chunk = 8
         # Particle chunks (see MIN_CHUNK_PARTICLES) and the threads that run them.
-        self.chunks = cpu_chunks(n, domain.dims, device)
+        self.chunks = cpu_chunks(n, device)
         edges = np.linspace(0, n, self.chunks + 1).astype(np.int64)
         self._chunk_ranges = [(int(a), int(b - a)) for a, b in zip(edges[:-1], edges[1:])]
         self.threads = min(cpu_threads(threads), self.chunks) if device == "cpu" else 1
@@ -259,12 +271,18 @@ class MPMSolver:
             self.f_static = wp.zeros(n, dtype=wp.vec3)
             self.f_total = wp.zeros(n, dtype=wp.vec3)
             self.material_table = wp.array([kernel_params(m) for m in materials], dtype=K.MaterialParams)
-            layers = (self.chunks, *domain.dims)
-            self.grid_m = wp.zeros(layers, dtype=float)
-            self.grid_mv = wp.zeros(layers, dtype=wp.vec3)
             self.grid_v = wp.zeros(domain.dims, dtype=wp.vec3)
-            self.grid_fix = wp.zeros(layers, dtype=int)
-            self.grid_fix_v = wp.zeros(layers, dtype=wp.vec3)
+            # The accumulators: one layer over the whole domain with one chunk (CUDA, small scenes);
+            # with several, layers over the grid span, allocated by _fit_layers.
+            self.layers = 1
+            self._layer_lo = (0, 0, 0)
+            self._layer_hi = tuple(int(d) - 1 for d in domain.dims)
+            if self.chunks == 1:
+                self._alloc_layers(1, self._layer_lo, self._layer_hi)
+            else:
+                self.grid_m = self.grid_mv = self.grid_fix = self.grid_fix_v = None  # at the first launch
+                self._layer_hi = (-1, -1, -1)
+                self.layer_reallocations = -1
             # Each layer's box of stencil bases (p2g). Rows of chunk-private data are padded to
             # ROW_PAD values (128 bytes), so threads never share a cache line.
             self.layer_box = wp.zeros((self.chunks, ROW_PAD), dtype=int)
@@ -323,6 +341,35 @@ class MPMSolver:
         self.stats.assign(st)
         self._box = (x.min(axis=0).astype(np.float64), x.max(axis=0).astype(np.float64))
         self._check_box(frame=0)
+
+    # -- accumulator layers -------------------------------------------------------------------
+    def _alloc_layers(self, layers: int, lo: tuple, hi: tuple) -> None:
+        wp = self.wp
+        shape = (layers,) + tuple(int(h - l + 1) for l, h in zip(lo, hi))
+        with wp.ScopedDevice(self.device):
+            self.grid_m = wp.zeros(shape, dtype=float)
+            self.grid_mv = wp.zeros(shape, dtype=wp.vec3)
+            self.grid_fix = wp.zeros(shape, dtype=int)
+            self.grid_fix_v = wp.zeros(shape, dtype=wp.vec3)
+        self.layers, self._layer_lo, self._layer_hi = layers, tuple(lo), tuple(hi)
+        self._layer_lo_w = wp.vec3i(*self._layer_lo)
+        self.layer_reallocations = getattr(self, "layer_reallocations", -1) + 1
+
+    def _fit_layers(self, span: tuple) -> None:
+        """Make the accumulator layers cover ``span`` (chunked runs only). Every p2g writes inside
+        the span (each particle checks that its next stencil does), so the layers need no more.
+        Captured graphs hold the old arrays' addresses and are dropped."""
+        if self.chunks == 1:
+            return
+        lo, hi = span
+        if all(a <= l and h <= b for a, l, h, b in zip(self._layer_lo, lo, hi, self._layer_hi)):
+            return
+        dims = self.domain.dims
+        new_lo = tuple(max(int(l) - LAYER_SLACK, 0) for l in lo)
+        new_hi = tuple(min(int(h) + LAYER_SLACK, int(d) - 1) for h, d in zip(hi, dims))
+        nodes = int(np.prod([h - l + 1 for l, h in zip(new_lo, new_hi)]))
+        self._alloc_layers(layer_count(self.chunks, nodes), new_lo, new_hi)
+        self._graphs.clear()
 
     # -- rigid bodies -------------------------------------------------------------------------
     def _init_bodies(self, x: np.ndarray, mass: np.ndarray, volume: np.ndarray) -> None:
@@ -512,10 +559,10 @@ class MPMSolver:
             weakref.finalize(self, self._pool.shutdown, wait=False)
         return True
 
-    def _launch_parts(self, kernel, parts: list) -> None:
+    def _launch_parts(self, kernel, parts: list, concurrent: bool = True) -> None:
         """Launch ``kernel`` once per (dim, inputs) part: concurrently on the CPU's threads, else in
-        order. The parts must not write the same memory (chunks have their own layers and rows)."""
-        if len(parts) == 1 or not self._parallel():
+        order. Concurrent parts must not write the same memory (chunks have their own layers and rows)."""
+        if len(parts) == 1 or not concurrent or not self._parallel():
             for dim, inputs in parts:
                 self._launch(kernel, dim, inputs)
             return
@@ -552,13 +599,15 @@ class MPMSolver:
                                                            self.f_total])
             forces = self.f_total
         chunks = list(enumerate(self._chunk_ranges))
+        layered = self.layers > 1  # else the chunks take turns on one layer
         self._launch_parts(K.p2g, [(count, [self.x, self.v, self.C, self.tau, self.mass, self.vol, self.flags, forces,
                                             self.grid, self.dt_arr, self.grid_m, self.grid_mv, self.grid_fix,
-                                            self.grid_fix_v, self.anchor_v, self.apic, start, c, self.layer_box])
-                                   for c, (start, count) in chunks])
+                                            self.grid_fix_v, self.anchor_v, self.apic, start, c if layered else 0,
+                                            self.layer_box, self._layer_lo_w])
+                                   for c, (start, count) in chunks], concurrent=layered)
         self._launch_parts(K.grid_update, self._grid_parts(span_lo, dims, lambda slab_lo: [
             self.grid_m, self.grid_mv, self.grid_v, self.grid_fix, self.grid_fix_v, slab_lo, self.grid, self.bc,
-            self._gravity_w, self.dt_arr, self.layer_box]))
+            self._gravity_w, self.dt_arr, self.layer_box, self._layer_lo_w]))
         self._launch_parts(K.g2p, [(count, [self.x, self.v, self.C, self.F, self.rot, self.plastic, self.tau,
                                             self.mat_id, self.material_table, self.flags, self.mass, self.anchor_v,
                                             forces, self.grid_v, self.grid, self.dt_arr, self._stats_of[c], lo, hi,
@@ -687,6 +736,7 @@ class MPMSolver:
                 self._raise_invalid(frame)
             if self._span is None:
                 self._span = self._grid_span(t_end - self.t)
+                self._fit_layers(self._span)
             self._ctl[K.C_T_END] = t_end
             self._status[K.I_LAUNCH_SUBSTEPS] = 0
             self._status[K.I_CHUNK] = self._chunk
@@ -711,6 +761,7 @@ class MPMSolver:
         """Exactly one substep of length ``dt`` (no CFL limit; for tests and reference runs)."""
         if self._span is None:
             self._span = self._grid_span(float(dt))
+            self._fit_layers(self._span)
         self._ctl[K.C_FORCE_DT] = float(dt)
         self._ctl[K.C_T_END] = self.t + float(dt)
         self._status[K.I_LAUNCH_SUBSTEPS] = 0

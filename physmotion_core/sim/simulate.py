@@ -164,7 +164,7 @@ def simulate(
     domain = Domain.around(x0.min(0), x0.max(0), dx, settings.domain_margin, ground)
     recorded = np.arange(len(x0)) if record_all else np.unique(neighbours)
     need = estimate_bytes(x0.shape[0], domain.dims, settings.frames, recorded.shape[0],
-                          layers=cpu_chunks(x0.shape[0], domain.dims, device))
+                          chunks=cpu_chunks(x0.shape[0], device))
     dev_free = device_available_bytes(device)
     if device.startswith("cuda"):
         if need["device"] > 0.9 * dev_free:
