@@ -60,6 +60,9 @@ FLAG_ANCHORED = wp.constant(1)
 FLAG_RIGID = wp.constant(2)
 
 SQRT_2_3 = wp.constant(0.816496580927726)
+# Below this Frobenius norm of F Fᵀ - I (stretches within about ±5 %), the von Mises family works on
+# the matrix logarithm of the left stretch by series instead of an SVD (update_material).
+LOG_SERIES_MAX = wp.constant(0.1)
 
 
 @wp.struct
@@ -164,6 +167,47 @@ def log_stretches(sig: wp.vec3) -> wp.vec3:
     # Inverted or collapsed elements: plasticity treats them as strongly compressed, never NaN.
     return wp.vec3(wp.log(wp.max(wp.abs(sig[0]), 1.0e-4)), wp.log(wp.max(wp.abs(sig[1]), 1.0e-4)),
                    wp.log(wp.max(wp.abs(sig[2]), 1.0e-4)))
+
+
+@wp.func
+def log_series(X: wp.mat33) -> wp.mat33:
+    """log(I + X) for a symmetric X with |X| < LOG_SERIES_MAX, by its Taylor series to X⁸ (Horner).
+    Truncation error below |X|⁹ / (9 (1 - |X|)) < 2e-10: under float32 round-off."""
+    I = wp.identity(n=3, dtype=float)
+    P = I * (1.0 / 8.0)
+    P = I * (1.0 / 7.0) - X * P
+    P = I * (1.0 / 6.0) - X * P
+    P = I * (1.0 / 5.0) - X * P
+    P = I * (1.0 / 4.0) - X * P
+    P = I * (1.0 / 3.0) - X * P
+    P = I * 0.5 - X * P
+    P = I - X * P
+    return X * P
+
+
+@wp.func
+def exp_series(A: wp.mat33) -> wp.mat33:
+    """exp(A) for a small symmetric A (|A| < LOG_SERIES_MAX / 2 where it is used), to A⁶ (Horner):
+    truncation error below |A|⁷ / 5040 < 2e-12."""
+    I = wp.identity(n=3, dtype=float)
+    P = I + A * (1.0 / 6.0)
+    P = I + (A * P) * (1.0 / 5.0)
+    P = I + (A * P) * (1.0 / 4.0)
+    P = I + (A * P) * (1.0 / 3.0)
+    P = I + (A * P) * 0.5
+    return I + A * P
+
+
+@wp.func
+def polar_newton(F: wp.mat33) -> wp.mat33:
+    """The rotation R of F = R S (det F > 0) by Newton's iteration X ← (X + X⁻ᵀ) / 2 from X = F
+    (Higham 1986): each singular value goes σ ← (σ + 1/σ) / 2, so the error about squares each
+    step. Used for stretches within [0.75, 1.2], where four steps reach float32 round-off; five
+    are taken."""
+    X = F
+    for it in range(5):
+        X = 0.5 * (X + wp.transpose(wp.inverse(X)))
+    return X
 
 
 @wp.func
@@ -566,6 +610,15 @@ def update_material(
                 t = mat.lam * (Jc - 1.0) * Jc * I
             tau[p] = t
             return wave_speed_sq(0.0, mat.lam, mat.density, Jc)
+        # No principal stretch can pass the threshold while |FᵀF - I| stays below fs² - 1 (σ_max² - 1
+        # is an eigenvalue of FᵀF - I): then the polar rotation comes from Newton's iteration, with
+        # no SVD.
+        Cm = wp.transpose(F) * F - I
+        fs = mat.fracture_stretch
+        if J > 0.5 and fs < 1.2 and wp.ddot(Cm, Cm) < (fs * fs - 1.0) * (fs * fs - 1.0):
+            Fout[p] = F
+            tau[p] = corotated_stress(F, polar_newton(F), mat.mu, mat.lam)
+            return wave_speed_sq(mat.mu, mat.lam, mat.density, J)
         U = wp.mat33()
         sig = wp.vec3()
         V = wp.mat33()
@@ -575,6 +628,36 @@ def update_material(
         Fout[p] = F
         tau[p] = corotated_stress(F, U * wp.transpose(V), mat.mu, mat.lam)
         return wave_speed_sq(mat.mu, mat.lam, mat.density, J)
+
+    if model == MODEL_VON_MISES or model == MODEL_PLASTICINE or model == MODEL_VISCOPLASTIC:
+        # Small elastic strain (always, for materials that yield at a fraction of a percent, unless a
+        # substep strains them hard): the same return mapping on the Hencky strain without an SVD.
+        # L = log V = ½ log(F Fᵀ) has the eigenvectors U of F = U Σ Vᵀ and eigenvalues log Σ, so the
+        # deviatoric projection of its eigenvalues is one of L itself, the new elastic F is
+        # exp(ΔL) F (ΔL commutes with L), and the Kirchhoff stress is 2μ L + λ tr(L) I.
+        X = F * wp.transpose(F) - I
+        if wp.ddot(X, X) < LOG_SERIES_MAX * LOG_SERIES_MAX:
+            L = 0.5 * log_series(X)
+            trL = L[0, 0] + L[1, 1] + L[2, 2]
+            devL = L - (trL / 3.0) * I
+            nL = wp.sqrt(wp.ddot(devL, devL))
+            syL = mat.yield_stress
+            if model == MODEL_VON_MISES:
+                syL = syL + mat.hardening * state_in
+            elif model == MODEL_PLASTICINE:
+                syL = wp.max(syL - mat.softening * state_in, 0.0)
+            dgL = nL - SQRT_2_3 * syL / (2.0 * mat.mu)
+            Fe = F
+            if dgL > 0.0 and nL > 1.0e-12:
+                if model == MODEL_VISCOPLASTIC:
+                    dgL = dgL * dt / (dt + mat.viscosity / (2.0 * mat.mu))
+                dL = (-dgL / nL) * devL
+                L = L + dL
+                Fe = exp_series(dL) * F
+                plastic[p] = state_in + SQRT_2_3 * dgL
+            Fout[p] = Fe
+            tau[p] = 2.0 * mat.mu * L + mat.lam * trL * I
+            return wave_speed_sq(mat.mu, mat.lam, mat.density, wp.exp(trL))
 
     # Models below work on the SVD of the trial F.
     U = wp.mat33()

@@ -25,7 +25,8 @@ PAD = 3  # cells of boundary padding at every face of the domain
 MAX_TORQUES = 30  # torque regions are a per-particle bit mask
 TRANSFERS = ("apic", "pic")  # particle-grid velocity transfer: affine (APIC / MLS-MPM) or plain PIC
 SPAN_QUANTUM = 4  # grid spans are rounded out to multiples of this many nodes (fewer graph captures)
-MAX_SPAN_MARGIN = 32  # nodes of room around the particles' stencils a span may add per side
+MAX_SPAN_MARGIN = 32  # nodes of room around the particles' stencils a span may add per side (graphs)
+EAGER_SPAN_MARGIN = 8  # the same without graphs (CPU), where a new span costs nothing to set up
 MAX_GRAPHS = 8  # captured launch graphs kept per solver (one per grid span and torque state)
 # CPU parallelism. Warp runs a CPU kernel on one thread, and its atomics there are plain adds, so the
 # CPU splits the particles into contiguous chunks: each chunk's p2g scatters into its own layer of
@@ -42,6 +43,7 @@ LAYER_BYTES = 32  # per grid node and chunk: mass (4) + momentum (12) + anchor f
 CHUNK_GRID_BUDGET = 256 * 2 ** 20  # bytes all chunks' accumulator layers may take together
 LAYER_SLACK = 8  # nodes of room the layers get around a span, so a growing scene reallocates rarely
 ROW_PAD = 32  # 4-byte values per row of chunk-private reductions: no false sharing between threads
+MIN_SLAB_NODES = 4096  # grid spans smaller than this are updated by one thread (a pool dispatch costs more)
 
 
 def _warp():
@@ -217,13 +219,14 @@ class MPMSolver:
         self.launches = 0
         self.span_changes = 0  # how often the particles outgrew the grid span of a launch
         self._graphs: dict = {}
+        self._programs: dict = {}  # recorded substep launch commands, per grid span and torque state
         self._span: Optional[tuple] = None
         self._chunk = 8
         # Particle chunks (see MIN_CHUNK_PARTICLES) and the threads that run them.
         self.chunks = cpu_chunks(n, device)
         edges = np.linspace(0, n, self.chunks + 1).astype(np.int64)
         self._chunk_ranges = [(int(a), int(b - a)) for a, b in zip(edges[:-1], edges[1:])]
-        self.threads = min(cpu_threads(threads), self.chunks) if device == "cpu" else 1
+        self.threads = cpu_threads(threads) if device == "cpu" else 1
         self._pool: Optional[ThreadPoolExecutor] = None
         self._capturing = False
         mat_index = np.asarray(mat_index, dtype=np.int64)
@@ -370,6 +373,7 @@ class MPMSolver:
         nodes = int(np.prod([h - l + 1 for l, h in zip(new_lo, new_hi)]))
         self._alloc_layers(layer_count(self.chunks, nodes), new_lo, new_hi)
         self._graphs.clear()
+        self._programs.clear()
 
     # -- rigid bodies -------------------------------------------------------------------------
     def _init_bodies(self, x: np.ndarray, mass: np.ndarray, volume: np.ndarray) -> None:
@@ -538,16 +542,12 @@ class MPMSolver:
         self._node_hi = node_hi
 
     # -- stepping -----------------------------------------------------------------------------
-    def _launch(self, kernel, dim, inputs) -> None:
-        """Launch a kernel; with ``kernel_times`` set to a dict, also time it (synchronising)."""
-        if self.kernel_times is None:
-            self.wp.launch(kernel, dim=dim, inputs=inputs)
-            return
-        t0 = time.perf_counter()
-        self.wp.launch(kernel, dim=dim, inputs=inputs)
-        self.wp.synchronize_device(self.device)
-        key = kernel.key
-        self.kernel_times[key] = self.kernel_times.get(key, 0.0) + time.perf_counter() - t0
+    # A substep is a fixed program of kernel launches. It is recorded once per grid span (and
+    # torque state) as Warp launch commands, with every argument packed, and replayed each substep:
+    # replaying a command costs a couple of microseconds of Python where wp.launch costs ten to
+    # forty, which is most of a small scene's substep on the CPU.
+    def _cmd(self, kernel, dim, inputs):
+        return self.wp.launch(kernel, dim=dim, inputs=inputs, device=self.device, record_cmd=True)
 
     def _parallel(self) -> bool:
         """Run chunks on the thread pool: on the CPU with more than one thread, outside a capture
@@ -559,95 +559,113 @@ class MPMSolver:
             weakref.finalize(self, self._pool.shutdown, wait=False)
         return True
 
-    def _launch_parts(self, kernel, parts: list, concurrent: bool = True) -> None:
-        """Launch ``kernel`` once per (dim, inputs) part: concurrently on the CPU's threads, else in
-        order. Concurrent parts must not write the same memory (chunks have their own layers and rows)."""
-        if len(parts) == 1 or not concurrent or not self._parallel():
-            for dim, inputs in parts:
-                self._launch(kernel, dim, inputs)
-            return
-        t0 = time.perf_counter()
-        wp, device = self.wp, self.device
-        list(self._pool.map(lambda part: wp.launch(kernel, dim=part[0], inputs=part[1], device=device), parts))
+    def _run_step(self, kernel, cmds: list, concurrent: bool) -> None:
+        """Launch one step's commands: concurrently on the CPU's threads when they write disjoint
+        memory (chunks have their own layers and rows), else in order. With ``kernel_times`` set
+        to a dict, also time the step (synchronising)."""
+        t0 = time.perf_counter() if self.kernel_times is not None else 0.0
+        if len(cmds) > 1 and concurrent and self._parallel():
+            for f in [self._pool.submit(c.launch) for c in cmds]:
+                f.result()
+        else:
+            for c in cmds:
+                c.launch()
         if self.kernel_times is not None:
+            self.wp.synchronize_device(self.device)
             self.kernel_times[kernel.key] = self.kernel_times.get(kernel.key, 0.0) + time.perf_counter() - t0
 
-    def _grid_parts(self, span_lo: tuple, dims: tuple, inputs_for) -> list:
-        """grid_update over the span, cut into slabs along x for the threads (nodes are independent,
-        so the cut cannot change a result)."""
-        wp = self.wp
-        slabs = min(self.threads, dims[0]) if self.threads > 1 and not self._capturing else 1
+    def _grid_slabs(self, span_lo: tuple, dims: tuple) -> list:
+        """grid_update's launches: the span cut into slabs along x for the threads (nodes are
+        independent, so the cut cannot change a result)."""
+        slabs = min(self.threads, dims[0]) if self.threads > 1 and int(np.prod(dims)) >= MIN_SLAB_NODES else 1
         edges = np.linspace(0, dims[0], slabs + 1).astype(np.int64)
-        return [((int(b - a), dims[1], dims[2]), inputs_for(wp.vec3i(span_lo[0] + int(a), span_lo[1], span_lo[2])))
+        return [((int(b - a), dims[1], dims[2]), self.wp.vec3i(span_lo[0] + int(a), span_lo[1], span_lo[2]))
                 for a, b in zip(edges[:-1], edges[1:]) if b > a]
 
-    def _substep_kernels(self, span_lo: tuple, span_hi: tuple, torques: bool) -> None:
-        """One substep as a fixed sequence of launches that read dt and write their checks on the
-        device (so the sequence can be captured): plan → [torques] → p2g → grid → g2p → [rigid] → end."""
+    def _record_substep(self, span_lo: tuple, span_hi: tuple, torques: bool) -> list:
+        """The substep program: [(kernel, commands, concurrent)], in order plan → [torques] → p2g
+        → grid → g2p → [merge] → [rigid] → end. Every step reads dt and writes its checks on the
+        device, so the program can also be captured as a graph."""
         wp = self.wp
         lo = wp.vec3i(*span_lo)
         hi = wp.vec3i(*span_hi)
         dims = tuple(int(h - l + 1) for l, h in zip(span_lo, span_hi))
-        self._launch(K.plan_step, dim=1, inputs=[self.stats, self.ctl, self.dt_arr, self.layer_box])
+        prog = []
+
+        def step(kernel, dim, inputs):
+            prog.append((kernel, [self._cmd(kernel, dim, inputs)], False))
+
+        step(K.plan_step, 1, [self.stats, self.ctl, self.dt_arr, self.layer_box])
         forces = self.f_static
         if torques:
-            self._launch(K.zero_sums, dim=self.torque_sums.shape, inputs=[self.torque_sums])
-            self._launch(K.torque_reduce, dim=self.n, inputs=[self.x, self.mass, self.torque_mask,
-                                                           self.n_torques, self.torque_sums])
-            self._launch(K.apply_torques, dim=self.n, inputs=[self.x, self.mass, self.torque_mask, self.n_torques,
-                                                           self.torque_sums, self.torque_taus, self.f_static,
-                                                           self.f_total])
+            step(K.zero_sums, self.torque_sums.shape, [self.torque_sums])
+            step(K.torque_reduce, self.n, [self.x, self.mass, self.torque_mask, self.n_torques, self.torque_sums])
+            step(K.apply_torques, self.n, [self.x, self.mass, self.torque_mask, self.n_torques, self.torque_sums,
+                                           self.torque_taus, self.f_static, self.f_total])
             forces = self.f_total
         chunks = list(enumerate(self._chunk_ranges))
         layered = self.layers > 1  # else the chunks take turns on one layer
-        self._launch_parts(K.p2g, [(count, [self.x, self.v, self.C, self.tau, self.mass, self.vol, self.flags, forces,
-                                            self.grid, self.dt_arr, self.grid_m, self.grid_mv, self.grid_fix,
-                                            self.grid_fix_v, self.anchor_v, self.apic, start, c if layered else 0,
-                                            self.layer_box, self._layer_lo_w])
-                                   for c, (start, count) in chunks], concurrent=layered)
-        self._launch_parts(K.grid_update, self._grid_parts(span_lo, dims, lambda slab_lo: [
+        prog.append((K.p2g, [self._cmd(K.p2g, count, [
+            self.x, self.v, self.C, self.tau, self.mass, self.vol, self.flags, forces, self.grid, self.dt_arr,
+            self.grid_m, self.grid_mv, self.grid_fix, self.grid_fix_v, self.anchor_v, self.apic, start,
+            c if layered else 0, self.layer_box, self._layer_lo_w]) for c, (start, count) in chunks], layered))
+        prog.append((K.grid_update, [self._cmd(K.grid_update, slab_dims, [
             self.grid_m, self.grid_mv, self.grid_v, self.grid_fix, self.grid_fix_v, slab_lo, self.grid, self.bc,
-            self._gravity_w, self.dt_arr, self.layer_box, self._layer_lo_w]))
-        self._launch_parts(K.g2p, [(count, [self.x, self.v, self.C, self.F, self.rot, self.plastic, self.tau,
-                                            self.mat_id, self.material_table, self.flags, self.mass, self.anchor_v,
-                                            forces, self.grid_v, self.grid, self.dt_arr, self._stats_of[c], lo, hi,
-                                            self.status, start])
-                                   for c, (start, count) in chunks])
+            self._gravity_w, self.dt_arr, self.layer_box, self._layer_lo_w])
+            for slab_dims, slab_lo in self._grid_slabs(span_lo, dims)], True))
+        prog.append((K.g2p, [self._cmd(K.g2p, count, [
+            self.x, self.v, self.C, self.F, self.rot, self.plastic, self.tau, self.mat_id, self.material_table,
+            self.flags, self.mass, self.anchor_v, forces, self.grid_v, self.grid, self.dt_arr, self._stats_of[c],
+            lo, hi, self.status, start]) for c, (start, count) in chunks], True))
         if self.stats_rows is not None:
-            self._launch(K.merge_stats, dim=1, inputs=[self.stats_rows, self.stats])
+            step(K.merge_stats, 1, [self.stats_rows, self.stats])
         if self.n_bodies:
-            self._launch(K.rigid_reduce, dim=self.n, inputs=[self.x, self.v, self.mass, forces, self.body,
-                                                          self.body_centre, self.dt_arr, self.body_p, self.body_l])
-            self._launch(K.rigid_velocity, dim=self.n_bodies, inputs=[self.body_orient, self.body_inertia_w,
-                                                                    self.body_mass, self.body_p, self.body_l,
-                                                                    self.body_v, self.body_w])
-            self._launch(K.rigid_contacts, dim=self.n_bodies, inputs=[self.x, self.vol, self.body_start,
-                                                                    self.body_end, self.body_centre,
-                                                                    self.body_orient, self.body_inertia_w,
-                                                                    self.body_mass, self.body_v, self.body_w,
-                                                                    self.grid, self.bc, 8])
-            self._launch(K.rigid_integrate, dim=self.n_bodies, inputs=[self.body_centre, self.body_orient,
-                                                                     self.body_v, self.body_w, self.dt_arr])
-            self._launch(K.rigid_apply, dim=self.n, inputs=[self.x, self.v, self.C, self.F, self.body,
-                                                         self.body_offset, self.body_centre, self.body_orient,
-                                                         self.body_v, self.body_w, self.grid, self.stats, lo, hi,
-                                                         self.status])
-            self._launch(K.body_speed, dim=self.n_bodies, inputs=[self.body_v, self.body_w, self.body_radius_w,
-                                                               self.stats])
-        self._launch(K.end_step, dim=1, inputs=[self.stats, self.ctl, self.status, self.cond])
+            step(K.rigid_reduce, self.n, [self.x, self.v, self.mass, forces, self.body, self.body_centre,
+                                          self.dt_arr, self.body_p, self.body_l])
+            step(K.rigid_velocity, self.n_bodies, [self.body_orient, self.body_inertia_w, self.body_mass,
+                                                   self.body_p, self.body_l, self.body_v, self.body_w])
+            step(K.rigid_contacts, self.n_bodies, [self.x, self.vol, self.body_start, self.body_end,
+                                                   self.body_centre, self.body_orient, self.body_inertia_w,
+                                                   self.body_mass, self.body_v, self.body_w, self.grid, self.bc, 8])
+            step(K.rigid_integrate, self.n_bodies, [self.body_centre, self.body_orient, self.body_v, self.body_w,
+                                                    self.dt_arr])
+            step(K.rigid_apply, self.n, [self.x, self.v, self.C, self.F, self.body, self.body_offset,
+                                         self.body_centre, self.body_orient, self.body_v, self.body_w, self.grid,
+                                         self.stats, lo, hi, self.status])
+            step(K.body_speed, self.n_bodies, [self.body_v, self.body_w, self.body_radius_w, self.stats])
+        step(K.end_step, 1, [self.stats, self.ctl, self.status, self.cond])
+        return prog
+
+    def _substep_kernels(self, span_lo: tuple, span_hi: tuple, torques: bool) -> None:
+        """Run one substep: the recorded program for this span and torque state."""
+        key = (span_lo, span_hi, torques)
+        prog = self._programs.get(key)
+        if prog is None:
+            if len(self._programs) >= MAX_GRAPHS:
+                self._programs.pop(next(iter(self._programs)))
+            prog = self._programs[key] = self._record_substep(span_lo, span_hi, torques)
+        for kernel, cmds, concurrent in prog:
+            self._run_step(kernel, cmds, concurrent)
 
     def _grid_span(self, horizon: float) -> tuple[tuple, tuple]:
         """Grid nodes the next launch works on: the particles' stencils now, plus room for what they
         can travel in ``horizon`` seconds, rounded outwards to multiples of SPAN_QUANTUM nodes so
-        that a slowly moving scene keeps replaying the same captured graph."""
+        that a slowly moving scene keeps replaying the same captured graph.
+
+        With graphs, the room also covers the acceleration bound (a new span means a new capture).
+        Without, it covers the present speed only, at most EAGER_SPAN_MARGIN nodes: outgrowing a
+        span only ends the launch early, and every grid node spared is work saved each substep."""
         d = self.domain
         lo, hi = self._box
         node_lo = np.floor((lo - d.origin) / d.dx - 0.5).astype(np.int64)
         node_hi = np.floor((hi - d.origin) / d.dx - 0.5).astype(np.int64) + 2
         speed = max(float(self._stats[K.S_VMAX]), self._anchor_speed)
-        accel = float(self._ctl[K.C_ACCEL])
-        travel = speed * horizon + 0.5 * accel * horizon * horizon
-        margin = int(min(max(math.ceil(travel / d.dx) + 1, 2), MAX_SPAN_MARGIN))
+        travel = speed * horizon
+        cap = EAGER_SPAN_MARGIN
+        if self.use_graph:
+            travel += 0.5 * float(self._ctl[K.C_ACCEL]) * horizon * horizon
+            cap = MAX_SPAN_MARGIN
+        margin = int(min(max(math.ceil(travel / d.dx) + 1, 2), cap))
         q = SPAN_QUANTUM
         span_lo = np.maximum((node_lo - margin) // q * q, 0)
         span_hi = np.minimum(-((-(node_hi + margin + 1)) // q) * q - 1, np.asarray(d.dims) - 1)
