@@ -470,30 +470,23 @@ def contact_velocity(v: wp.vec3, n: wp.vec3, contact: int, mu: float) -> wp.vec3
     return vt * (1.0 - mu * (-vn) / vt_len)
 
 
-@wp.kernel
-def grid_update(
+@wp.func
+def update_node(
+    i: int,
+    j: int,
+    k: int,
     grid_m: wp.array4d(dtype=float),
     grid_mv: wp.array4d(dtype=wp.vec3),
     grid_v: wp.array3d(dtype=wp.vec3),
     grid_fix: wp.array4d(dtype=int),
     grid_fix_v: wp.array4d(dtype=wp.vec3),
-    lo: wp.vec3i,
     grid: GridInfo,
     bc: Boundary,
     gravity: wp.vec3,
-    dt_arr: wp.array(dtype=float),
+    dt: float,
     layer_box: wp.array2d(dtype=int),
     layer_lo: wp.vec3i,
 ):
-    """Node velocities from the accumulated mass and momentum. The accumulators have one layer per
-    particle chunk (one in all on CUDA, where p2g's atomics are real; a chunk each for the CPU's
-    threads, whose adds are not atomic); they are summed here in layer order, so the result does
-    not depend on which thread scattered which chunk."""
-    a, b, c = wp.tid()
-    dt = dt_arr[0]
-    i = lo[0] + a
-    j = lo[1] + b
-    k = lo[2] + c
     m = float(0.0)
     mv = wp.vec3(0.0, 0.0, 0.0)
     fix = int(0)
@@ -540,6 +533,41 @@ def grid_update(
         elif j < bc.pad:
             v = contact_velocity(v, wp.vec3(0.0, 1.0, 0.0), bc.wall_contact, bc.wall_friction)
     grid_v[i, j, k] = v
+
+
+@wp.kernel
+def grid_update(
+    grid_m: wp.array4d(dtype=float),
+    grid_mv: wp.array4d(dtype=wp.vec3),
+    grid_v: wp.array3d(dtype=wp.vec3),
+    grid_fix: wp.array4d(dtype=int),
+    grid_fix_v: wp.array4d(dtype=wp.vec3),
+    lo: wp.vec3i,
+    grid: GridInfo,
+    bc: Boundary,
+    gravity: wp.vec3,
+    dt_arr: wp.array(dtype=float),
+    layer_box: wp.array2d(dtype=int),
+    layer_lo: wp.vec3i,
+    run: int,
+    k_end: int,
+):
+    """Node velocities from the accumulated mass and momentum. The accumulators have one layer per
+    particle chunk (one in all on CUDA, where p2g's atomics are real; a chunk each for the CPU's
+    threads, whose adds are not atomic); they are summed here in layer order, so the result does
+    not depend on which thread scattered which chunk.
+
+    Each thread updates a run of ``run`` nodes along z, up to node ``k_end`` (exclusive): one node
+    on CUDA, a whole column of the span on the CPU, where a thread per node would spend more on
+    turning its linear index into (i, j, k) than on the node."""
+    a, b, c = wp.tid()
+    dt = dt_arr[0]
+    i = lo[0] + a
+    j = lo[1] + b
+    k0 = lo[2] + c * run
+    for k in range(k0, wp.min(k0 + run, k_end)):
+        update_node(i, j, k, grid_m, grid_mv, grid_v, grid_fix, grid_fix_v, grid, bc, gravity, dt, layer_box,
+                    layer_lo)
 
 
 @wp.func

@@ -37,13 +37,14 @@ MAX_GRAPHS = 8  # captured launch graphs kept per solver (one per grid span and 
 # span (plus LAYER_SLACK), not the whole domain, and are reallocated when the span outgrows them; a
 # span too large for CHUNK_GRID_BUDGET gets one layer, filled by the chunks one after another (what
 # one unsplit pass computes), while g2p stays parallel.
-MIN_CHUNK_PARTICLES = 4096
+MIN_CHUNK_PARTICLES = 2048
 MAX_CPU_CHUNKS = 16
 LAYER_BYTES = 32  # per grid node and chunk: mass (4) + momentum (12) + anchor flag (4) + anchor velocity (12)
 CHUNK_GRID_BUDGET = 256 * 2 ** 20  # bytes all chunks' accumulator layers may take together
 LAYER_SLACK = 8  # nodes of room the layers get around a span, so a growing scene reallocates rarely
 ROW_PAD = 32  # 4-byte values per row of chunk-private reductions: no false sharing between threads
-MIN_SLAB_NODES = 4096  # grid spans smaller than this are updated by one thread (a pool dispatch costs more)
+MIN_SLAB_NODES = 65536  # grid spans smaller than this are updated by one thread (handing work to another
+#                        thread costs tens of microseconds, what ~5000 nodes take)
 
 
 def _warp():
@@ -565,7 +566,10 @@ class MPMSolver:
         to a dict, also time the step (synchronising)."""
         t0 = time.perf_counter() if self.kernel_times is not None else 0.0
         if len(cmds) > 1 and concurrent and self._parallel():
-            for f in [self._pool.submit(c.launch) for c in cmds]:
+            # The calling thread takes the last part itself (one hand-over fewer to wait for).
+            futures = [self._pool.submit(c.launch) for c in cmds[:-1]]
+            cmds[-1].launch()
+            for f in futures:
                 f.result()
         else:
             for c in cmds:
@@ -575,11 +579,14 @@ class MPMSolver:
             self.kernel_times[kernel.key] = self.kernel_times.get(kernel.key, 0.0) + time.perf_counter() - t0
 
     def _grid_slabs(self, span_lo: tuple, dims: tuple) -> list:
-        """grid_update's launches: the span cut into slabs along x for the threads (nodes are
-        independent, so the cut cannot change a result)."""
+        """grid_update's launches as (launch dims, slab origin, run): on the CPU a thread per
+        z-column of the span, the span cut into slabs along x for the threads (nodes are
+        independent, so the cut cannot change a result); on CUDA a thread per node."""
+        if self.device != "cpu":
+            return [(dims, self.wp.vec3i(*span_lo), 1)]
         slabs = min(self.threads, dims[0]) if self.threads > 1 and int(np.prod(dims)) >= MIN_SLAB_NODES else 1
         edges = np.linspace(0, dims[0], slabs + 1).astype(np.int64)
-        return [((int(b - a), dims[1], dims[2]), self.wp.vec3i(span_lo[0] + int(a), span_lo[1], span_lo[2]))
+        return [((int(b - a), dims[1], 1), self.wp.vec3i(span_lo[0] + int(a), span_lo[1], span_lo[2]), dims[2])
                 for a, b in zip(edges[:-1], edges[1:]) if b > a]
 
     def _record_substep(self, span_lo: tuple, span_hi: tuple, torques: bool) -> list:
@@ -611,8 +618,8 @@ class MPMSolver:
             c if layered else 0, self.layer_box, self._layer_lo_w]) for c, (start, count) in chunks], layered))
         prog.append((K.grid_update, [self._cmd(K.grid_update, slab_dims, [
             self.grid_m, self.grid_mv, self.grid_v, self.grid_fix, self.grid_fix_v, slab_lo, self.grid, self.bc,
-            self._gravity_w, self.dt_arr, self.layer_box, self._layer_lo_w])
-            for slab_dims, slab_lo in self._grid_slabs(span_lo, dims)], True))
+            self._gravity_w, self.dt_arr, self.layer_box, self._layer_lo_w, run, int(span_hi[2]) + 1])
+            for slab_dims, slab_lo, run in self._grid_slabs(span_lo, dims)], True))
         prog.append((K.g2p, [self._cmd(K.g2p, count, [
             self.x, self.v, self.C, self.F, self.rot, self.plastic, self.tau, self.mat_id, self.material_table,
             self.flags, self.mass, self.anchor_v, forces, self.grid_v, self.grid, self.dt_arr, self._stats_of[c],
