@@ -571,6 +571,24 @@ def grid_update(
 
 
 @wp.func
+def von_mises_flow(mat: MaterialParams, n: float, state: float, dt: float) -> float:
+    """The plastic strain increment of the von Mises family's radial return, for a deviatoric
+    Hencky strain of norm n and an equivalent plastic strain ``state``; 0 when elastic. Metal
+    hardens, plasticine softens, viscoplastic flows by only part of the excess (Perzyna rate)."""
+    sy = mat.yield_stress
+    if mat.model == MODEL_VON_MISES:
+        sy = sy + mat.hardening * state
+    elif mat.model == MODEL_PLASTICINE:
+        sy = wp.max(sy - mat.softening * state, 0.0)
+    dgamma = n - SQRT_2_3 * sy / (2.0 * mat.mu)
+    if dgamma <= 0.0 or n <= 1.0e-12:
+        return 0.0
+    if mat.model == MODEL_VISCOPLASTIC:
+        dgamma = dgamma * dt / (dt + mat.viscosity / (2.0 * mat.mu))
+    return dgamma
+
+
+@wp.func
 def update_material(
     mat: MaterialParams,
     F: wp.mat33,
@@ -669,16 +687,9 @@ def update_material(
             trL = L[0, 0] + L[1, 1] + L[2, 2]
             devL = L - (trL / 3.0) * I
             nL = wp.sqrt(wp.ddot(devL, devL))
-            syL = mat.yield_stress
-            if model == MODEL_VON_MISES:
-                syL = syL + mat.hardening * state_in
-            elif model == MODEL_PLASTICINE:
-                syL = wp.max(syL - mat.softening * state_in, 0.0)
-            dgL = nL - SQRT_2_3 * syL / (2.0 * mat.mu)
+            dgL = von_mises_flow(mat, nL, state_in, dt)
             Fe = F
-            if dgL > 0.0 and nL > 1.0e-12:
-                if model == MODEL_VISCOPLASTIC:
-                    dgL = dgL * dt / (dt + mat.viscosity / (2.0 * mat.mu))
+            if dgL > 0.0:
                 dL = (-dgL / nL) * devL
                 L = L + dL
                 Fe = exp_series(dL) * F
@@ -727,15 +738,8 @@ def update_material(
     else:
         # von Mises family on Hencky strain: metal (hardening), plasticine (softening),
         # viscoplastic (Perzyna rate: only part of the excess flows per substep).
-        sy = mat.yield_stress
-        if model == MODEL_VON_MISES:
-            sy = sy + mat.hardening * state
-        elif model == MODEL_PLASTICINE:
-            sy = wp.max(sy - mat.softening * state, 0.0)
-        dgamma = n - SQRT_2_3 * sy / (2.0 * mat.mu)
-        if dgamma > 0.0 and n > 1.0e-12:
-            if model == MODEL_VISCOPLASTIC:
-                dgamma = dgamma * dt / (dt + mat.viscosity / (2.0 * mat.mu))
+        dgamma = von_mises_flow(mat, n, state, dt)
+        if dgamma > 0.0:
             eps = eps - (dgamma / n) * dev
             state = state + SQRT_2_3 * dgamma
             plastic[p] = state
