@@ -105,6 +105,9 @@ def write_launch_modes(dev: str, rows: list) -> None:
     lines += [f"| {m} | {t * 1e3:.3f} | {r:.1f} | {c} |" for m, _, _, t, r, c in rows]
     base = rows[0][3]
     lines += ["", f"Graph replay: {base / rows[1][3]:.2f}× the kernel-by-kernel speed on this device."]
+    if dev == "cpu":
+        lines += ["On the CPU a replayed graph runs the particle chunks one after another, while launching "
+                  "kernel by kernel runs them on the thread pool, so `graph=\"auto\"` leaves graphs off there."]
     path = update_section("benchmarks.md", f"sim-launch-{dev.split(':')[0]}",
                           f"## MPM launch modes ({dev.split(':')[0]})\n\n" + "\n".join(lines))
     print(f"wrote {path}")

@@ -37,7 +37,7 @@ MAX_GRAPHS = 8  # captured launch graphs kept per solver (one per grid span and 
 # span (plus LAYER_SLACK), not the whole domain, and are reallocated when the span outgrows them; a
 # span too large for CHUNK_GRID_BUDGET gets one layer, filled by the chunks one after another (what
 # one unsplit pass computes), while g2p stays parallel.
-MIN_CHUNK_PARTICLES = 2048
+MIN_CHUNK_PARTICLES = 4096
 MAX_CPU_CHUNKS = 16
 LAYER_BYTES = 32  # per grid node and chunk: mass (4) + momentum (12) + anchor flag (4) + anchor velocity (12)
 CHUNK_GRID_BUDGET = 256 * 2 ** 20  # bytes all chunks' accumulator layers may take together
@@ -119,6 +119,11 @@ class Domain:
             ground_node = PAD
         dims = tuple(int(math.ceil((box_hi[a] - origin[a]) / dx)) + PAD + 1 for a in range(3))
         return cls(origin=origin.astype(np.float64), dx=float(dx), dims=dims, ground_node=ground_node)
+
+
+def _launch_all(cmds: list) -> None:
+    for c in cmds:
+        c.launch()
 
 
 def cpu_chunks(num_particles: int, device: str) -> int:
@@ -556,7 +561,7 @@ class MPMSolver:
         if self.threads <= 1 or self._capturing:
             return False
         if self._pool is None:
-            self._pool = ThreadPoolExecutor(self.threads, thread_name_prefix="physmotion-mpm")
+            self._pool = ThreadPoolExecutor(self.threads - 1, thread_name_prefix="physmotion-mpm")
             weakref.finalize(self, self._pool.shutdown, wait=False)
         return True
 
@@ -566,9 +571,11 @@ class MPMSolver:
         to a dict, also time the step (synchronising)."""
         t0 = time.perf_counter() if self.kernel_times is not None else 0.0
         if len(cmds) > 1 and concurrent and self._parallel():
-            # The calling thread takes the last part itself (one hand-over fewer to wait for).
-            futures = [self._pool.submit(c.launch) for c in cmds[:-1]]
-            cmds[-1].launch()
+            # One contiguous group of parts per thread, the calling thread taking the first: a
+            # hand-over to another thread costs tens of microseconds, so make as few as possible.
+            groups = [list(g) for g in np.array_split(np.arange(len(cmds)), min(self.threads, len(cmds)))]
+            futures = [self._pool.submit(_launch_all, [cmds[i] for i in g]) for g in groups[1:]]
+            _launch_all([cmds[i] for i in groups[0]])
             for f in futures:
                 f.result()
         else:
