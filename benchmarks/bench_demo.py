@@ -60,8 +60,8 @@ Machine: {machine_description()}. Measured {datetime.date.today().isoformat()}.
 | rendering ({stats['frames']} frames) | {t['render_s']:.1f} |
 | H.264 encoding | {t.get('encode_s', 0):.1f} |
 
-Simulation throughput: {sim['particle_substeps_per_s'] / 1e6:.2f} M particle-substeps/s (one CPU thread:
-Warp's CPU kernels are single-threaded). The torch wheel is installed from this machine's local
+Simulation throughput: {sim['particle_substeps_per_s'] / 1e6:.2f} M particle-substeps/s ({sim.get('threads', 1)} CPU
+thread(s), {sim.get('cpu_chunks', 1)} particle chunks). The torch wheel is installed from this machine's local
 wheel store; on a machine that downloads it from PyPI, add its download time to the set-up row.
 """
     update_section("benchmarks.md", "demo", md)
