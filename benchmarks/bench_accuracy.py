@@ -171,7 +171,10 @@ def main() -> None:
         push.append((label, res.stats["substeps"], sec, diff))
         print(push[-1], flush=True)
 
-    lines = [f"Measured {datetime.date.today()} on {machine_description()} (Warp CPU, one thread).", "",
+    from physmotion_core.sim.mpm import cpu_threads
+
+    lines = [f"Measured {datetime.date.today()} on {machine_description()} (Warp CPU, {cpu_threads()} simulator "
+             "thread(s)).", "",
              "### Elastic bar: the sweep", "",
              f"{len(points)} settings: cells along the bar {cells}, 1 / 8 / 27 particles per cell, CFL 0.2 / 0.4 / "
              "0.6, APIC and PIC transfer. Error = |period / (2L/c) − 1|. Plot: `accuracy_pareto.png`.", "",

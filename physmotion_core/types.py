@@ -661,8 +661,8 @@ class Conditions:
 # ----------------------------------------------------------------------------------------------
 
 
-# Default resolution per device: Warp's CPU kernels are single-threaded, so the CPU default is sized
-# for a demo that finishes in about a minute; the GPU is where resolution lives.
+# Default resolution per device: a CPU is many times slower than a GPU even on all its cores, so the
+# CPU default is sized for a demo that finishes in under a minute; the GPU is where resolution lives.
 AUTO_GRID_RES = {"cpu": 24, "cuda": 48}
 # Quality presets scale the automatic resolution (grid_res = 0) and set particles per cell.
 QUALITY = {"draft": (0.67, 8), "standard": (1.0, 8), "high": (1.5, 8)}
