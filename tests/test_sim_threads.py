@@ -6,7 +6,9 @@ on the scene only, never on the thread count, so the thread count cannot change 
 (tolerance 0). Against one unsplit pass the sums only run in another order: float32 round-off.
 """
 
+import gc
 import threading
+import time
 
 import numpy as np
 import pytest
@@ -184,3 +186,16 @@ def test_bad_thread_environment_is_refused(monkeypatch):
     monkeypatch.setenv("PHYSMOTION_CPU_THREADS", "many")
     with pytest.raises(InputError, match="PHYSMOTION_CPU_THREADS must be a positive integer"):
         cpu_threads(0)
+
+
+def test_worker_threads_end_with_their_run():
+    """A long ComfyUI session runs many simulations: each run's pool must go with its solver."""
+    before = threading.active_count()
+    for _ in range(3):
+        r = run(2, frames=1)
+        assert r.stats["cpu_chunks"] == 3
+    deadline = time.monotonic() + 5.0
+    while threading.active_count() > before and time.monotonic() < deadline:
+        gc.collect()
+        time.sleep(0.05)
+    assert threading.active_count() == before
