@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import functools
 import logging
 import math
 import os
@@ -124,6 +125,13 @@ class Domain:
 def _launch_all(cmds: list) -> None:
     for c in cmds:
         c.launch()
+
+
+@functools.lru_cache(maxsize=64)
+def _groups(n: int, k: int) -> tuple:
+    """n parts in k contiguous groups of near-equal size, as (start, end) pairs."""
+    edges = np.linspace(0, n, k + 1).round().astype(int)
+    return tuple((int(a), int(b)) for a, b in zip(edges[:-1], edges[1:]))
 
 
 def cpu_chunks(num_particles: int, device: str) -> int:
@@ -573,9 +581,9 @@ class MPMSolver:
         if len(cmds) > 1 and concurrent and self._parallel():
             # One contiguous group of parts per thread, the calling thread taking the first: a
             # hand-over to another thread costs tens of microseconds, so make as few as possible.
-            groups = [list(g) for g in np.array_split(np.arange(len(cmds)), min(self.threads, len(cmds)))]
-            futures = [self._pool.submit(_launch_all, [cmds[i] for i in g]) for g in groups[1:]]
-            _launch_all([cmds[i] for i in groups[0]])
+            groups = _groups(len(cmds), min(self.threads, len(cmds)))
+            futures = [self._pool.submit(_launch_all, cmds[a:b]) for a, b in groups[1:]]
+            _launch_all(cmds[groups[0][0]:groups[0][1]])
             for f in futures:
                 f.result()
         else:
