@@ -155,3 +155,66 @@ def test_fracture_stress_and_tearing_match_the_svd_reference(preset):
         assert po[i] == (1.0 if smax > fs else 0.0), (i, smax, fs)
     # Stress / 2μ is a strain: float32 round-off of F (~6e-8), through the SVD route a few 1e-6.
     assert worst[True] < 1e-6 and worst[False] < 5e-5, worst
+
+
+def drucker_prager_reference(F, m, alpha, cohesion_tr):
+    """Klár et al. 2016 on the Hencky strain from the SVD, float64; returns (Fe, tau, projected)."""
+    U, sig, Vt = np.linalg.svd(F)
+    eps = np.log(sig)
+    tr = eps.sum()
+    dev = eps - tr / 3
+    n = np.linalg.norm(dev)
+    mu, lam = m.mu, m.lam
+    projected = True
+    if tr - cohesion_tr >= 0:
+        eps = np.full(3, cohesion_tr / 3)
+    else:
+        dg = n + (3 * lam + 2 * mu) / (2 * mu) * (tr - cohesion_tr) * alpha
+        if dg > 0:
+            eps = eps - dg / n * dev if n > 1e-12 else np.full(3, tr / 3)
+        else:
+            projected = False
+    Fe = U @ np.diag(np.exp(eps)) @ Vt
+    tau = U @ np.diag(2 * mu * eps + lam * eps.sum()) @ U.T
+    return Fe, tau, projected
+
+
+@pytest.mark.parametrize("cohesion", [0.0, 200.0])
+def test_sand_return_mapping_matches_the_svd_reference_on_both_routes(cohesion):
+    """Sand in tension (to the apex), sheared past the cone, inside it, and strained past the
+    series' range; dry and cohesive. Same tolerances as the von Mises family."""
+    m = material_preset("sand", cohesion=cohesion)
+    params = kernel_params(m)
+    rng = np.random.default_rng(3)
+    Fs = []
+    for scale in (1e-4, 1e-3, 1e-2, 0.03, 0.2):
+        for _ in range(40):
+            # Mostly compressed (tr < 0) with shear of varying size, some stretched (apex).
+            stretch = np.diag(1 + scale * (rng.uniform(-1, 1, 3) - rng.uniform(0, 0.6)))
+            Fs.append(random_rotation(rng) @ stretch @ random_rotation(rng))
+    Fs = np.asarray(Fs)
+    n = len(Fs)
+    small = np.linalg.norm(Fs @ np.transpose(Fs, (0, 2, 1)) - np.eye(3), axis=(1, 2)) < 0.1
+    assert 0.3 * n < small.sum() < 0.95 * n
+    dev = "cpu"
+    zeros = np.zeros(n, np.float32)
+    rot = wp.array(np.tile([0, 0, 0, 1], (n, 1)).astype(np.float32), dtype=wp.quat, device=dev)
+    Fout, tau, c2 = (wp.zeros(n, dtype=wp.mat33, device=dev), wp.zeros(n, dtype=wp.mat33, device=dev),
+                     wp.zeros(n, dtype=float, device=dev))
+    wp.launch(map_all, n, [wp.array(Fs.astype(np.float32), dtype=wp.mat33, device=dev),
+                           wp.zeros(n, dtype=wp.mat33, device=dev), wp.array(zeros, dtype=float, device=dev),
+                           params, 1e-4, rot, wp.array(zeros, dtype=float, device=dev), Fout, tau, c2], device=dev)
+    Fo, to = Fout.numpy(), tau.numpy()
+    err = {True: [0.0, 0.0], False: [0.0, 0.0]}
+    kinds = set()
+    for i in range(n):
+        F32 = Fs[i].astype(np.float32).astype(np.float64)
+        Fe, t_ref, projected = drucker_prager_reference(F32, m, params.dp_alpha, params.cohesion_tr)
+        tr = np.log(np.linalg.svd(F32, compute_uv=False)).sum()
+        kinds.add("apex" if tr - params.cohesion_tr >= 0 else ("cone" if projected else "elastic"))
+        e = err[bool(small[i])]
+        e[0] = max(e[0], np.abs(Fo[i] - Fe).max())
+        e[1] = max(e[1], np.abs(to[i] - t_ref).max() / (2 * m.mu))
+    assert kinds == {"apex", "cone", "elastic"}
+    assert err[True][0] < 1e-6 and err[True][1] < 1e-6, err
+    assert err[False][0] < 1e-4 and err[False][1] < 5e-5, err

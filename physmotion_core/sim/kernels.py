@@ -60,7 +60,7 @@ FLAG_ANCHORED = wp.constant(1)
 FLAG_RIGID = wp.constant(2)
 
 SQRT_2_3 = wp.constant(0.816496580927726)
-# Below this Frobenius norm of F Fᵀ - I (stretches within about ±5 %), the von Mises family works on
+# Below this Frobenius norm of F Fᵀ - I (stretches within about ±5 %), the von Mises family and sand work on
 # the matrix logarithm of the left stretch by series instead of an SVD (update_material).
 LOG_SERIES_MAX = wp.constant(0.1)
 
@@ -187,8 +187,8 @@ def log_series(X: wp.mat33) -> wp.mat33:
 
 @wp.func
 def exp_series(A: wp.mat33) -> wp.mat33:
-    """exp(A) for a small symmetric A (|A| < LOG_SERIES_MAX / 2 where it is used), to A⁶ (Horner):
-    truncation error below |A|⁷ / 5040 < 2e-12."""
+    """exp(A) for a small symmetric A (a plastic correction of a strain under ~5 %, plus the sand's
+    cohesion strain), to A⁶ (Horner): truncation error below |A|⁷ / 5040 (< 3e-9 for |A| < 0.2)."""
     I = wp.identity(n=3, dtype=float)
     P = I + A * (1.0 / 6.0)
     P = I + (A * P) * (1.0 / 5.0)
@@ -675,28 +675,45 @@ def update_material(
         tau[p] = corotated_stress(F, U * wp.transpose(V), mat.mu, mat.lam)
         return wave_speed_sq(mat.mu, mat.lam, mat.density, J)
 
-    if model == MODEL_VON_MISES or model == MODEL_PLASTICINE or model == MODEL_VISCOPLASTIC:
-        # Small elastic strain (always, for materials that yield at a fraction of a percent, unless a
-        # substep strains them hard): the same return mapping on the Hencky strain without an SVD.
-        # L = log V = ½ log(F Fᵀ) has the eigenvectors U of F = U Σ Vᵀ and eigenvalues log Σ, so the
-        # deviatoric projection of its eigenvalues is one of L itself, the new elastic F is
-        # exp(ΔL) F (ΔL commutes with L), and the Kirchhoff stress is 2μ L + λ tr(L) I.
+    if model == MODEL_VON_MISES or model == MODEL_PLASTICINE or model == MODEL_VISCOPLASTIC or \
+            model == MODEL_DRUCKER_PRAGER:
+        # Small elastic strain (always, for materials that yield at a fraction of a percent or carry
+        # only their weight, unless a substep strains them hard): the same return mapping on the
+        # Hencky strain without an SVD. L = log V = ½ log(F Fᵀ) has the eigenvectors U of F = U Σ Vᵀ
+        # and eigenvalues log Σ, so a projection of its eigenvalues that keeps their eigenvectors
+        # (deviatoric scaling, the cone's apex) is one of L itself, the new elastic F is exp(ΔL) F
+        # (ΔL commutes with L), and the Kirchhoff stress is 2μ L + λ tr(L) I.
         X = F * wp.transpose(F) - I
-        if wp.ddot(X, X) < LOG_SERIES_MAX * LOG_SERIES_MAX:
+        if wp.ddot(X, X) < LOG_SERIES_MAX * LOG_SERIES_MAX and wp.determinant(F) > 0.0:
             L = 0.5 * log_series(X)
             trL = L[0, 0] + L[1, 1] + L[2, 2]
             devL = L - (trL / 3.0) * I
             nL = wp.sqrt(wp.ddot(devL, devL))
-            dgL = von_mises_flow(mat, nL, state_in, dt)
+            Lnew = L
+            if model == MODEL_DRUCKER_PRAGER:
+                tr_s = trL - mat.cohesion_tr
+                if tr_s >= 0.0:
+                    Lnew = (mat.cohesion_tr / 3.0) * I  # tension: the apex
+                else:
+                    dg = nL + (3.0 * mat.lam + 2.0 * mat.mu) / (2.0 * mat.mu) * tr_s * mat.dp_alpha
+                    if dg > 0.0:
+                        if nL > 1.0e-12:
+                            Lnew = L - (dg / nL) * devL
+                        else:
+                            Lnew = (trL / 3.0) * I
+            else:
+                dgL = von_mises_flow(mat, nL, state_in, dt)
+                if dgL > 0.0:
+                    Lnew = L - (dgL / nL) * devL
+                    plastic[p] = state_in + SQRT_2_3 * dgL
+            dL = Lnew - L
             Fe = F
-            if dgL > 0.0:
-                dL = (-dgL / nL) * devL
-                L = L + dL
+            if wp.ddot(dL, dL) > 0.0:
                 Fe = exp_series(dL) * F
-                plastic[p] = state_in + SQRT_2_3 * dgL
+            trN = Lnew[0, 0] + Lnew[1, 1] + Lnew[2, 2]
             Fout[p] = Fe
-            tau[p] = 2.0 * mat.mu * L + mat.lam * trL * I
-            return wave_speed_sq(mat.mu, mat.lam, mat.density, wp.exp(trL))
+            tau[p] = 2.0 * mat.mu * Lnew + mat.lam * trN * I
+            return wave_speed_sq(mat.mu, mat.lam, mat.density, wp.exp(trN))
 
     # Models below work on the SVD of the trial F.
     U = wp.mat33()
