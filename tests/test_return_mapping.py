@@ -218,3 +218,57 @@ def test_sand_return_mapping_matches_the_svd_reference_on_both_routes(cohesion):
     assert kinds == {"apex", "cone", "elastic"}
     assert err[True][0] < 1e-6 and err[True][1] < 1e-6, err
     assert err[False][0] < 1e-4 and err[False][1] < 5e-5, err
+
+
+def snow_reference(F, Jp, m):
+    """Stomakhin et al. 2013 from the SVD, float64: (Fe, tau, Jp)."""
+    U, sig, Vt = np.linalg.svd(F)
+    sc = np.clip(sig, 1 - m.crit_compression, 1 + m.crit_stretch)
+    Jp = float(np.clip(Jp * sig.prod() / sc.prod(), 0.05, 20.0))
+    Fe = U @ np.diag(sc) @ Vt
+    h = np.exp(min(m.hardening_xi * (1 - Jp), 10.0))
+    mu, lam = m.mu * h, m.lam * h
+    R = U @ Vt
+    J = sc.prod()
+    T = 2 * mu * (Fe - R) @ Fe.T
+    return Fe, 0.5 * (T + T.T) + lam * (J - 1) * J * np.eye(3), Jp
+
+
+def test_snow_matches_the_svd_reference_inside_and_beyond_its_elastic_range():
+    """Inside [1 - θc, 1 + θs] no stretch is clamped and the polar rotation comes from Newton's
+    iteration (no SVD); beyond it the SVD route clamps. Both: the reference's F_E, stress and J_p."""
+    m = material_preset("snow")
+    rng = np.random.default_rng(4)
+    Fs, Jps = [], []
+    for scale in (1e-4, 2e-3, 5e-3, 0.02, 0.1):
+        for _ in range(40):
+            stretch = np.diag(1 + scale * rng.uniform(-1, 1, 3))
+            Fs.append(random_rotation(rng) @ stretch @ random_rotation(rng))
+            Jps.append(rng.uniform(0.7, 1.0))
+    Fs, Jps = np.asarray(Fs), np.asarray(Jps, np.float32)
+    n = len(Fs)
+    r_el = min((1 + m.crit_stretch) ** 2 - 1, 1 - (1 - m.crit_compression) ** 2)
+    newton = np.linalg.norm(np.transpose(Fs, (0, 2, 1)) @ Fs - np.eye(3), axis=(1, 2)) < r_el
+    assert 0.2 * n < newton.sum() < 0.8 * n
+    dev = "cpu"
+    rot = wp.array(np.tile([0, 0, 0, 1], (n, 1)).astype(np.float32), dtype=wp.quat, device=dev)
+    plastic = wp.array(Jps, dtype=float, device=dev)
+    Fout, tau, c2 = (wp.zeros(n, dtype=wp.mat33, device=dev), wp.zeros(n, dtype=wp.mat33, device=dev),
+                     wp.zeros(n, dtype=float, device=dev))
+    wp.launch(map_all, n, [wp.array(Fs.astype(np.float32), dtype=wp.mat33, device=dev),
+                           wp.zeros(n, dtype=wp.mat33, device=dev), wp.array(Jps, dtype=float, device=dev),
+                           kernel_params(m), 1e-4, rot, plastic, Fout, tau, c2], device=dev)
+    Fo, to, po = Fout.numpy(), tau.numpy(), plastic.numpy()
+    err = {True: [0.0, 0.0, 0.0], False: [0.0, 0.0, 0.0]}
+    clamped = 0
+    for i in range(n):
+        Fe, t_ref, jp = snow_reference(Fs[i].astype(np.float32).astype(np.float64), float(Jps[i]), m)
+        clamped += abs(jp - Jps[i]) > 1e-7
+        h = np.exp(min(m.hardening_xi * (1 - jp), 10.0))
+        e = err[bool(newton[i])]
+        e[0] = max(e[0], np.abs(Fo[i] - Fe).max())
+        e[1] = max(e[1], np.abs(to[i] - t_ref).max() / (2 * m.mu * h))
+        e[2] = max(e[2], abs(po[i] - jp))
+    assert clamped > 0.2 * n and not np.any(np.abs(po[newton] - Jps[newton]) > 0)  # unchanged inside
+    assert err[True][0] < 1e-6 and err[True][1] < 1e-6 and err[True][2] == 0.0, err
+    assert err[False][0] < 1e-4 and err[False][1] < 5e-5 and err[False][2] < 1e-5, err

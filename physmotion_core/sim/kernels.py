@@ -715,6 +715,19 @@ def update_material(
             tau[p] = 2.0 * mat.mu * Lnew + mat.lam * trN * I
             return wave_speed_sq(mat.mu, mat.lam, mat.density, wp.exp(trN))
 
+    if model == MODEL_SNOW:
+        # While no principal stretch can leave [1 - θc, 1 + θs] (σ² - 1 is an eigenvalue of FᵀF - I,
+        # bounded by its norm), nothing is clamped: F stays elastic, J_p is unchanged, and the
+        # corotated stress needs only the polar rotation (Newton's iteration), no SVD.
+        Cs = wp.transpose(F) * F - I
+        r_el = wp.min((1.0 + mat.theta_s) * (1.0 + mat.theta_s) - 1.0, 1.0 - (1.0 - mat.theta_c) * (1.0 - mat.theta_c))
+        J = wp.determinant(F)
+        if J > 0.0 and wp.ddot(Cs, Cs) < r_el * r_el:
+            hs = wp.exp(wp.min(mat.xi * (1.0 - state_in), 10.0))
+            Fout[p] = F
+            tau[p] = corotated_stress(F, polar_newton(F), mat.mu * hs, mat.lam * hs)
+            return wave_speed_sq(mat.mu * hs, mat.lam * hs, mat.density, J)
+
     # Models below work on the SVD of the trial F.
     U = wp.mat33()
     sig = wp.vec3()
