@@ -31,13 +31,17 @@ def map_all(F: wp.array(dtype=wp.mat33), C: wp.array(dtype=wp.mat33), state: wp.
     c2[p] = K.update_material(mat, F[p], C[p], rot[p], state[p], dt, p, rot, plastic, Fout, tau)
 
 
-def reference(F, state, m, dt):
-    """Radial return on the Hencky strain from the SVD, float64."""
+def hencky(F):
+    """SVD of F and its Hencky strain: U, Vᵀ, log stretches, their trace, deviator and its norm."""
     U, sig, Vt = np.linalg.svd(F)
     eps = np.log(sig)
-    tr = eps.sum()
-    dev = eps - tr / 3
-    n = np.linalg.norm(dev)
+    dev = eps - eps.sum() / 3
+    return U, Vt, eps, eps.sum(), dev, np.linalg.norm(dev)
+
+
+def reference(F, state, m, dt):
+    """Radial return on the Hencky strain from the SVD, float64."""
+    U, Vt, eps, tr, dev, n = hencky(F)
     sy = m.yield_stress
     if m.model == "von_mises":
         sy += m.hardening * state
@@ -159,11 +163,7 @@ def test_fracture_stress_and_tearing_match_the_svd_reference(preset):
 
 def drucker_prager_reference(F, m, alpha, cohesion_tr):
     """Klár et al. 2016 on the Hencky strain from the SVD, float64; returns (Fe, tau, projected)."""
-    U, sig, Vt = np.linalg.svd(F)
-    eps = np.log(sig)
-    tr = eps.sum()
-    dev = eps - tr / 3
-    n = np.linalg.norm(dev)
+    U, Vt, eps, tr, dev, n = hencky(F)
     mu, lam = m.mu, m.lam
     projected = True
     if tr - cohesion_tr >= 0:

@@ -589,6 +589,17 @@ def von_mises_flow(mat: MaterialParams, n: float, state: float, dt: float) -> fl
 
 
 @wp.func
+def drucker_prager_flow(mat: MaterialParams, tr: float, n: float) -> float:
+    """Klár et al. 2016 on Hencky strain, with cohesion moving the cone's apex into tension: for a
+    volumetric strain ``tr`` and deviatoric norm ``n``, -1 when the strain is in tension past the
+    cohesion (project to the apex), else the shear to remove to reach the cone (0 inside it)."""
+    tr_s = tr - mat.cohesion_tr
+    if tr_s >= 0.0:
+        return -1.0
+    return wp.max(n + (3.0 * mat.lam + 2.0 * mat.mu) / (2.0 * mat.mu) * tr_s * mat.dp_alpha, 0.0)
+
+
+@wp.func
 def update_material(
     mat: MaterialParams,
     F: wp.mat33,
@@ -691,16 +702,14 @@ def update_material(
             nL = wp.sqrt(wp.ddot(devL, devL))
             Lnew = L
             if model == MODEL_DRUCKER_PRAGER:
-                tr_s = trL - mat.cohesion_tr
-                if tr_s >= 0.0:
+                dg = drucker_prager_flow(mat, trL, nL)
+                if dg < 0.0:
                     Lnew = (mat.cohesion_tr / 3.0) * I  # tension: the apex
-                else:
-                    dg = nL + (3.0 * mat.lam + 2.0 * mat.mu) / (2.0 * mat.mu) * tr_s * mat.dp_alpha
-                    if dg > 0.0:
-                        if nL > 1.0e-12:
-                            Lnew = L - (dg / nL) * devL
-                        else:
-                            Lnew = (trL / 3.0) * I
+                elif dg > 0.0:
+                    if nL > 1.0e-12:
+                        Lnew = L - (dg / nL) * devL
+                    else:
+                        Lnew = (trL / 3.0) * I
             else:
                 dgL = von_mises_flow(mat, nL, state_in, dt)
                 if dgL > 0.0:
@@ -755,16 +764,14 @@ def update_material(
     state = state_in
     if model == MODEL_DRUCKER_PRAGER:
         # Klár et al. 2016 on Hencky strain; cohesion moves the cone's apex into tension.
-        tr_s = tr - mat.cohesion_tr
-        if tr_s >= 0.0:
+        dgamma = drucker_prager_flow(mat, tr, n)
+        if dgamma < 0.0:
             eps = (mat.cohesion_tr / 3.0) * wp.vec3(1.0, 1.0, 1.0)  # tension: project to the tip
-        else:
-            dgamma = n + (3.0 * mat.lam + 2.0 * mat.mu) / (2.0 * mat.mu) * tr_s * mat.dp_alpha
-            if dgamma > 0.0:
-                if n > 1.0e-12:
-                    eps = eps - (dgamma / n) * dev
-                else:
-                    eps = (tr / 3.0) * wp.vec3(1.0, 1.0, 1.0)
+        elif dgamma > 0.0:
+            if n > 1.0e-12:
+                eps = eps - (dgamma / n) * dev
+            else:
+                eps = (tr / 3.0) * wp.vec3(1.0, 1.0, 1.0)
     else:
         # von Mises family on Hencky strain: metal (hardening), plasticine (softening),
         # viscoplastic (Perzyna rate: only part of the excess flows per substep).
