@@ -1,0 +1,253 @@
+"""Conversion between our Gaussians and ComfyUI's native ``GAUSSIAN`` splat batch.
+
+The library never imports ComfyUI: a native object is read through its attributes (duck typing) and
+built by calling the class the caller passes in. The layout matched is the one of
+comfyanonymous/ComfyUI ``comfy_api/latest/_util/geometry_types.py`` (class ``GAUSSIAN`` at commit
+2c682860a5709b96fd8a891cb6c4b4eaefeb856f, renamed ``SPLAT`` with the same constructor and fields at
+0b5657d47bcf0a024cc391839713922e44839ef8) and its users in ``comfy_extras/nodes_gaussian.py``
+(commit dd4c7d7661709ddd58d0e942ce6cf69c32993c89)::
+
+    GAUSSIAN(positions, scales, rotations, opacities, sh, counts=None)
+    positions (B, N, 3)   world-space centres
+    scales    (B, N, 3)   linear per-axis standard deviations
+    rotations (B, N, 4)   unit quaternions, w x y z
+    opacities (B, N, 1)   in [0, 1]
+    sh        (B, N, K, 3) SH coefficients, K = (degree + 1)², DC = sh[..., 0, :] (rgb = 0.5 + C0 * DC)
+    counts    (B,) int    real length of each item (rows beyond it are zero padding), or None
+
+Activations, quaternion order and SH layout are ours already (DESIGN.md), so those fields are copied
+bit for bit. Only the axes differ: upstream's renderer (``_render_gaussian``) projects with the camera
+looking down +z and image rows growing with +y (the OpenCV / 3DGS frame: y down, z away from the
+viewer), while our world is +y up with the camera looking down -z. ``axes="y_down"`` (the default)
+converts with the 180° rotation about x, D = diag(1, -1, -1): positions D·p, quaternions
+q_x(180°) ⊗ q, SH coefficient (l, m) times its parity under D. It is a proper rotation (both frames
+are right-handed) and every step is a sign flip or a permutation, so a round trip is exact.
+``axes="as_is"`` copies positions unchanged (what .ply files do: ours and upstream's
+File3DToGaussian both read and write x y z as stored).
+
+Our ``covars`` (the simulator's deformed shapes, Σ = F Σ₀ Fᵀ) have no native field: they are
+converted to rotation + scales by ``Gaussians.with_covariance_as_rotscale`` (an eigen-decomposition
+in float64), which reproduces Σ to float32 rounding (about 1e-6 relative), not bit for bit.
+"""
+
+from __future__ import annotations
+
+import math
+from typing import Any, Callable, Optional, Sequence
+
+import torch
+
+from .errors import InputError
+from .types import Gaussians, SimResult
+
+AXES = ("y_down", "as_is")
+NATIVE_FIELDS = ("positions", "scales", "rotations", "opacities", "sh")
+
+#: D = diag(1, -1, -1): our +y-up / camera-looks-down--z frame <-> the native y-down / +z-forward frame.
+_FLIP = (1.0, -1.0, -1.0)
+
+
+def is_native_gaussian(value: Any) -> bool:
+    """True for an object with the native GAUSSIAN fields (whatever its class is called)."""
+    return not isinstance(value, Gaussians) and all(hasattr(value, f) for f in NATIVE_FIELDS)
+
+
+def _check_axes(axes: str) -> None:
+    if axes not in AXES:
+        raise InputError(f"axes must be one of {AXES}; got {axes!r}")
+
+
+def sh_flip_signs(k: int, dtype=torch.float32, device=None) -> torch.Tensor:
+    """(K,) signs of the SH coefficients under D = diag(1, -1, -1) (a 180° turn about x).
+
+    Real SH basis (l, m) in the 3DGS order m = -l..l is a polynomial whose parity in (y, z) is
+    (-1)^(l+m) for m >= 0 and (-1)^(l+m+1) for m < 0 (e.g. l=1: -y, z, -x -> -1, -1, +1).
+    """
+    degree = int(round(math.sqrt(k))) - 1
+    if (degree + 1) ** 2 != k:
+        raise InputError(f"the SH coefficients have K={k} per channel, which is not (degree+1)² "
+                         "(1, 4, 9, 16, ...); cannot turn them into the other axes")
+    signs = []
+    for ell in range(degree + 1):
+        for m in range(-ell, ell + 1):
+            p = ell + m + (1 if m < 0 else 0)
+            signs.append(-1.0 if p % 2 else 1.0)
+    return torch.tensor(signs, dtype=dtype, device=device)
+
+
+def _quat_flip(q: torch.Tensor) -> torch.Tensor:
+    """q_x(180°) ⊗ q for wxyz quaternions: (w, x, y, z) -> (-x, w, -z, y) (exact)."""
+    w, x, y, z = q.unbind(-1)
+    return torch.stack([-x, w, -z, y], dim=-1)
+
+
+def _quat_unflip(q: torch.Tensor) -> torch.Tensor:
+    """The inverse of ``_quat_flip`` (exact): (a, b, c, d) -> (b, -a, d, -c)."""
+    a, b, c, d = q.unbind(-1)
+    return torch.stack([b, -a, d, -c], dim=-1)
+
+
+def _to_native_axes(means, quats, sh):
+    f = torch.tensor(_FLIP, dtype=means.dtype, device=means.device)
+    s = sh_flip_signs(sh.shape[-2], sh.dtype, sh.device)
+    return means * f, _quat_flip(quats), sh * s[:, None]
+
+
+def _from_native_axes(pos, rot, sh):
+    f = torch.tensor(_FLIP, dtype=pos.dtype, device=pos.device)
+    s = sh_flip_signs(sh.shape[-2], sh.dtype, sh.device)
+    return pos * f, _quat_unflip(rot), sh * s[:, None]
+
+
+# ----------------------------------------------------------------------------------------------
+# ours -> native
+# ----------------------------------------------------------------------------------------------
+
+
+def split_objects(g: Gaussians) -> list[Gaussians]:
+    """One Gaussians per object id (0, 1, ...; order kept inside each); a scene without ids is one item."""
+    if g.object_ids is None:
+        return [g]
+    ids = g.object_ids
+    out = []
+    for k in sorted(int(i) for i in torch.unique(ids).tolist()):
+        sub = g.subset(torch.nonzero(ids == k).flatten())
+        out.append(Gaussians(means=sub.means, quats=sub.quats, scales=sub.scales, opacities=sub.opacities,
+                             sh=sub.sh, covars=sub.covars, object_ids=None))
+    return out
+
+
+def to_native_tensors(items: Gaussians | Sequence[Gaussians], *, axes: str = "y_down",
+                      split: bool = False) -> dict[str, Optional[torch.Tensor]]:
+    """The native fields for one set of Gaussians (one batch item; ``split``: one item per object)
+    or a list of sets (one item each). Shorter items are zero-padded, ``counts`` gives their
+    lengths (None when all are equally long); SH of lower degree are zero-padded to the highest K.
+    """
+    _check_axes(axes)
+    if isinstance(items, Gaussians):
+        items = split_objects(items) if split else [items]
+    items = list(items)
+    if not items:
+        raise InputError("no Gaussians to convert (an empty list)")
+    rows = []
+    for g in items:
+        if not isinstance(g, Gaussians):
+            raise InputError(f"expected physmotion Gaussians, got {type(g).__name__}")
+        g = g.with_covariance_as_rotscale()
+        means, quats, sh = g.means, g.quats, g.sh
+        if axes == "y_down":
+            means, quats, sh = _to_native_axes(means, quats, sh)
+        rows.append((means, g.scales, quats, g.opacities[:, None], sh))
+    n = max(r[0].shape[0] for r in rows)
+    k = max(r[4].shape[1] for r in rows)
+    lengths = [r[0].shape[0] for r in rows]
+    ref = rows[0][0]
+
+    def stack(idx: int, tail: tuple[int, ...]) -> torch.Tensor:
+        out = torch.zeros((len(rows), n) + tail, dtype=rows[0][idx].dtype, device=ref.device)
+        for b, r in enumerate(rows):
+            t = r[idx].to(ref.device)
+            if idx == 4:
+                out[b, : t.shape[0], : t.shape[1]] = t
+            else:
+                out[b, : t.shape[0]] = t
+        return out
+
+    uniform = len(set(lengths)) == 1
+    return {
+        "positions": stack(0, (3,)),
+        "scales": stack(1, (3,)),
+        "rotations": stack(2, (4,)),
+        "opacities": stack(3, (1,)),
+        "sh": stack(4, (k, 3)),
+        "counts": None if uniform else torch.tensor(lengths, dtype=torch.int64, device=ref.device),
+    }
+
+
+def to_native(items: Gaussians | Sequence[Gaussians], native_cls: Callable, *, axes: str = "y_down",
+              split: bool = False):
+    """A native GAUSSIAN built by ``native_cls(positions, scales, rotations, opacities, sh, counts=...)``."""
+    t = to_native_tensors(items, axes=axes, split=split)
+    return native_cls(t["positions"], t["scales"], t["rotations"], t["opacities"], t["sh"], counts=t["counts"])
+
+
+def sim_to_native_tensors(sim: SimResult, *, axes: str = "y_down", every: int = 1,
+                          progress=None) -> dict[str, Optional[torch.Tensor]]:
+    """One batch item per simulated frame (every ``every``-th): the Gaussians exactly as the renderer
+    draws them (``SimResult.gaussians_at``), their covariances as rotation + scales."""
+    if not isinstance(sim, SimResult):
+        raise InputError(f"expected a PhysMotion simulation (PM_SIM), got {type(sim).__name__}")
+    if not (isinstance(every, int) and every >= 1):
+        raise InputError(f"every must be a positive whole number of frames; got {every!r}")
+    frames = list(range(0, sim.num_frames, every))
+    items = []
+    for i, f in enumerate(frames):
+        items.append(sim.gaussians_at(f).detach().to("cpu").with_covariance_as_rotscale())
+        if progress is not None:
+            progress(i + 1, len(frames))
+    return to_native_tensors(items, axes=axes)
+
+
+# ----------------------------------------------------------------------------------------------
+# native -> ours
+# ----------------------------------------------------------------------------------------------
+
+
+def _field(obj, name: str) -> torch.Tensor:
+    t = getattr(obj, name, None)
+    if not isinstance(t, torch.Tensor):
+        raise InputError(f"the GAUSSIAN's {name} is not a tensor (got {type(t).__name__}); "
+                         "connect a GAUSSIAN from ComfyUI's own nodes (e.g. 3D File to Gaussian Splat)")
+    return t
+
+
+def from_native(obj, *, axes: str = "y_down") -> list[Gaussians]:
+    """Each batch item of a native GAUSSIAN as our Gaussians (its real length, per ``counts``)."""
+    _check_axes(axes)
+    pos, scl, rot = _field(obj, "positions"), _field(obj, "scales"), _field(obj, "rotations")
+    opa, sh = _field(obj, "opacities"), _field(obj, "sh")
+    if pos.ndim == 2:  # an unbatched item: accept it as a batch of one
+        pos, scl, rot, opa, sh = pos[None], scl[None], rot[None], opa[None], sh[None]
+    if pos.ndim != 3 or pos.shape[-1] != 3:
+        raise InputError(f"GAUSSIAN.positions must be (B, N, 3); got {tuple(pos.shape)}")
+    b, n = pos.shape[:2]
+    if opa.ndim == 2:
+        opa = opa[..., None]
+    expect = {"scales": (scl, (b, n, 3)), "rotations": (rot, (b, n, 4)), "opacities": (opa, (b, n, 1))}
+    for name, (t, shape) in expect.items():
+        if tuple(t.shape) != shape:
+            raise InputError(f"GAUSSIAN.{name} must have shape {shape} (like positions {tuple(pos.shape)}); "
+                             f"got {tuple(t.shape)}")
+    if sh.ndim == 3 and sh.shape[-1] == 3:  # (B, N, 3): a bare DC colour
+        sh = sh[:, :, None, :]
+    if sh.ndim != 4 or tuple(sh.shape[:2]) != (b, n) or sh.shape[-1] != 3:
+        raise InputError(f"GAUSSIAN.sh must be (B, N, K, 3) with B, N = {b}, {n}; got {tuple(sh.shape)}")
+    counts = getattr(obj, "counts", None)
+    if counts is None:
+        lengths = [n] * b
+    else:
+        lengths = [int(c) for c in torch.as_tensor(counts).reshape(-1).tolist()]
+        if len(lengths) != b or any(not (0 <= c <= n) for c in lengths):
+            raise InputError(f"GAUSSIAN.counts must hold {b} lengths between 0 and {n}; got {lengths}")
+    out = []
+    for i, c in enumerate(lengths):
+        p, r, s = pos[i, :c], rot[i, :c], sh[i, :c]
+        if axes == "y_down":
+            p, r, s = _from_native_axes(p, r, s)
+        out.append(Gaussians(means=p, quats=r, scales=scl[i, :c], opacities=opa[i, :c, 0], sh=s))
+    return out
+
+
+def from_native_scene(obj, *, axes: str = "y_down") -> Gaussians:
+    """A native GAUSSIAN as one scene: a single item as it is, several items as one object each
+    (object_ids 0, 1, ... in batch order, as Combine Objects numbers them; empty items are skipped)."""
+    items = from_native(obj, axes=axes)
+    if all(len(g) == 0 for g in items):
+        raise InputError("the GAUSSIAN holds no splats (every batch item is empty)")
+    if len(items) == 1:
+        return items[0]
+    kept = [g for g in items if len(g)]  # empty items hold no object: the ids stay consecutive
+    tagged = [Gaussians(means=g.means, quats=g.quats, scales=g.scales, opacities=g.opacities, sh=g.sh,
+                        object_ids=torch.full((len(g),), i, dtype=torch.int64, device=g.device))
+              for i, g in enumerate(kept)]
+    return Gaussians.cat(tagged)
