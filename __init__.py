@@ -52,12 +52,12 @@ def _install_example_images() -> None:
 
         import folder_paths
 
-        examples = os.path.join(_HERE, "examples")
-        for name in sorted(os.listdir(examples)):
+        photos = os.path.join(_HERE, "photos")
+        for name in sorted(os.listdir(photos)):
             if name.endswith(".png"):
                 target = os.path.join(folder_paths.get_input_directory(), "physmotion_" + name)
                 if not os.path.exists(target):
-                    shutil.copyfile(os.path.join(examples, name), target)
+                    shutil.copyfile(os.path.join(photos, name), target)
     except Exception as exc:  # noqa: BLE001 - outside ComfyUI, or a read-only input folder
         log.debug("PhysMotion: example images not installed: %s", exc)
 

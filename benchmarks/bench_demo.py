@@ -44,7 +44,7 @@ def main() -> int:
     md = f"""## The README demo, from a fresh clone
 
 `bash scripts/demo.sh` on a fresh `git clone` (empty pip cache, empty Warp kernel cache): it creates
-the virtual environment, installs the package, then renders `examples/coffee.png` (600×400) to a
+the virtual environment, installs the package, then renders `photos/coffee.png` (600×400) to a
 {stats['frames']}-frame mp4 ({size / 1e6:.1f} MB) with a 20 N push on a jelly.
 
 Machine: {machine_description()}. Measured {datetime.date.today().isoformat()}.

@@ -113,7 +113,7 @@ def coarse_clip(frames: int, quick: bool):
     sys.path.insert(0, str(ROOT / "tests"))
     from comfy_harness import run_prompt
 
-    prompt = json.loads((ROOT / "workflows" / "api" / "push_a_jelly.json").read_text())
+    prompt = json.loads((ROOT / "example_workflows" / "api" / "push_a_jelly.json").read_text())
     over = {"PhysMotionMPMSimulate.frames": frames, "PhysMotionMPMSimulate.grid_res": 10 if quick else 16,
             "PhysMotionSilhouetteLift.max_gaussians": 6000 if quick else 20000}
     with tempfile.TemporaryDirectory() as tmp:

@@ -50,7 +50,7 @@ def soak(runs: int, frames: int, grid_res: int) -> list[dict]:
         for k in range(runs):
             material = "jelly" if k % 2 == 0 else "plasticine"
             t0 = time.perf_counter()
-            res = generate(ROOT / "examples" / "coffee.png", material=material,
+            res = generate(ROOT / "photos" / "coffee.png", material=material,
                            conditions=Conditions([Force((20.0, 0, 0), Region.at_pixel(200, 150), 0.0, 0.2)]),
                            settings=SimSettings(frames=frames, grid_res=grid_res, device="cpu"),
                            output=Path(tmp) / f"run{k % 3}.mp4", max_gaussians=20_000)

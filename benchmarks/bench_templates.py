@@ -26,7 +26,7 @@ from comfy_harness import node_classes, run_prompt  # noqa: E402
 def main(names: list[str]) -> int:
     node_classes()
     rows = []
-    for path in sorted((ROOT / "workflows" / "api").glob("*.json")):
+    for path in sorted((ROOT / "example_workflows" / "api").glob("*.json")):
         if names and path.stem not in names:
             continue
         prompt = json.loads(path.read_text())
@@ -46,7 +46,7 @@ def main(names: list[str]) -> int:
         print(rows[-1], flush=True)
     md = f"""## Templates at full size
 
-Every CPU template of `workflows/api/` (those that need no learned weights) run in-process through
+Every CPU template of `example_workflows/api/` (those that need no learned weights) run in-process through
 the node classes at the template's own settings (frames, grid, quality as shipped; the Warp kernels
 already compiled; previews included). Machine: {machine_description()}.
 Measured {datetime.date.today().isoformat()}. Re-run: `python -m benchmarks.bench_templates`.

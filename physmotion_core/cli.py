@@ -148,7 +148,7 @@ def _add_check_parsers(sub) -> None:
     c = sub.add_parser("comfy-run", help="run a workflow on a ComfyUI server and download its outputs",
                        description="Upload the image, apply --set edits, queue the workflow on a running ComfyUI, "
                                    "show its progress and download every output file.")
-    c.add_argument("workflow", type=Path, help="workflow JSON (API format, e.g. workflows/api/push_a_jelly.json; "
+    c.add_argument("workflow", type=Path, help="workflow JSON (API format, e.g. example_workflows/api/push_a_jelly.json; "
                                                "a UI-format file is converted with the server's node schemas)")
     c.add_argument("--server", default="http://127.0.0.1:8188", help="ComfyUI address")
     c.add_argument("--image", type=Path, help="upload this image and feed it to the workflow's LoadImage node")

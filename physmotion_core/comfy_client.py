@@ -1,6 +1,6 @@
 """Run a workflow on a ComfyUI server over its HTTP API (headless), with the standard library only.
 
-    physmotion comfy-run workflows/api/push_a_jelly.json --server http://127.0.0.1:8188 \\
+    physmotion comfy-run example_workflows/api/push_a_jelly.json --server http://127.0.0.1:8188 \\
         --image photo.png --set 5.force_x=40 -o out/
 
 Steps: upload the image (POST /upload/image) and point the workflow's LoadImage node at it, apply

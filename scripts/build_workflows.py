@@ -1,4 +1,4 @@
-"""Generate the UI-format templates in workflows/ from their API-format twins in workflows/api/.
+"""Generate the UI-format templates in example_workflows/ from their API-format twins in example_workflows/api/.
 
 The API file is the single source of truth; run this after editing one:
     .venv/bin/python scripts/build_workflows.py
@@ -41,10 +41,10 @@ def build_ui(prompt: dict, sch: dict | None = None) -> dict:
 
 def main() -> int:
     sch = schemas()
-    for api_path in sorted((ROOT / "workflows" / "api").glob("*.json")):
+    for api_path in sorted((ROOT / "example_workflows" / "api").glob("*.json")):
         prompt = json.loads(api_path.read_text())
         ui = build_ui(prompt, sch)
-        out = ROOT / "workflows" / api_path.name
+        out = ROOT / "example_workflows" / api_path.name
         out.write_text(json.dumps(ui, indent=1) + "\n")
         print(f"wrote {out.relative_to(ROOT)}")
     return 0

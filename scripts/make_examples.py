@@ -1,4 +1,4 @@
-"""Generate the synthetic example inputs in examples/ (RGBA cut-outs with shading).
+"""Generate the synthetic example inputs in photos/ (RGBA cut-outs with shading).
 
 They are drawn here, procedurally and deterministically, so they carry no licence of anyone
 else's: a metal bar, a bread loaf, a rubber ball, a snow block, a drop of water, a dollop of honey, a
@@ -40,7 +40,7 @@ def save_rgba(name: str, rgb: np.ndarray, alpha: np.ndarray) -> None:
     a = alpha[..., None]
     rgb = rgb * (a > 0) + backdrop(*alpha.shape) * (a <= 0)
     img = np.dstack([rgb[..., ::-1], alpha[..., None]])
-    cv2.imwrite(str(ROOT / "examples" / name), (img * 255 + 0.5).astype(np.uint8))
+    cv2.imwrite(str(ROOT / "photos" / name), (img * 255 + 0.5).astype(np.uint8))
     print("wrote", name)
 
 

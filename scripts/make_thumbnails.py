@@ -1,7 +1,7 @@
 """Make each template's .jpg thumbnail from a frame the template really produces.
 
 Runs every API workflow in-process (tests/comfy_harness.py), takes the frame at 40 % of the clip
-and writes workflows/<name>.jpg (printing the run time). CPU-capable workflows only. With --sheet DIR it also writes a
+and writes example_workflows/<name>.jpg (printing the run time). CPU-capable workflows only. With --sheet DIR it also writes a
 contact sheet of six frames per workflow to DIR (for reviewing the motion). Usage:
     .venv/bin/python scripts/make_thumbnails.py [--sheet DIR] [name ...]
 """
@@ -47,7 +47,7 @@ def main(names: list[str]) -> int:
         sheet_dir, names = Path(names[1]), names[2:]
         sheet_dir.mkdir(parents=True, exist_ok=True)
     node_classes()
-    paths = sorted((ROOT / "workflows" / "api").glob("*.json"))
+    paths = sorted((ROOT / "example_workflows" / "api").glob("*.json"))
     if names:
         paths = [p for p in paths if p.stem in names]
     for path in paths:
@@ -71,7 +71,7 @@ def main(names: list[str]) -> int:
         scale = 512 / max(img.shape[:2])
         if scale < 1:
             img = cv2.resize(img, (round(img.shape[1] * scale), round(img.shape[0] * scale)), interpolation=cv2.INTER_AREA)
-        target = ROOT / "workflows" / f"{path.stem}.jpg"
+        target = ROOT / "example_workflows" / f"{path.stem}.jpg"
         cv2.imwrite(str(target), img, [cv2.IMWRITE_JPEG_QUALITY, 85])
         print(f"wrote {target.relative_to(ROOT)}")
     return 0

@@ -33,12 +33,12 @@ def load_pack(name: str = "physmotion_pack"):
 class LoadImage:
     """Stand-in for ComfyUI's core LoadImage (same outputs)."""
 
-    input_dir = ROOT / "examples"
+    input_dir = ROOT / "photos"
 
     @classmethod
     def INPUT_TYPES(cls):
         files = sorted(p.name for p in cls.input_dir.iterdir() if p.suffix.lower() in (".png", ".jpg", ".jpeg"))
-        files += ["physmotion_" + p.name for p in (ROOT / "examples").glob("*.png")]
+        files += ["physmotion_" + p.name for p in (ROOT / "photos").glob("*.png")]
         return {"required": {"image": (files, {"image_upload": True})}}
 
     RETURN_TYPES = ("IMAGE", "MASK")
@@ -50,7 +50,7 @@ class LoadImage:
 
         path = self.input_dir / image
         if not path.exists() and image.startswith("physmotion_"):  # the pack copies these into input/
-            path = ROOT / "examples" / image[len("physmotion_"):]
+            path = ROOT / "photos" / image[len("physmotion_"):]
         rgb, alpha = load_image(path)
         if alpha is None:
             mask = torch.zeros(64, 64)

@@ -39,4 +39,4 @@ def _seed():
 
 @pytest.fixture(scope="session")
 def example_image_path():
-    return ROOT / "examples" / "coffee.png"
+    return ROOT / "photos" / "coffee.png"

@@ -3,7 +3,8 @@
 Skipped unless COMFYUI_DIR is set (a real ComfyUI, see tests/comfy_live.py), chromium is installed
 (``CHROMIUM``, default /usr/bin/chromium) and playwright-core resolves (``PLAYWRIGHT_CORE``: its
 folder, or installed where Node finds it). tests/browser/comfy_page.mjs loads every UI template the
-way the Templates dialog does, and drives the force/torque picker with the mouse; this file checks
+way the Templates dialog does (listed by GET /workflow_templates and fetched from the server's
+template route, never read from disk), and drives the force/torque picker with the mouse; this file checks
 what it saw:
 
 * no template has a missing node, and the frontend's own graphToPrompt gives exactly the API twin;
@@ -57,21 +58,22 @@ def page_report(comfy_server, tmp_path_factory):
     shots.mkdir(parents=True, exist_ok=True)
     env = {**os.environ, "PLAYWRIGHT_CORE": PLAYWRIGHT, "CHROMIUM": CHROMIUM}
     proc = subprocess.run([NODE, str(ROOT / "tests" / "browser" / "comfy_page.mjs"), comfy_server.url,
-                           str(ROOT / "workflows"), str(out / "result.json"), str(shots)],
+                           str(out / "result.json"), str(shots)],
                           cwd=ROOT, env=env, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-3000:] + comfy_server.log_tail(2000)
     return json.loads((out / "result.json").read_text())
 
 
 def test_every_template_loads_without_missing_nodes_and_queues_its_api_twin(page_report):
-    names = sorted(p.stem for p in (ROOT / "workflows").glob("*.json"))
+    names = sorted(p.stem for p in (ROOT / "example_workflows").glob("*.json"))
     assert sorted(page_report["listed"]) == names
     assert sorted(page_report["templates"]) == names
     for name, r in page_report["templates"].items():
-        ui = json.loads((ROOT / "workflows" / f"{name}.json").read_text())
+        ui = json.loads((ROOT / "example_workflows" / f"{name}.json").read_text())
+        assert json.loads(page_report["fetched"][name]) == ui, f"{name}: the server served another file"
         assert r["missing"] == [], (name, r["missing"])
         assert sorted(r["loaded"]) == sorted(n["type"] for n in ui["nodes"]), name
-        api = json.loads((ROOT / "workflows" / "api" / f"{name}.json").read_text())
+        api = json.loads((ROOT / "example_workflows" / "api" / f"{name}.json").read_text())
         queued = {nid: {"class_type": n["class_type"], "inputs": n["inputs"]} for nid, n in r["prompt"].items()}
         assert queued == api, name
     ours = [e for e in page_report["console_errors"] if "PhysMotion" in e or "picker" in e]

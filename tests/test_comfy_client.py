@@ -24,7 +24,7 @@ from physmotion_core.comfy_client import ComfyError, apply_sets, run_workflow
 from physmotion_core.errors import InputError
 
 ROOT = Path(__file__).resolve().parent.parent
-WORKFLOW = ROOT / "workflows" / "api" / "push_a_jelly.json"
+WORKFLOW = ROOT / "example_workflows" / "api" / "push_a_jelly.json"
 
 
 class FakeComfy:

@@ -25,7 +25,7 @@ from physmotion_core.comfy_client import ComfyClient, ComfyError, run_workflow
 from physmotion_core.video import read_video
 
 pytestmark = requires_comfyui
-API = sorted((ROOT / "workflows" / "api").glob("*.json"))
+API = sorted((ROOT / "example_workflows" / "api").glob("*.json"))
 
 
 def _names(section: dict) -> set:
@@ -56,7 +56,14 @@ def test_object_info_lists_every_node_with_its_inputs_outputs_and_category(comfy
     # The frontend extension and the templates are served too.
     assert any(e.endswith("/ComfyUI-PhysMotion/force_picker.js") for e in comfy_server.get_json("/extensions"))
     listed = comfy_server.get_json("/workflow_templates").get("ComfyUI-PhysMotion", [])
-    assert sorted(listed) == sorted(p.stem for p in (ROOT / "workflows").glob("*.json")), listed
+    assert sorted(listed) == sorted(p.stem for p in (ROOT / "example_workflows").glob("*.json")), listed
+    # ... and served from the template route: each UI file and its thumbnail (the api/ twins are not
+    # listed as templates).
+    for name in listed:
+        served = json.loads(comfy_server.get_bytes(f"/api/workflow_templates/ComfyUI-PhysMotion/{name}.json"))
+        assert served == json.loads((ROOT / "example_workflows" / f"{name}.json").read_text()), name
+        thumb = comfy_server.get_bytes(f"/api/workflow_templates/ComfyUI-PhysMotion/{name}.jpg")
+        assert thumb[:3] == b"\xff\xd8\xff", name
 
 
 def _video_moves(path, frames: int) -> None:
@@ -85,7 +92,7 @@ def test_api_workflow_runs_on_comfyui_and_its_video_moves(comfy_server, path, tm
 
 
 def test_previews_are_in_the_history_and_served(comfy_server, tmp_path):
-    prompt = shrink(json.loads((ROOT / "workflows/api/push_a_jelly.json").read_text()), "previews")
+    prompt = shrink(json.loads((ROOT / "example_workflows/api/push_a_jelly.json").read_text()), "previews")
     client = ComfyClient(comfy_server.url)
     client.connect()
     entry = client.wait(client.queue(prompt), timeout=600)
@@ -109,12 +116,12 @@ def test_previews_are_in_the_history_and_served(comfy_server, tmp_path):
 
 
 def test_cli_uploads_the_image_applies_sets_and_downloads(comfy_server, tmp_path):
-    prompt = shrink(json.loads((ROOT / "workflows/api/push_a_jelly.json").read_text()), "cli")
+    prompt = shrink(json.loads((ROOT / "example_workflows/api/push_a_jelly.json").read_text()), "cli")
     wf = tmp_path / "wf.json"
     wf.write_text(json.dumps(prompt))
     out = tmp_path / "out"
     proc = subprocess.run([sys.executable, "-m", "physmotion_core.cli", "comfy-run", str(wf), "--server",
-                           comfy_server.url, "--image", str(ROOT / "examples" / "ball.png"),
+                           comfy_server.url, "--image", str(ROOT / "photos" / "ball.png"),
                            "--set", "PhysMotionForce.region=whole object", "--set", "PhysMotionMPMSimulate.frames=5",
                            "-o", str(out)], cwd=ROOT, capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stderr[-3000:] + comfy_server.log_tail()
@@ -126,7 +133,7 @@ def test_cli_uploads_the_image_applies_sets_and_downloads(comfy_server, tmp_path
 
 
 def test_cancel_stops_a_running_simulation_within_a_second(comfy_server):
-    prompt = json.loads((ROOT / "workflows/api/push_a_jelly.json").read_text())
+    prompt = json.loads((ROOT / "example_workflows/api/push_a_jelly.json").read_text())
     for node in prompt.values():  # long enough that it is certainly still simulating when cancelled
         if node["class_type"] == "PhysMotionMPMSimulate":
             node["inputs"].update(frames=400, grid_res=20)

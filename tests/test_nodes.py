@@ -12,7 +12,7 @@ from comfy_harness import ROOT, input_spec, is_widget, load_pack, node_classes, 
 from physmotion_core.video import read_video
 from physmotion_core.workflow import api_to_ui, ui_to_api
 
-API_DIR = ROOT / "workflows" / "api"
+API_DIR = ROOT / "example_workflows" / "api"
 API_WORKFLOWS = sorted(API_DIR.glob("*.json"))
 LINK_TYPES_ANY = {"*"}
 
@@ -99,7 +99,7 @@ def test_api_workflow_matches_the_node_classes(path):
 
 @pytest.mark.parametrize("path", API_WORKFLOWS, ids=lambda p: p.stem)
 def test_ui_template_and_api_twin_describe_the_same_graph(path):
-    ui_path = ROOT / "workflows" / path.name
+    ui_path = ROOT / "example_workflows" / path.name
     assert ui_path.exists(), f"no UI template for {path.name}: run scripts/build_workflows.py"
     assert ui_path.with_suffix(".jpg").exists(), f"no thumbnail for {ui_path.name}"
     api = json.loads(path.read_text())

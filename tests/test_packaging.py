@@ -53,3 +53,21 @@ def test_requirements_never_pin_torch_gsplat_or_upper_bounds():
     assert not unknown, f"imported but not in requirements.txt: {unknown}"
     for mod in third_party:
         assert import_names[mod] in names, f"{mod} needs {import_names[mod]} in requirements.txt"
+
+
+def test_only_example_workflows_can_be_taken_for_a_template_folder():
+    """ComfyUI serves a pack's templates from the folders it takes for template folders, all under one
+    route: 0.3.64 by the names example_workflows/example/examples/workflow/workflows, newer versions
+    any top-level folder whose name contains "example" or "workflow". Two such folders shadow each
+    other, so exactly one may exist; it lists only UI-format templates (the api/ twins sit below it)."""
+    folders = sorted(p.name for p in ROOT.iterdir() if p.is_dir() and not p.name.startswith(".")
+                     and ("example" in p.name.lower() or "workflow" in p.name.lower()))
+    assert folders == ["example_workflows"], folders
+    listed = sorted((ROOT / "example_workflows").glob("*.json"))
+    assert listed
+    import json
+    for path in listed:
+        ui = json.loads(path.read_text())
+        assert "nodes" in ui and "links" in ui, f"{path.name} is not a UI-format workflow"
+        assert (path.with_suffix(".jpg")).is_file(), f"no thumbnail for {path.name}"
+        assert (ROOT / "example_workflows" / "api" / path.name).is_file(), f"no API twin for {path.name}"

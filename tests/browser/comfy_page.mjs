@@ -1,17 +1,20 @@
 // Drives a real ComfyUI page with Playwright (playwright-core + Debian's chromium) for
 // tests/test_browser.py. Usage:
-//   node tests/browser/comfy_page.mjs <server url> <templates dir> <result.json> [screenshot dir]
+//   node tests/browser/comfy_page.mjs <server url> <result.json> [screenshot dir]
+// Templates come from the server (GET /workflow_templates, then
+// /api/workflow_templates/ComfyUI-PhysMotion/<name>.json), as the Templates dialog fetches them.
 // Prints nothing on success; the result JSON holds what the page reported:
 //   templates: {name: {missing: [...], prompt: {...API prompt the frontend makes...}}}
 //   picker:    {force: {...before/after widgets, expected...}, torque: {...}}
 import { createRequire } from "node:module";
-import { readFileSync, readdirSync, writeFileSync } from "node:fs";
+import { writeFileSync } from "node:fs";
 import path from "node:path";
 
 const require = createRequire(import.meta.url);
 const { chromium } = require(process.env.PLAYWRIGHT_CORE || "playwright-core");
 
-const [url, templatesDir, resultPath, shotDir] = process.argv.slice(2);
+const [url, resultPath, shotDir] = process.argv.slice(2);
+const PACK = "ComfyUI-PhysMotion";
 const executablePath = process.env.CHROMIUM || "/usr/bin/chromium";
 
 const browser = await chromium.launch({
@@ -33,11 +36,18 @@ try {
   // Every template as the Templates dialog loads it: listed by the server, fetched from it, opened
   // as a named workflow. The frontend's own graphToPrompt must give the API twin back.
   const listing = await page.evaluate(async () => (await (await fetch("/workflow_templates")).json()));
-  result.listed = listing["ComfyUI-PhysMotion"] ?? [];
+  result.listed = listing[PACK] ?? [];
+  result.fetched = {};
+  async function fetchTemplate(name) {
+    return await page.evaluate(async ({ pack, name }) => {
+      const res = await fetch(`/api/workflow_templates/${pack}/${name}.json`);
+      if (!res.ok) throw new Error(`GET /api/workflow_templates/${pack}/${name}.json: ${res.status}`);
+      return await res.text();
+    }, { pack: PACK, name });
+  }
   for (const name of [...result.listed].sort()) {
-    // (The JSON is read from the repository: this ComfyUI build answers 404 for a symlinked pack's
-    // template files although it lists them.)
-    const wfText = readFileSync(path.join(templatesDir, `${name}.json`), "utf8");
+    const wfText = await fetchTemplate(name);
+    result.fetched[name] = wfText;
     const r = await page.evaluate(async ({ name, wfText }) => {
       const wf = JSON.parse(wfText);
       const registered = window.LiteGraph.registered_node_types;
@@ -54,7 +64,7 @@ try {
 
   // The picker: drag on the photo inside a node, read the widgets, save and reload the workflow.
   async function drivePicker(template, nodeType, kind, from, to, modifiers = []) {
-    const wf = JSON.parse(readFileSync(path.join(templatesDir, `${template}.json`), "utf8"));
+    const wf = JSON.parse(await fetchTemplate(template));
     await page.evaluate(async ({ wf, nodeType, template }) => {
       await window.app.loadGraphData(wf, true, false, `${template}_picker`, { showMissingNodesDialog: false,
                                                                               showMissingModelsDialog: false });
