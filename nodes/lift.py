@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from ._gaussian_io import GAUSSIANS_INPUT, GAUSSIANS_TOOLTIP_SUFFIX, as_pm_gaussians
 from ._util import CATEGORY, first_image, first_mask, output_path
 
 
@@ -56,7 +57,7 @@ class PhysMotionSaveGaussians:
     @classmethod
     def INPUT_TYPES(cls):
         return {"required": {
-            "gaussians": ("PM_GAUSSIANS", {"tooltip": "Gaussians to save."}),
+            "gaussians": (GAUSSIANS_INPUT, {"tooltip": "Gaussians to save." + GAUSSIANS_TOOLTIP_SUFFIX}),
             "filename_prefix": ("STRING", {"default": "PhysMotion/gaussians",
                                            "tooltip": "File name prefix inside the output folder."}),
         }}
@@ -72,7 +73,7 @@ class PhysMotionSaveGaussians:
         from physmotion_core.ply import write_ply
 
         path, filename, subfolder = output_path(filename_prefix, "ply")
-        write_ply(path, gaussians)
+        write_ply(path, as_pm_gaussians(gaussians))
         rel = f"{subfolder}/{filename}" if subfolder else filename
         return {"ui": {"text": [rel]}, "result": (rel,)}
 

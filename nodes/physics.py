@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from ._gaussian_io import GAUSSIANS_INPUT, GAUSSIANS_TOOLTIP_SUFFIX, as_pm_gaussians
 from ._util import CATEGORY, output_path, progress_callback, sim_device
 
 _VEC = {"default": 0.0, "min": -1e7, "max": 1e7, "step": 0.1}
@@ -292,9 +293,10 @@ class PhysMotionCombineObjects:
     def INPUT_TYPES(cls):
         off = {"default": 0.0, "min": -100.0, "max": 100.0, "step": 0.01}
         return {"required": {
-            "gaussians_a": ("PM_GAUSSIANS", {"tooltip": "The first object (or a scene already combined)."}),
+            "gaussians_a": (GAUSSIANS_INPUT, {"tooltip": "The first object (or a scene already combined)."
+                                                         + GAUSSIANS_TOOLTIP_SUFFIX}),
             "material_a": ("PM_MATERIAL", {"tooltip": "Its material (or the combined scene's materials)."}),
-            "gaussians_b": ("PM_GAUSSIANS", {"tooltip": "The object to add."}),
+            "gaussians_b": (GAUSSIANS_INPUT, {"tooltip": "The object to add." + GAUSSIANS_TOOLTIP_SUFFIX}),
             "material_b": ("PM_MATERIAL", {"tooltip": "The added object's material."}),
             "offset_x": ("FLOAT", {**off, "tooltip": "Move the added object along x (right), metres."}),
             "offset_y": ("FLOAT", {**off, "tooltip": "Move the added object along y (up), metres."}),
@@ -311,7 +313,8 @@ class PhysMotionCombineObjects:
     def run(self, gaussians_a, material_a, gaussians_b, material_b, offset_x, offset_y, offset_z):
         from physmotion_core.scene import combine_objects
 
-        return combine_objects(gaussians_a, material_a, gaussians_b, material_b, (offset_x, offset_y, offset_z))
+        return combine_objects(as_pm_gaussians(gaussians_a, "gaussians_a"), material_a,
+                               as_pm_gaussians(gaussians_b, "gaussians_b"), material_b, (offset_x, offset_y, offset_z))
 
 
 class PhysMotionMPMSimulate:
@@ -327,7 +330,8 @@ class PhysMotionMPMSimulate:
 
         return {
             "required": {
-                "gaussians": ("PM_GAUSSIANS", {"tooltip": "The object(s) as 3D Gaussians (a lift or Combine Objects)."}),
+                "gaussians": (GAUSSIANS_INPUT, {"tooltip": "The object(s) as 3D Gaussians (a lift or Combine Objects)."
+                                                           + GAUSSIANS_TOOLTIP_SUFFIX}),
                 "material": ("PM_MATERIAL", {"tooltip": "What it is made of (one per object for a combined scene)."}),
                 "frames": ("INT", {"default": 48, "min": 1, "max": 100000,
                                    "tooltip": "Number of output frames (frame 0 is the rest state)."}),
@@ -369,7 +373,7 @@ class PhysMotionMPMSimulate:
         settings = SimSettings(frames=int(frames), fps=float(fps), grid_res=int(grid_res), quality=quality,
                                particles_per_cell=int(particles_per_cell), cfl=float(cfl),
                                domain_margin=float(domain_margin), device=sim_device(device), seed=int(seed))
-        return (simulate(gaussians, material, _chain(conditions), settings, camera=camera,
+        return (simulate(as_pm_gaussians(gaussians), material, _chain(conditions), settings, camera=camera,
                          progress=progress_callback()),)
 
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+from ._gaussian_io import GAUSSIANS_INPUT, GAUSSIANS_TOOLTIP_SUFFIX, as_pm_gaussians
 from ._util import CATEGORY, first_image, first_mask, log, preview_images, progress_with_previews, save_ply_output
 
 
@@ -85,7 +86,8 @@ class PhysMotionHardDepthRefine:
     def INPUT_TYPES(cls):
         return {
             "required": {
-                "gaussians": ("PM_GAUSSIANS", {"tooltip": "Lifted Gaussians (LGM Lift or Silhouette Lift)."}),
+                "gaussians": (GAUSSIANS_INPUT, {"tooltip": "Lifted Gaussians (LGM Lift or Silhouette Lift)."
+                                                           + GAUSSIANS_TOOLTIP_SUFFIX}),
                 "camera": ("PM_CAMERA", {"tooltip": "The input camera from the lift node."}),
                 "image": ("IMAGE", {"tooltip": "The input photo."}),
                 "mask": ("MASK", {"tooltip": "The object mask."}),
@@ -151,7 +153,7 @@ class PhysMotionHardDepthRefine:
                             max_render_side=int(max_render_side), max_seconds=float(time_limit_s), seed=int(seed))
         # The progress bar shows the current render beside the photo (every 50 iterations).
         progress, preview = progress_with_previews()
-        res = refine_gaussians(gaussians.to(dev), rviews, st, progress=progress, preview=preview)
+        res = refine_gaussians(as_pm_gaussians(gaussians).to(dev), rviews, st, progress=progress, preview=preview)
         for note in res.notes:
             log.info("Hard-Depth Refine: %s", note)
         log.info("Hard-Depth Refine: %d iterations in %.1f s (%.2f it/s), %d pruned", res.iterations_done,

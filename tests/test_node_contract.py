@@ -23,6 +23,17 @@ NODES = PACK.NODE_CLASS_MAPPINGS
 CORE_TYPES = {"IMAGE", "MASK", "STRING", "INT", "FLOAT", "BOOLEAN", "LATENT", "CONDITIONING", "MODEL", "VAE",
               "CLIP"}
 WIDGET_TYPES = {"INT", "FLOAT", "STRING", "BOOLEAN"}
+#: ComfyUI's own types that a PM_ input may also take, as a comma-separated union ("PM_GAUSSIANS,GAUSSIAN")
+NATIVE_UNION_TYPES = {"GAUSSIAN"}
+
+
+def _link_type_ok(kind: str) -> bool:
+    """A core type, a PM_* type, or a union "PM_X,NATIVE" (no spaces: the front end does not trim)."""
+    if kind in CORE_TYPES or re.fullmatch(r"PM_[A-Z0-9_]+", kind):
+        return True
+    parts = kind.split(",")
+    return (len(parts) > 1 and re.fullmatch(r"PM_[A-Z0-9_]+", parts[0]) is not None
+            and all(p in NATIVE_UNION_TYPES for p in parts[1:]))
 CATEGORY_RE = re.compile(r"^PhysMotion/[a-z0-9_]+(/[a-z0-9_]+)?$")
 
 
@@ -35,7 +46,7 @@ def _all_types():
     out = set()
     for cls in NODES.values():
         req, opt, _ = _inputs(cls)
-        out |= {s[0] for s in {**req, **opt}.values() if isinstance(s[0], str)}
+        out |= {t for s in {**req, **opt}.values() if isinstance(s[0], str) for t in s[0].split(",")}
         out |= set(cls.RETURN_TYPES)
     return out
 
@@ -88,7 +99,7 @@ def test_every_input_has_a_tooltip_a_valid_default_and_a_range(name):
         elif kind == "STRING":
             assert isinstance(opts.get("default"), str), f"{name}.{inp}: STRING needs a default"
         else:
-            assert kind in CORE_TYPES or re.fullmatch(r"PM_[A-Z0-9_]+", kind), f"{name}.{inp}: type {kind}"
+            assert _link_type_ok(kind), f"{name}.{inp}: type {kind}"
             assert "default" not in opts, f"{name}.{inp}: a link input has no default"
 
 
