@@ -38,6 +38,7 @@ from typing import Any, Callable, Optional, Sequence
 import torch
 
 from .errors import InputError
+from .memory import fmt_bytes, host_available_bytes
 from .types import Gaussians, SimResult
 
 AXES = ("y_down", "as_is")
@@ -180,6 +181,13 @@ def sim_to_native_tensors(sim: SimResult, *, axes: str = "y_down", every: int = 
     if not (isinstance(every, int) and every >= 1):
         raise InputError(f"every must be a positive whole number of frames; got {every!r}")
     frames = list(range(0, sim.num_frames, every))
+    n, k = len(sim.rest), sim.rest.sh.shape[1]
+    need = len(frames) * n * (3 + 3 + 4 + 1 + 3 * k) * sim.rest.means.element_size()
+    have = host_available_bytes()
+    if need > 0.5 * have:  # the per-frame items and the stacked batch exist at once for a moment
+        raise InputError(f"A GAUSSIAN batch of {len(frames)} frames x {n} splats needs about {fmt_bytes(need)} "
+                         f"of RAM but only {fmt_bytes(have)} is available; raise every_nth_frame (at most "
+                         f"about {max(int(0.5 * have // max(need // len(frames), 1)), 0)} frames fit).")
     items = []
     for i, f in enumerate(frames):
         items.append(sim.gaussians_at(f).detach().to("cpu").with_covariance_as_rotscale())

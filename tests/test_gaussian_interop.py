@@ -1,0 +1,327 @@
+"""ComfyUI's native GAUSSIAN <-> our Gaussians: exact round trips, the axes, the simulated sequence as a
+GAUSSIAN batch, nodes taking either type, and the pack loading without the type."""
+
+from __future__ import annotations
+
+import logging
+import math
+import sys
+import types
+
+import pytest
+import torch
+
+from comfy_harness import load_pack
+
+from physmotion_core import interop_gaussian as ig
+from physmotion_core.errors import InputError
+from physmotion_core.types import Camera, Gaussians, Material, SimSettings, quat_to_rotmat
+
+FIELDS = ("means", "quats", "scales", "opacities", "sh")
+D = torch.diag(torch.tensor([1.0, -1.0, -1.0]))
+
+
+class FakeGAUSSIAN:
+    """Upstream's class (comfy_api/latest/_util/geometry_types.py, commit 2c682860): same constructor, fields."""
+
+    def __init__(self, positions, scales, rotations, opacities, sh, counts=None):
+        self.positions = positions
+        self.scales = scales
+        self.rotations = rotations
+        self.opacities = opacities
+        self.sh = sh
+        self.counts = counts
+
+
+def _random(n, k=16, seed=0, ids=None) -> Gaussians:
+    gen = torch.Generator().manual_seed(seed)
+    q = torch.nn.functional.normalize(torch.randn(n, 4, generator=gen), dim=-1)
+    return Gaussians(means=torch.randn(n, 3, generator=gen), quats=q,
+                     scales=torch.rand(n, 3, generator=gen) * 0.05 + 1e-3,
+                     opacities=torch.rand(n, generator=gen), sh=torch.randn(n, k, 3, generator=gen),
+                     object_ids=ids)
+
+
+def _same(a: Gaussians, b: Gaussians):
+    for f in FIELDS:
+        assert getattr(a, f).dtype == getattr(b, f).dtype, f
+        assert torch.equal(getattr(a, f), getattr(b, f)), f
+
+
+# ------------------------------------------------------------------------------------------------
+# Library: exact round trips and the layout
+# ------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("axes", ig.AXES)
+@pytest.mark.parametrize("k", [1, 4, 16])
+def test_ours_to_native_and_back_is_bit_exact(axes, k):
+    g = _random(300, k)
+    nat = ig.to_native(g, FakeGAUSSIAN, axes=axes)
+    assert tuple(nat.positions.shape) == (1, 300, 3) and tuple(nat.rotations.shape) == (1, 300, 4)
+    assert tuple(nat.opacities.shape) == (1, 300, 1) and tuple(nat.sh.shape) == (1, 300, k, 3)
+    assert nat.counts is None
+    # activations are the same: linear scales and opacities in [0, 1] are copied, not re-encoded
+    assert torch.equal(nat.scales[0], g.scales) and torch.equal(nat.opacities[0, :, 0], g.opacities)
+    (back,) = ig.from_native(nat, axes=axes)
+    _same(back, g)
+
+
+def test_native_variable_length_batch_round_trips_bit_exactly():
+    lengths = [5, 17, 0, 11]
+    n = max(lengths)
+    gen = torch.Generator().manual_seed(3)
+    pos = torch.zeros(4, n, 3)
+    scl, rot = torch.zeros(4, n, 3), torch.zeros(4, n, 4)
+    opa, sh = torch.zeros(4, n, 1), torch.zeros(4, n, 9, 3)
+    for b, c in enumerate(lengths):  # real rows, then zero padding (as upstream pads)
+        pos[b, :c] = torch.randn(c, 3, generator=gen)
+        scl[b, :c] = torch.rand(c, 3, generator=gen) + 1e-3
+        rot[b, :c] = torch.nn.functional.normalize(torch.randn(c, 4, generator=gen), dim=-1)
+        opa[b, :c] = torch.rand(c, 1, generator=gen)
+        sh[b, :c] = torch.randn(c, 9, 3, generator=gen)
+    nat = FakeGAUSSIAN(pos, scl, rot, opa, sh, counts=torch.tensor(lengths))
+    items = ig.from_native(nat)
+    assert [len(g) for g in items] == lengths
+    again = ig.to_native(items, FakeGAUSSIAN)
+    assert again.counts.tolist() == lengths
+    for f in ("positions", "scales", "rotations", "opacities", "sh"):
+        assert torch.equal(getattr(again, f), getattr(nat, f)), f
+    # as one scene: one object per non-empty item, numbered in batch order
+    scene = ig.from_native_scene(nat)
+    assert len(scene) == sum(lengths)
+    assert scene.object_ids.tolist() == [0] * 5 + [1] * 17 + [2] * 11
+
+
+def test_objects_split_into_batch_items_and_back():
+    ids = torch.tensor([0] * 40 + [1] * 25 + [2] * 60)
+    g = _random(125, 4, seed=1, ids=ids)
+    nat = ig.to_native(g, FakeGAUSSIAN, split=True)
+    assert nat.positions.shape[0] == 3 and nat.counts.tolist() == [40, 25, 60]
+    back = ig.from_native_scene(nat)
+    _same(back, g)
+    assert torch.equal(back.object_ids, ids)
+    whole = ig.to_native(g, FakeGAUSSIAN)  # not split: the scene is one item (its ids are not carried)
+    assert whole.positions.shape[:2] == (1, 125)
+
+
+def test_y_down_axes_match_the_native_renderer_projection():
+    """Upstream's _render_gaussian projects camera-space points with u = cx + f x/z, v = cy + f y/z (camera
+    looking down +z, rows growing with +y). Our camera at +z looking down -z, converted by the same rotation,
+    must put every centre on the same pixel, and the covariances must be the rotated ones."""
+    g = _random(200, 1, seed=2)
+    g = Gaussians(means=g.means * 0.3, quats=g.quats, scales=g.scales, opacities=g.opacities, sh=g.sh)
+    cam = Camera.look_at((0.0, 0.0, 3.0), (0.0, 0.0, 0.0), width=256, height=192, fov_y_deg=40.0)
+    uv, z = cam.project(g.means)
+    nat = ig.to_native(g, FakeGAUSSIAN, axes="y_down")
+    eye_native = D @ torch.tensor([0.0, 0.0, 3.0])
+    pc = nat.positions[0] - eye_native  # native camera: axes = world axes, looking down +z
+    u = cam.cx + cam.fx * pc[:, 0] / pc[:, 2]
+    v = cam.cy + cam.fy * pc[:, 1] / pc[:, 2]
+    assert torch.allclose(torch.stack([u, v], -1), uv, atol=1e-3)
+    assert torch.allclose(pc[:, 2], z, atol=1e-5)
+    R = quat_to_rotmat(nat.rotations[0])
+    cov_native = (R * nat.scales[0][:, None, :]) @ (R * nat.scales[0][:, None, :]).transpose(1, 2)
+    assert torch.allclose(cov_native, D @ g.covariance() @ D, atol=1e-7)
+    assert torch.det(D) == 1.0  # a rotation: both frames are right-handed
+
+
+def _sh_eval(sh: torch.Tensor, d: torch.Tensor) -> torch.Tensor:
+    """Colour of SH (N,16,3) seen along unit directions d (N,3): the 3DGS real SH basis up to degree 3
+    (written out from the spherical-harmonic polynomials, independent of the code under test)."""
+    x, y, z = d.unbind(-1)
+    c1, c2 = 0.4886025119029199, [1.0925484305920792, -1.0925484305920792, 0.31539156525252005,
+                                  -1.0925484305920792, 0.5462742152960396]
+    c3 = [-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+          -0.4570457994644658, 1.445305721320277, -0.5900435899266435]
+    basis = [torch.full_like(x, 0.28209479177387814), -c1 * y, c1 * z, -c1 * x,
+             c2[0] * x * y, c2[1] * y * z, c2[2] * (2 * z * z - x * x - y * y), c2[3] * x * z,
+             c2[4] * (x * x - y * y),
+             c3[0] * y * (3 * x * x - y * y), c3[1] * x * y * z, c3[2] * y * (4 * z * z - x * x - y * y),
+             c3[3] * z * (2 * z * z - 3 * x * x - 3 * y * y), c3[4] * x * (4 * z * z - x * x - y * y),
+             c3[5] * z * (x * x - y * y), c3[6] * x * (x * x - 3 * y * y)]
+    return (torch.stack(basis, -1)[..., None] * sh).sum(1)
+
+
+def test_sh_of_degree_3_turn_with_the_axes():
+    g = _random(64, 16, seed=4)
+    d = torch.nn.functional.normalize(torch.randn(64, 3, generator=torch.Generator().manual_seed(5)), dim=-1)
+    nat = ig.to_native(g, FakeGAUSSIAN, axes="y_down")
+    ours = _sh_eval(g.sh.double(), d.double())
+    theirs = _sh_eval(nat.sh[0].double(), (d @ D.T).double())  # the same direction in the native frame
+    assert torch.allclose(ours, theirs, atol=1e-9)
+    # and the signs are not trivial: some coefficients did flip
+    assert bool((nat.sh[0] == -g.sh).any()) and bool((nat.sh[0] == g.sh).any())
+
+
+def test_deformed_covariances_convert_within_float32_rounding():
+    g = _random(100, 1, seed=6)
+    F = torch.eye(3) + 0.3 * torch.randn(100, 3, 3, generator=torch.Generator().manual_seed(7))
+    cov = F @ g.covariance() @ F.transpose(1, 2)
+    gc = Gaussians(means=g.means, quats=g.quats, scales=g.scales, opacities=g.opacities, sh=g.sh, covars=cov)
+    (back,) = ig.from_native(ig.to_native(gc, FakeGAUSSIAN))
+    rel = (back.covariance() - cov).norm(dim=(1, 2)) / cov.norm(dim=(1, 2))
+    assert float(rel.max()) < 1e-5
+    assert torch.equal(back.means, g.means)
+
+
+def test_bad_native_input_is_refused_clearly():
+    with pytest.raises(InputError, match="rotations"):
+        ig.from_native(FakeGAUSSIAN(torch.zeros(1, 4, 3), torch.ones(1, 4, 3), torch.zeros(1, 4, 3),
+                                    torch.ones(1, 4, 1), torch.zeros(1, 4, 1, 3)))
+    with pytest.raises(InputError, match="counts"):
+        ig.from_native(FakeGAUSSIAN(torch.zeros(2, 4, 3), torch.ones(2, 4, 3), torch.zeros(2, 4, 4),
+                                    torch.ones(2, 4, 1), torch.zeros(2, 4, 1, 3), counts=torch.tensor([4, 9])))
+    with pytest.raises(InputError, match="degree"):
+        ig.sh_flip_signs(5)
+    with pytest.raises(InputError, match="axes"):
+        ig.to_native(_random(3), FakeGAUSSIAN, axes="z_up")
+
+
+# ------------------------------------------------------------------------------------------------
+# The simulated sequence as a GAUSSIAN batch
+# ------------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def small_sim():
+    from physmotion_core.sim import simulate
+    from physmotion_core.types import Conditions
+
+    ax = [torch.linspace(-0.05, 0.05, 6)] * 3
+    pts = torch.stack(torch.meshgrid(*ax, indexing="ij"), -1).reshape(-1, 3)
+    pts[:, 1] += 0.06
+    g = Gaussians.from_rgb(pts, torch.rand(len(pts), 3, generator=torch.Generator().manual_seed(0)),
+                           torch.full((len(pts), 3), 0.01), torch.full((len(pts),), 0.9))
+    return simulate(g, Material.preset("jelly"), Conditions(),
+                    SimSettings(frames=5, fps=24, grid_res=8, device="cpu"))
+
+
+def test_sim_to_native_has_one_item_per_frame_shaped_as_the_renderer_draws_it(small_sim):
+    from physmotion_core.render.rasterize import rasterize
+
+    t = ig.sim_to_native_tensors(small_sim)
+    n = len(small_sim.rest)
+    assert tuple(t["positions"].shape) == (small_sim.num_frames, n, 3) and t["counts"] is None
+    cam = Camera.look_at((0.0, 0.1, 0.6), (0.0, 0.06, 0.0), width=48, height=48)
+    for k in (0, small_sim.num_frames - 1):
+        drawn = small_sim.gaussians_at(k)
+        assert torch.equal(t["positions"][k], drawn.means * torch.tensor([1.0, -1.0, -1.0]))
+        R = quat_to_rotmat(t["rotations"][k])
+        M = R * t["scales"][k][:, None, :]
+        cov = D @ (M @ M.transpose(1, 2)) @ D
+        rel = (cov - drawn.covariance()).norm(dim=(1, 2)) / drawn.covariance().norm(dim=(1, 2))
+        assert float(rel.max()) < 1e-5
+        (item,) = ig.from_native(FakeGAUSSIAN(*(t[f][k:k + 1] for f in ig.NATIVE_FIELDS)))
+        a, b = rasterize(item, cam), rasterize(drawn, cam)
+        assert float((a.rgb - b.rgb).abs().max()) < 1e-4 and float((a.alpha - b.alpha).abs().max()) < 1e-4
+    assert small_sim.num_frames == 5
+    assert ig.sim_to_native_tensors(small_sim, every=2)["positions"].shape[0] == 3  # frames 0, 2, 4
+
+
+# ------------------------------------------------------------------------------------------------
+# Nodes: both input types; the converter nodes only with the native type
+# ------------------------------------------------------------------------------------------------
+
+
+def _fresh_pack(name, monkeypatch):
+    monkeypatch.delitem(sys.modules, name, raising=False)
+    pack = load_pack(name)
+    monkeypatch.setitem(sys.modules, name, pack)
+    return pack
+
+
+@pytest.fixture
+def native_comfy_api(monkeypatch):
+    """A comfy_api.latest with Types.GAUSSIAN and IO.Gaussian, as ComfyUI has since the GAUSSIAN type."""
+    latest = types.ModuleType("comfy_api.latest")
+    latest.Types = types.SimpleNamespace(GAUSSIAN=FakeGAUSSIAN)
+    latest.IO = types.SimpleNamespace(Gaussian=types.SimpleNamespace(io_type="GAUSSIAN"))
+    api = types.ModuleType("comfy_api")
+    api.latest = latest
+    monkeypatch.setitem(sys.modules, "comfy_api", api)
+    monkeypatch.setitem(sys.modules, "comfy_api.latest", latest)
+    return latest
+
+
+def test_pack_loads_without_the_native_type_with_one_log_line(monkeypatch, caplog):
+    monkeypatch.setitem(sys.modules, "comfy_api", None)  # "import comfy_api" fails, as on 0.3.64 it lacks it
+    with caplog.at_level(logging.INFO, logger="physmotion"):
+        pack = _fresh_pack("physmotion_pack_nogaussian", monkeypatch)
+    assert pack.FAILED_MODULES == {}
+    assert not any("GAUSSIAN" in n for n in pack.NODE_CLASS_MAPPINGS)
+    assert "PhysMotionMPMSimulate" in pack.NODE_CLASS_MAPPINGS
+    lines = [r for r in caplog.records if "GAUSSIAN" in r.getMessage()]
+    assert len(lines) == 1 and "not registered" in lines[0].getMessage()
+
+
+def test_converter_nodes_with_the_native_type(native_comfy_api, monkeypatch, small_sim, tmp_path, caplog):
+    with caplog.at_level(logging.INFO, logger="physmotion"):
+        pack = _fresh_pack("physmotion_pack_gaussian", monkeypatch)
+    nodes = pack.NODE_CLASS_MAPPINGS
+    assert {"PhysMotionFromGAUSSIAN", "PhysMotionToGAUSSIAN", "PhysMotionSimToGAUSSIAN"} <= set(nodes)
+    assert not [r for r in caplog.records if "GAUSSIAN" in r.getMessage()]
+    assert nodes["PhysMotionToGAUSSIAN"].RETURN_TYPES == ("GAUSSIAN",)
+    assert nodes["PhysMotionFromGAUSSIAN"].INPUT_TYPES()["required"]["gaussian"][0] == "GAUSSIAN"
+
+    g = _random(80, 4, seed=8, ids=torch.tensor([0] * 30 + [1] * 50))
+    (nat,) = nodes["PhysMotionToGAUSSIAN"]().run(g, "y_down", True)
+    assert isinstance(nat, FakeGAUSSIAN) and nat.counts.tolist() == [30, 50]
+    (back,) = nodes["PhysMotionFromGAUSSIAN"]().run(nat, "y_down")
+    _same(back, g)
+    assert torch.equal(back.object_ids, g.object_ids)
+    (as_is,) = nodes["PhysMotionToGAUSSIAN"]().run(g, "as_is", False)
+    assert torch.equal(as_is.positions[0], g.means)
+
+    monkeypatch.setenv("PHYSMOTION_OUTPUT_DIR", str(tmp_path))
+    (seq,) = nodes["PhysMotionSimToGAUSSIAN"]().run(small_sim, 1, "y_down")
+    assert isinstance(seq, FakeGAUSSIAN) and seq.positions.shape[0] == small_sim.num_frames
+
+
+def test_nodes_that_take_gaussians_also_take_a_native_gaussian(monkeypatch, tmp_path):
+    from physmotion_core.ply import read_ply
+
+    nodes = load_pack().NODE_CLASS_MAPPINGS
+    consumers = {name: [inp for inp, spec in {**cls.INPUT_TYPES().get("required", {}),
+                                             **cls.INPUT_TYPES().get("optional", {})}.items()
+                        if isinstance(spec[0], str) and "PM_GAUSSIANS" in spec[0].split(",")]
+                 for name, cls in nodes.items()}
+    consumers = {k: v for k, v in consumers.items() if v}
+    assert {"PhysMotionCombineObjects", "PhysMotionMPMSimulate", "PhysMotionHardDepthRefine",
+            "PhysMotionSaveGaussians"} <= set(consumers)
+    for name, inputs in consumers.items():
+        for inp in inputs:
+            spec = nodes[name].INPUT_TYPES()
+            kind = {**spec.get("required", {}), **spec.get("optional", {})}[inp][0]
+            assert kind == "PM_GAUSSIANS,GAUSSIAN", (name, inp, kind)
+
+    g = _random(50, 4, seed=9)
+    nat = ig.to_native(g, FakeGAUSSIAN)
+    monkeypatch.setenv("PHYSMOTION_OUTPUT_DIR", str(tmp_path))
+    out_native = nodes["PhysMotionSaveGaussians"]().run(nat, "native")["result"][0]
+    out_ours = nodes["PhysMotionSaveGaussians"]().run(g, "ours")["result"][0]
+    a, b = read_ply(tmp_path / out_native), read_ply(tmp_path / out_ours)
+    for f in FIELDS:
+        assert torch.equal(getattr(a, f), getattr(b, f)), f
+
+    jelly = Material.preset("jelly")
+    scene, mats = nodes["PhysMotionCombineObjects"]().run(nat, jelly, g, jelly, 1.0, 0.0, 0.0)
+    assert len(scene) == 100 and len(mats) == 2 and scene.object_ids.tolist() == [0] * 50 + [1] * 50
+    assert torch.equal(scene.means[:50], g.means) and torch.equal(scene.means[50:], g.means + torch.tensor([1.0, 0, 0]))
+    with pytest.raises(InputError, match="PM_GAUSSIANS or a native GAUSSIAN"):
+        nodes["PhysMotionCombineObjects"]().run("not splats", jelly, g, jelly, 0.0, 0.0, 0.0)
+
+
+def test_simulate_node_gives_the_same_result_from_either_type():
+    nodes = load_pack().NODE_CLASS_MAPPINGS
+    ax = [torch.linspace(-0.05, 0.05, 5)] * 3
+    pts = torch.stack(torch.meshgrid(*ax, indexing="ij"), -1).reshape(-1, 3)
+    pts[:, 1] += 0.06
+    g = Gaussians.from_rgb(pts, torch.full((len(pts), 3), 0.5), torch.full((len(pts), 3), 0.01),
+                           torch.full((len(pts),), 0.9))
+    nat = ig.to_native(g, FakeGAUSSIAN)
+    args = (Material.preset("jelly"), 3, 24.0, "standard", 8, 8, 0.4, 1.0, "cpu", 0)
+    (a,) = nodes["PhysMotionMPMSimulate"]().run(nat, *args)
+    (b,) = nodes["PhysMotionMPMSimulate"]().run(g, *args)
+    assert torch.equal(a.x, b.x)
+    assert math.isclose(float(a.x[-1, :, 1].mean()), float(b.x[-1, :, 1].mean()))
