@@ -175,6 +175,9 @@ def output_path(prefix: str, extension: str) -> tuple[Path, str, str]:
     The prefix may contain sub-folders but never leaves the output directory.
     """
     root = output_directory().resolve()
+    if prefix and any(c == "\x00" or ord(c) < 32 for c in prefix):
+        raise InputError(f"filename_prefix {prefix!r} contains a NUL byte or a control character, which file names "
+                         "cannot hold; remove it")
     prefix = (prefix or "PhysMotion").strip().replace("\\", "/")
     target = (root / prefix).resolve()
     if os.path.commonpath([root, target]) != str(root):
@@ -196,6 +199,7 @@ def first_image(image: torch.Tensor, name: str = "image") -> torch.Tensor:
         image = image[None]
     if image.ndim != 4 or image.shape[-1] not in (3, 4):
         raise InputError(f"{name} must be an IMAGE [B,H,W,3]; got shape {tuple(image.shape)}")
+    require_batch(image, name, "IMAGE")
     if image.shape[0] > 1:
         log.warning("%s: a batch of %d images was given; using the first", name, image.shape[0])
     return image[0, ..., :3].float().cpu()
@@ -205,10 +209,26 @@ def first_mask(mask: Optional[torch.Tensor]) -> Optional[torch.Tensor]:
     if mask is None:
         return None
     if mask.ndim == 3:
+        require_batch(mask, "mask", "MASK")
         mask = mask[0]
     if mask.ndim != 2:
         raise InputError(f"mask must be a MASK [B,H,W]; got shape {tuple(mask.shape)}")
+    if mask.numel() == 0:
+        raise InputError(f"mask is empty (shape {tuple(mask.shape)}); connect a mask with pixels")
     return mask.float().cpu()
+
+
+def require_batch(tensor: torch.Tensor, name: str, kind: str = "IMAGE") -> torch.Tensor:
+    """Refuse an empty IMAGE/MASK batch (no images, or images of 0 pixels), e.g. from a filter or
+    a batch split upstream that let nothing through, before any index into it fails."""
+    if not isinstance(tensor, torch.Tensor):
+        raise InputError(f"{name} must be an {kind} tensor; got {type(tensor).__name__}")
+    if tensor.ndim >= 1 and tensor.shape[0] == 0:
+        raise InputError(f"{name} is an empty {kind} batch (0 images, shape {tuple(tensor.shape)}): the node "
+                         "upstream produced nothing; check it (a filter, a batch split or a load that matched no file)")
+    if tensor.numel() == 0:
+        raise InputError(f"{name} has images of 0 pixels (shape {tuple(tensor.shape)}); check the node upstream")
+    return tensor
 
 
 # ----------------------------------------------------------------------------------------------
@@ -254,8 +274,56 @@ def model_folders(kind: str) -> list[Path]:
     return [model_dir(kind)]
 
 
+def _comfy_folder_name(kind: str) -> Optional[str]:
+    """ComfyUI's folder_paths name for ``kind`` when running inside ComfyUI and it is registered."""
+    name = next((n for n, k in {**COMFY_FOLDERS, **COMFY_CORE_FOLDERS}.items() if k == kind), None)
+    try:
+        import folder_paths
+    except ImportError:
+        return None
+    return name if name is not None and name in folder_paths.folder_names_and_paths else None
+
+
+def comfy_file_list(kind: str, suffixes) -> Optional[list[str]]:
+    """``folder_paths.get_filename_list`` of ``kind``'s folder (names relative to it, sub-folders with
+    "/"), the weight files among them; None outside ComfyUI or when the folder is not registered."""
+    comfy_name = _comfy_folder_name(kind)
+    if comfy_name is None:
+        return None
+    import folder_paths
+
+    return [f for f in folder_paths.get_filename_list(comfy_name) if f.lower().endswith(tuple(suffixes))]
+
+
+def comfy_full_path(kind: str, name: str) -> Optional[Path]:
+    """``folder_paths.get_full_path`` of a file name of ``kind`` (it keeps the name inside the folders);
+    the folder it was found in becomes trusted for checkpoints. None when not found that way."""
+    comfy_name = _comfy_folder_name(kind)
+    if comfy_name is None or not name:
+        return None
+    import folder_paths
+
+    from physmotion_core.models import trust_folder
+
+    found = folder_paths.get_full_path(comfy_name, name)
+    if not found:
+        return None
+    for folder in model_folders(kind):
+        if _within(Path(found), folder):
+            trust_folder(folder)  # a ComfyUI model folder: its checkpoints may load
+            return Path(found)
+    return None
+
+
 def model_choices(kind: str, *, dirs: bool = False, suffixes=(".safetensors", ".pth", ".pt", ".bin")) -> list[str]:
-    """Names to offer in a loader's drop-down: files (or sub-folders with ``dirs``) of every folder."""
+    """Names to offer in a loader's drop-down: files (or sub-folders with ``dirs``) of every folder.
+
+    Inside ComfyUI files are listed by ``folder_paths.get_filename_list`` (its cache, its refresh);
+    folder_paths lists no folders, so sub-folder models are found in ``get_folder_paths``.
+    """
+    files = None if dirs else comfy_file_list(kind, suffixes)
+    if files is not None:
+        return sorted(files) or ["(none found)"]
     names: set[str] = set()
     for folder in model_folders(kind):
         if not folder.is_dir():
@@ -276,7 +344,10 @@ def model_path(kind: str, name: str, *, expected: str) -> Path:
     from physmotion_core.models import safe_child, trust_folder
 
     folders = model_folders(kind)
-    if name and name != "(none found)":
+    found = comfy_full_path(kind, name) if name and name != "(none found)" else None
+    if found is not None:  # a file, resolved by ComfyUI's folder_paths
+        return found
+    if name and name != "(none found)":  # a model folder (folder_paths resolves files only), or outside ComfyUI
         # Names come from the drop-down, or from an API client: they must stay inside the folders.
         for folder in folders:
             cand = safe_child(folder, name, f"{kind} model")
@@ -286,6 +357,13 @@ def model_path(kind: str, name: str, *, expected: str) -> Path:
     where = "; ".join(f"{f} ({describe_folder(f)})" for f in folders)
     raise MissingModelError(f"{kind} model {name!r} not found. Expected {expected} in: {where}. "
                             "Weights are never downloaded: put the file there and refresh the node (press R).")
+
+
+def _within(path: Path, folder: Path) -> bool:
+    try:
+        return os.path.commonpath([os.path.abspath(path), os.path.abspath(folder)]) == os.path.abspath(folder)
+    except ValueError:  # different drives
+        return False
 
 
 def offload_device() -> torch.device:

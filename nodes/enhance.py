@@ -12,16 +12,20 @@ _WEIGHT_SUFFIXES = (".safetensors", ".ckpt", ".pt", ".pth", ".bin")
 
 def _entries(kind: str, *, dirs: bool = True, files: bool = True) -> list[str]:
     """Top-level sub-folders and weight files of every folder of ``kind``."""
-    from ._util import model_folders
+    from ._util import comfy_file_list, model_folders
 
     names: set[str] = set()
+    listed = comfy_file_list(kind, _WEIGHT_SUFFIXES) if files else None
+    if listed is not None:  # inside ComfyUI: its folder_paths lists the files (top level: not a model folder's)
+        names.update(f for f in listed if not (dirs and ("/" in f or "\\" in f)))
     for folder in model_folders(kind):
         if not folder.is_dir():
             continue
         for p in folder.iterdir():
             if p.name.startswith("."):
                 continue
-            if (dirs and p.is_dir()) or (files and p.is_file() and p.name.lower().endswith(_WEIGHT_SUFFIXES)):
+            if (dirs and p.is_dir()) or (listed is None and files and p.is_file()
+                                         and p.name.lower().endswith(_WEIGHT_SUFFIXES)):
                 names.add(p.name)
     return sorted(names)
 
@@ -30,10 +34,14 @@ def _find(kinds: tuple, name: str, expected: str) -> Path:
     from physmotion_core.errors import MissingModelError
     from physmotion_core.models import describe_folder, safe_child, trust_folder
 
-    from ._util import model_folders
+    from ._util import comfy_full_path, model_folders
 
     folders = [f for k in kinds for f in model_folders(k)]
     if name and name not in (NONE, "(none found)"):
+        for k in kinds:  # a file, resolved by ComfyUI's folder_paths
+            found = comfy_full_path(k, name)
+            if found is not None:
+                return found
         # names come from the drop-down or an API client: they must stay inside the model folders
         for f in folders:
             cand = safe_child(f, name, "model")
@@ -50,15 +58,24 @@ def _default(choices: list[str], word: str) -> str:
 
 
 def _make_room(models, names) -> None:
-    """Ask ComfyUI for room, then put the stage's modules on the device."""
+    """Ask ComfyUI for room, then put the stage's modules on the device (a stack under ComfyUI's memory
+    manager is loaded through it whole; otherwise the library places each module when its stage runs)."""
+    from ._memory import load_managed, patcher_of
     from ._util import free_memory_for
 
+    if patcher_of(models) is not None:
+        load_managed(models, what="The diffusion models")
+        return
     free_memory_for(models.parameter_bytes(names), models.device)
 
 
 def _offload(models) -> None:
+    """Back to the offload device after a node; a managed stack stays until ComfyUI needs the room."""
+    from ._memory import patcher_of
     from ._util import offload_device
 
+    if patcher_of(models) is not None:
+        return
     models.offload(None, offload_device())
 
 
@@ -124,6 +141,10 @@ class PhysMotionDiffusionLoader:
                                 lora_strength=float(lora_strength), device=dev, dtype=default_dtype(dev),
                                 cpu_offload=bool(cpu_offload), prediction_type=prediction_type)
         _offload(models)
+        if not cpu_offload:  # with cpu_offload the library moves one module at a time itself
+            from ._memory import manage
+
+            manage(models, "SD 2.1 + ControlNets")
         return (models,)
 
 

@@ -119,10 +119,6 @@ def _cancel_check():
     return mm.throw_exception_if_processing_interrupted
 
 
-def _param_bytes(*modules) -> int:
-    return sum(p.numel() * p.element_size() for m in modules for p in m.parameters())
-
-
 class PhysMotionLGMLoader:
     """Load the official LGM weights from models/physmotion/lgm/."""
 
@@ -157,11 +153,12 @@ class PhysMotionLGMLoader:
         from physmotion_core.lift.lgm import LGM_EXPECTED, load_lgm
         from physmotion_core.models import default_dtype
 
+        from ._memory import manage
         from ._util import model_path, offload_device, torch_device
 
         path = model_path("lgm", lgm_name, expected=LGM_EXPECTED)
-        return (load_lgm(str(path), device=offload_device(), dtype=default_dtype(torch_device()),
-                         rotation=rotation, input_size=int(input_size)),)
+        return (manage(load_lgm(str(path), device=offload_device(), dtype=default_dtype(torch_device()),
+                                rotation=rotation, input_size=int(input_size)), "LGM"),)
 
 
 class PhysMotionImageDreamLoader:
@@ -189,10 +186,12 @@ class PhysMotionImageDreamLoader:
         from physmotion_core.lift.imagedream import IMAGEDREAM_LAYOUT, load_imagedream
         from physmotion_core.models import default_dtype
 
+        from ._memory import manage
         from ._util import model_path, offload_device, torch_device
 
         folder = model_path("imagedream", model_name, expected=IMAGEDREAM_LAYOUT)
-        return (load_imagedream(str(folder), device=offload_device(), dtype=default_dtype(torch_device())),)
+        return (manage(load_imagedream(str(folder), device=offload_device(), dtype=default_dtype(torch_device())),
+                       "ImageDream"),)
 
 
 def _imagedream_inputs(d: dict) -> dict:
@@ -236,20 +235,16 @@ class PhysMotionMultiViewGenerate:
         from physmotion_core.lift.learned import recenter
         from physmotion_core.memory import oom_as_input_error
 
-        from ._util import free_memory_for, offload_device, progress_callback, torch_device
+        from ._memory import models_on_device
+        from ._util import progress_callback
 
         canvas, _, _ = recenter(first_image(image), first_mask(mask), border_ratio=float(border_ratio),
                                 size=imagedream.image_size)
-        dev = torch_device()
-        free_memory_for(_param_bytes(*(getattr(imagedream, n) for n in imagedream.MODULES)), dev, "ImageDream")
-        try:
-            imagedream.to(dev)
+        with models_on_device(imagedream, what="ImageDream"):
             with oom_as_input_error("Multi-View Generate", "Free GPU memory (unload other models) or run on the CPU."):
                 views = generate_views(imagedream, canvas, guidance_scale=float(guidance),
                                        num_inference_steps=int(steps), seed=int(seed), progress=progress_callback(),
                                        cancel=_cancel_check())
-        finally:
-            imagedream.to(offload_device())
         ordered = views_for_lgm(views).float().cpu()
         return {"ui": _views_grid_preview(ordered, "PhysMotion_views"), "result": (ordered,)}
 
@@ -314,18 +309,12 @@ class PhysMotionLGMLift:
         from physmotion_core.lift.learned import learned_lift, views_for_refine
         from physmotion_core.memory import oom_as_input_error
 
-        from ._util import free_memory_for, offload_device, progress_callback, torch_device
+        from ._memory import models_on_device
+        from ._util import progress_callback
 
         if imagedream is None and views is None:
             raise ValueError("LGM Lift: connect an ImageDream Loader (imagedream) or 4 views (views)")
-        dev = torch_device()
-        modules = [lgm] + ([getattr(imagedream, n) for n in imagedream.MODULES]
-                           if imagedream is not None and views is None else [])
-        free_memory_for(_param_bytes(*modules), dev, "LGM Lift")
-        try:
-            lgm.to(dev)
-            if imagedream is not None and views is None:
-                imagedream.to(dev)
+        with models_on_device(lgm, imagedream if views is None else None, what="LGM Lift"):
             with oom_as_input_error("LGM Lift", "Free GPU memory (unload other models), connect pre-generated "
                                                 "views instead of ImageDream, or run on the CPU."):
                 res = learned_lift(first_image(image), first_mask(mask), lgm=lgm,
@@ -335,10 +324,6 @@ class PhysMotionLGMLift:
                                    guidance_scale=float(guidance), prune_opacity=float(prune_opacity),
                                    max_gaussians=int(max_gaussians), progress=progress_callback(),
                                    cancel=_cancel_check())
-        finally:
-            lgm.to(offload_device())
-            if imagedream is not None:
-                imagedream.to(offload_device())
         return {"ui": _views_grid_preview(res.view_images, "PhysMotion_lgm_views"),
                 "result": (res.gaussians, res.camera, views_for_refine(res.views), res.view_images)}
 

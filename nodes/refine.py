@@ -29,10 +29,11 @@ class PhysMotionDepthLoader:
         from physmotion_core.depth import load_depth_model
         from physmotion_core.depth.monocular import EXPECTED
 
+        from ._memory import manage
         from ._util import model_path, offload_device
 
         folder = model_path("depth", model_name, expected=EXPECTED)
-        return (load_depth_model(str(folder), device=offload_device()),)
+        return (manage(load_depth_model(str(folder), device=offload_device()), "depth model"),)
 
 
 class PhysMotionDepth:
@@ -58,19 +59,16 @@ class PhysMotionDepth:
 
         from physmotion_core.depth import estimate_depth
 
-        from ._util import offload_device, torch_device
+        from ._memory import models_on_device
 
         out = []
-        depth_model.to(torch_device())
-        try:
+        with models_on_device(depth_model, what="Monocular Depth"):
             for b in range(image.shape[0]):
                 m = None if mask is None else mask[min(b, mask.shape[0] - 1)].float().cpu()
                 d = estimate_depth(depth_model, image[b, ..., :3].float().cpu())
                 if m is not None and tuple(m.shape) != tuple(d.values.shape):
                     m = None
                 out.append(d.preview(m))
-        finally:
-            depth_model.to(offload_device())
         return (torch.stack(out),)
 
 
@@ -132,20 +130,16 @@ class PhysMotionHardDepthRefine:
         from physmotion_core.refine import RefineSettings, build_views, refine_gaussians
         from physmotion_core.render.rasterize import rasterize
 
-        from ._util import offload_device, torch_device
+        from ._memory import models_on_device
+        from ._util import torch_device
 
         dev = torch_device()
         img = first_image(image)
         m = first_mask(mask)
         if depth_model is None:
             log.info("Hard-Depth Refine: no depth model connected, running the colour loss only")
-        else:
-            depth_model.to(dev)
-        try:
+        with models_on_device(depth_model, what="Hard-Depth Refine"):
             rviews = build_views(camera, img, m, list(views or []), depth_model)
-        finally:
-            if depth_model is not None:
-                depth_model.to(offload_device())
         st = RefineSettings(iterations=int(iterations), depth_every=int(hard_depth_every),
                             lr_position=float(learning_rate), lr_colour=float(learning_rate),
                             lr_opacity=float(learning_rate), lr_scale=float(learning_rate),

@@ -99,10 +99,11 @@ class PhysMotionSAMLoader:
     def run(self, sam_name):
         from physmotion_core.segment.sam import OFFICIAL_FILES, load_sam
 
+        from ._memory import manage
         from ._util import model_path, offload_device
 
         path = model_path("sams", sam_name, expected=" or ".join(OFFICIAL_FILES.values()))
-        return (load_sam(str(path), device=offload_device()),)
+        return (manage(load_sam(str(path), device=offload_device()), "SAM"),)
 
 
 class PhysMotionSAMSegment:
@@ -144,18 +145,13 @@ class PhysMotionSAMSegment:
     def run(self, sam, image, points, boxes, coordinates, clean):
         from physmotion_core.segment.sam import parse_prompts, sam_segment
 
-        from ._util import free_memory_for, offload_device, torch_device
+        from ._memory import models_on_device
 
         img = first_image(image)
         H, W = img.shape[:2]
         prompts = parse_prompts(points, boxes, width=W, height=H, fraction=coordinates == "fraction")
-        dev = torch_device()
-        free_memory_for(sum(p.numel() * p.element_size() for p in sam.model.parameters()), dev)
-        try:
-            sam.to(dev)
+        with models_on_device(sam, what="SAM Segment"):
             res = sam_segment(sam, img, prompts, clean=bool(clean))
-        finally:
-            sam.to(offload_device())
         seg = res.segmentation
         return {"ui": _segment_preview(seg.foreground, seg.background),
                 "result": (seg.foreground[None], seg.mask[None], seg.background[None], res.masks)}
