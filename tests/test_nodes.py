@@ -10,7 +10,7 @@ import torch
 from comfy_harness import ROOT, input_spec, is_widget, load_pack, node_classes, run_prompt
 
 from physmotion_core.video import read_video
-from physmotion_core.workflow import api_to_ui, ui_to_api
+from physmotion_core.workflow import api_to_ui, types_compatible, ui_to_api
 
 API_DIR = ROOT / "example_workflows" / "api"
 API_WORKFLOWS = sorted(API_DIR.glob("*.json"))
@@ -87,7 +87,7 @@ def test_api_workflow_matches_the_node_classes(path):
                 assert src in prompt, f"node {nid}.{name} links to missing node {src}"
                 src_cls = classes[prompt[src]["class_type"]]
                 assert 0 <= slot < len(src_cls.RETURN_TYPES)
-                assert src_cls.RETURN_TYPES[slot] == s[0], (nid, name, src_cls.RETURN_TYPES[slot], s[0])
+                assert types_compatible(src_cls.RETURN_TYPES[slot], s[0]), (nid, name, src_cls.RETURN_TYPES[slot], s[0])
             else:
                 assert is_widget(s), f"node {nid}.{name} is a link input but holds a literal"
                 opts = s[1] if len(s) > 1 else {}
