@@ -69,6 +69,9 @@ def _build_parser() -> argparse.ArgumentParser:
     g.add_argument("--stats", type=Path, help="write timings and simulation statistics as JSON")
     g.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
     _add_check_parsers(sub)
+    from .batch.cli import add_parser as _add_batch_parser
+
+    _add_batch_parser(sub)
     return p
 
 
@@ -242,6 +245,10 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             return _stress(args)
         if args.command == "comfy-run":
             return _comfy_run(args)
+        if args.command == "batch":
+            from .batch.cli import run as _batch
+
+            return _batch(args)
     except argparse.ArgumentTypeError as exc:
         parser.error(str(exc))
     except PhysMotionError as exc:
