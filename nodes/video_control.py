@@ -1,0 +1,213 @@
+"""Controls for ComfyUI's native Wan video nodes from the simulation: point tracks (WanTrackToVideo),
+control videos (WanVaceToVideo, Wan22FunControlToVideo) and exact optical flow.
+
+The library does the work (physmotion_core/controls.py, which names the ComfyUI commit the tracks
+format is matched to); these nodes parse inputs, call it and report progress.
+"""
+
+from __future__ import annotations
+
+from ._util import CATEGORY, output_path, preview_video, progress_callback, torch_device
+
+_STAGE = f"{CATEGORY}/video_models"  # as ComfyUI files its Wan nodes: conditioning/video_models
+
+
+def _clip_inputs() -> dict:
+    return {
+        "simulation": ("PM_SIM", {"tooltip": "The simulated trajectory (from MPM Simulate)."}),
+        "camera": ("PM_CAMERA", {"tooltip": "The photo's camera (from the lift node)."}),
+        "width": ("INT", {"default": 832, "min": 16, "max": 8192, "step": 16,
+                          "tooltip": "Width of the video model's frames (a multiple of 16; Wan 2.1 480p: 832). The "
+                                     "photo is centre-cropped to this aspect ratio as the Wan nodes crop their "
+                                     "start/reference image, so the controls line up with it. Use the same value on "
+                                     "the Wan node (or link this node's width output to it)."}),
+        "height": ("INT", {"default": 480, "min": 16, "max": 8192, "step": 16,
+                           "tooltip": "Height of the video model's frames (a multiple of 16; Wan 2.1 480p: 480)."}),
+        "fps": ("FLOAT", {"default": 16.0, "min": 1.0, "max": 120.0, "step": 1.0,
+                          "tooltip": "The video model's frame rate (Wan 2.1 and 2.2 14B: 16). The simulation is "
+                                     "interpolated to it, so the motion keeps its real speed."}),
+        "length": ("INT", {"default": 33, "min": 5, "max": 1025, "step": 4,
+                           "tooltip": "Frames of the video model's clip, 4k+1 (33, 49, 81, ...). 48 simulated frames "
+                                      "at 24 fps fill 33 frames at 16 fps; frames past the simulated time repeat its "
+                                      "last state (with a warning in the log)."}),
+    }
+
+
+def _at_model_clock(simulation, camera, width, height, fps, length):
+    """The simulation resampled to the model's clock and the camera fitted to its frame."""
+    from physmotion_core import controls as C
+
+    W, H = C.check_size(width, height)
+    sim = C.resample_simulation(simulation, float(fps), C.check_length(length))
+    return sim, C.fit_camera(camera, W, H)
+
+
+def _render(sim, cam):
+    from physmotion_core.render.frames import render_frames
+
+    dev = torch_device()
+    return render_frames(sim, cam, device=dev if dev.type == "cuda" else "cpu", progress=progress_callback())
+
+
+def _fit_background(background, width, height, frames):
+    from physmotion_core import controls as C
+    from physmotion_core.errors import InputError
+
+    if background is None:
+        return None
+    if background.ndim != 4 or background.shape[0] not in (1, frames):
+        raise InputError(f"background must be one image or one per frame ({frames}); got shape "
+                         f"{tuple(background.shape)}. Connect PhysMotion Segment's background.")
+    bg = C.fit_images(background[..., :3], width, height)
+    return bg[0] if bg.shape[0] == 1 else bg
+
+
+class PhysMotionPointTracks:
+    """Point tracks of the simulated object for WanTrackToVideo."""
+
+    @classmethod
+    def INPUT_TYPES(cls):
+        return {"required": {
+            **_clip_inputs(),
+            "num_points": ("INT", {"default": 64, "min": 1, "max": 1024,
+                                   "tooltip": "Object points to track, spread evenly over the object's visible "
+                                              "silhouette in the first frame."}),
+            "background_points": ("INT", {"default": 8, "min": 0, "max": 256,
+                                          "tooltip": "Still anchor points on background pixels the object never "
+                                                     "covers, so the model keeps the camera and background still. "
+                                                     "0 = none."}),
+            "occlusion": (["end track", "keep"], {
+                "default": "end track",
+                "tooltip": "WanTrackToVideo's format has no per-point visibility: a track shorter than the clip is "
+                           "read as invisible after its end. 'end track' ends a point's track when it goes behind "
+                           "the object or off-screen; 'keep' lists every position anyway."}),
+        }, "optional": {
+            "background": ("IMAGE", {"tooltip": "The (inpainted) background, to draw the preview over the coarse "
+                                                "video; without it the preview shows the render over black."}),
+        }}
+
+    DESCRIPTION = ("Tracks physics particles on the object's surface through the photo's camera, at the video model's "
+                   "frame rate and 4k+1 frame count, as the tracks JSON WanTrackToVideo reads (pixel coordinates of "
+                   "the width x height frame, 121 samples spanning the clip). The preview draws the tracks.")
+
+    RETURN_TYPES = ("STRING", "IMAGE", "INT", "INT", "INT")
+    RETURN_NAMES = ("tracks", "preview", "width", "height", "length")
+    OUTPUT_TOOLTIPS = ("The tracks JSON for WanTrackToVideo's tracks input.",
+                       "The coarse video with the tracks drawn (dot = visible, ring = hidden).",
+                       "Frame width: link to WanTrackToVideo's width.", "Frame height: link to its height.",
+                       "Frame count: link to its length.")
+    FUNCTION = "run"
+    CATEGORY = _STAGE
+
+    def run(self, simulation, camera, width, height, fps, length, num_points, background_points, occlusion,
+            background=None):
+        from physmotion_core import controls as C
+        from physmotion_core.blend import composite
+
+        sim, cam = _at_model_clock(simulation, camera, width, height, fps, length)
+        frames = _render(sim, cam)
+        tracks = C.point_tracks(sim, frames, cam, int(num_points), background_points=int(background_points))
+        text = C.wan_tracks_json(tracks, occlusion="end" if occlusion == "end track" else "keep")
+        bg = _fit_background(background, cam.width, cam.height, sim.num_frames)
+        base = composite(frames.rgb, frames.alpha, bg) if bg is not None else frames.rgb
+        preview = C.draw_tracks(base, tracks)
+        return {"ui": preview_video(preview, float(fps), "PhysMotion_tracks"),
+                "result": (text, preview, cam.width, cam.height, sim.num_frames)}
+
+
+class PhysMotionControlVideos:
+    """Depth, render, mask and blended videos of the simulation for Wan's control models."""
+
+    @classmethod
+    def INPUT_TYPES(cls):
+        return {"required": {
+            **_clip_inputs(),
+            "grow_mask": ("INT", {"default": 8, "min": 0, "max": 256,
+                                  "tooltip": "Grow the object mask by this many pixels, so the model may also "
+                                             "repaint the object's shadow and rim."}),
+        }, "optional": {
+            "background": ("IMAGE", {"tooltip": "The (inpainted) background from PhysMotion Segment, for the blended "
+                                                "video and the VACE control. Without it they use black."}),
+        }}
+
+    DESCRIPTION = ("Renders the simulation at the video model's frame rate, 4k+1 frame count and size (multiples of "
+                   "16): depth (near = bright), the coarse render, the object mask, the blended coarse video, and "
+                   "the VACE control (depth inside the mask, the coarse video outside) for WanVaceToVideo's "
+                   "control_video with control_masks = mask.")
+
+    RETURN_TYPES = ("IMAGE", "IMAGE", "MASK", "IMAGE", "IMAGE", "INT", "INT", "INT")
+    RETURN_NAMES = ("depth", "render", "mask", "blended", "vace_control", "width", "height", "length")
+    OUTPUT_TOOLTIPS = ("Inverse depth, near = bright, normalised over the clip, black where there is no object.",
+                       "The object over black.", "The object (alpha > 0.5), grown by grow_mask.",
+                       "The object over the background (the coarse video).",
+                       "Depth inside the mask, the coarse video outside.",
+                       "Frame width: link to the Wan node's width.", "Frame height: link to its height.",
+                       "Frame count: link to its length.")
+    FUNCTION = "run"
+    CATEGORY = _STAGE
+
+    def run(self, simulation, camera, width, height, fps, length, grow_mask, background=None):
+        from physmotion_core import controls as C
+
+        sim, cam = _at_model_clock(simulation, camera, width, height, fps, length)
+        frames = _render(sim, cam)
+        v = C.control_videos(frames, _fit_background(background, cam.width, cam.height, sim.num_frames),
+                             grow_mask=int(grow_mask))
+        return {"ui": preview_video(v.vace, float(fps), "PhysMotion_controls"),
+                "result": (v.depth, v.render, v.mask, v.blended, v.vace, cam.width, cam.height, sim.num_frames)}
+
+
+class PhysMotionExactFlow:
+    """Exact optical flow of the rendered simulation, saved as .npz."""
+
+    @classmethod
+    def INPUT_TYPES(cls):
+        return {"required": {
+            **_clip_inputs(),
+            "direction": (["forward", "backward"], {
+                "default": "forward",
+                "tooltip": "forward: from each frame to the next (frame t+1 at p + flow shows what frame t shows at "
+                           "p, OpenCV's convention); backward: from each frame to the previous one."}),
+            "max_flow": ("FLOAT", {"default": 0.0, "min": 0.0, "max": 10000.0, "step": 0.5,
+                                   "tooltip": "Flow (pixels) shown at full colour in the preview; 0 = the largest."}),
+            "filename_prefix": ("STRING", {"default": "PhysMotion/flow",
+                                           "tooltip": "The .npz goes to the output folder under this prefix."}),
+        }}
+
+    DESCRIPTION = ("Optical flow per frame pair from the simulation itself (the splats behind each visible pixel and "
+                   "their exact motion), at the video model's clock and size: a PM_FLOW tensor, a colour-wheel "
+                   "preview (hue = direction, saturation = speed) and an .npz in the output folder (flow in pixels, "
+                   "valid mask, fps, camera).")
+
+    RETURN_TYPES = ("PM_FLOW", "IMAGE", "STRING")
+    RETURN_NAMES = ("flow", "preview", "npz_path")
+    OUTPUT_TOOLTIPS = ("The flow (PhysMotion Flow object: flow [T-1,H,W,2] px, valid [T-1,H,W]).",
+                       "Colour-wheel picture of the flow, one image per frame pair.",
+                       "Absolute path of the saved .npz.")
+    OUTPUT_NODE = True
+    FUNCTION = "run"
+    CATEGORY = _STAGE
+
+    def run(self, simulation, camera, width, height, fps, length, direction, max_flow, filename_prefix):
+        from physmotion_core import controls as C
+
+        sim, cam = _at_model_clock(simulation, camera, width, height, fps, length)
+        dev = torch_device()
+        flow = C.exact_flow(sim, cam, direction=direction, device=dev if dev.type == "cuda" else "cpu",
+                            progress=progress_callback())
+        preview = C.flow_to_color(flow.flow, float(max_flow))
+        path, _, _ = output_path(filename_prefix, "npz")
+        C.save_flow_npz(path, flow, cam)
+        return {"ui": preview_video(preview, float(fps), "PhysMotion_flow"), "result": (flow, preview, str(path))}
+
+
+NODE_CLASS_MAPPINGS = {
+    "PhysMotionPointTracks": PhysMotionPointTracks,
+    "PhysMotionControlVideos": PhysMotionControlVideos,
+    "PhysMotionExactFlow": PhysMotionExactFlow,
+}
+NODE_DISPLAY_NAME_MAPPINGS = {
+    "PhysMotionPointTracks": "PhysMotion Point Tracks (WanTrackToVideo)",
+    "PhysMotionControlVideos": "PhysMotion Control Videos (Wan VACE / Fun Control)",
+    "PhysMotionExactFlow": "PhysMotion Exact Optical Flow",
+}

@@ -1,0 +1,608 @@
+"""Controls for ComfyUI's Wan video models, taken from the simulation: point tracks, control videos
+and exact optical flow.
+
+The simulator knows where every point of the object goes, so it can hand a video model better
+controls than any estimator run on the coarse video:
+
+* ``point_tracks`` + ``wan_tracks_json``: the ``tracks`` STRING of ComfyUI's ``WanTrackToVideo``
+  (ATI). Points spread evenly over the object's visible silhouette in frame 0 follow the physics
+  particles under them, projected through the photo's camera; a point's visibility per frame comes
+  from the rendered depth.
+* ``control_videos``: depth (near = bright), the coarse render, the object mask, the blended coarse
+  video and a VACE control (depth inside the mask, the coarse video outside) for
+  ``WanVaceToVideo`` / ``Wan22FunControlToVideo``.
+* ``exact_flow``: forward (or backward) optical flow per frame pair from the splats behind each
+  visible pixel, with ``flow_to_color`` (colour-wheel preview) and ``save_flow_npz``.
+
+Everything runs at the video model's clock: ``resample_simulation`` interpolates the simulated
+frames to ``fps`` (Wan: 16) and a 4k+1 frame count, and ``fit_camera`` / ``fit_images`` crop and
+scale exactly as ``comfy.utils.common_upscale(..., "center")`` does inside the Wan nodes, so the
+controls line up with the photo the Wan node receives as its start/reference image.
+
+The ``tracks`` format is matched to ComfyUI 0.3.64, commit 637221995f7424a561bd825de3e61ea117dfe1e3
+(``comfy_extras/nodes_wan.py``: ``parse_json_tracks``, ``pad_pts``, ``process_tracks``,
+``WanTrackToVideo``), read there, not copied:
+
+* the STRING is a JSON list of tracks, each a list of ``{"x": .., "y": ..}`` points, in pixels of
+  the ``width`` x ``height`` frame the node is given (x right, y down, origin at the top-left corner;
+  the node subtracts (width/2, height/2) and divides by min(width, height)/2);
+* each track holds up to 121 samples (``FIXED_LENGTH``) spanning the whole clip: sample 0 is frame 0
+  and output frame j (1..length-1) reads sample ``1 + (1 + a (j-1)) // b`` with
+  ``a = 120 / gcd(120, length-1)``, ``b = (length-1) / gcd(120, length-1)``;
+* there is no visibility field: ``pad_pts`` gives every listed point visibility 1 and pads a shorter
+  track with invisible points. So a point that becomes hidden (behind the object, or off-screen)
+  ends its track at the first sample that shows it hidden (``occlusion="end"``), which the model
+  reads as "invisible from here on"; ``occlusion="keep"`` lists all 121 samples regardless.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import logging
+import math
+from dataclasses import dataclass
+from typing import Optional
+
+import numpy as np
+import torch
+
+from .errors import InputError
+from .progress import ProgressFn, report
+from .types import Camera, FrameSet, Gaussians, SimResult
+
+log = logging.getLogger(__name__)
+
+#: The frame rate Wan 2.1 / 2.2 models are trained at.
+WAN_FPS = 16.0
+#: Samples per track that WanTrackToVideo reads (``FIXED_LENGTH`` in nodes_wan.py at 0.3.64).
+WAN_TRACK_SAMPLES = 121
+#: The commit of ComfyUI whose Wan nodes these controls are matched to (tag v0.3.64).
+COMFYUI_COMMIT = "637221995f7424a561bd825de3e61ea117dfe1e3"
+
+
+# ----------------------------------------------------------------------------------------------
+# Sizes and cameras
+# ----------------------------------------------------------------------------------------------
+
+
+def check_size(width: int, height: int, multiple: int = 16) -> tuple[int, int]:
+    w, h = int(width), int(height)
+    if w < multiple or h < multiple or w % multiple or h % multiple:
+        raise InputError(f"The control size must be a multiple of {multiple} pixels in both directions (Wan's "
+                         f"VAE and patch size); got {w}x{h}. Use e.g. 832x480 or 480x832.")
+    return w, h
+
+
+def center_crop_box(src_w: int, src_h: int, dst_w: int, dst_h: int) -> tuple[int, int, int, int]:
+    """(x, y, w, h) of the centred crop ``comfy.utils.common_upscale(..., crop="center")`` takes from
+    a src_w x src_h image before scaling it to dst_w x dst_h (the same rounding)."""
+    old_aspect, new_aspect = src_w / src_h, dst_w / dst_h
+    x = y = 0
+    if old_aspect > new_aspect:
+        x = round((src_w - src_w * (new_aspect / old_aspect)) / 2)
+    elif old_aspect < new_aspect:
+        y = round((src_h - src_h * (old_aspect / new_aspect)) / 2)
+    return x, y, src_w - 2 * x, src_h - 2 * y
+
+
+def fit_camera(camera: Camera, width: int, height: int) -> Camera:
+    """The camera whose image is the photo centre-cropped to width:height and scaled to width x height
+    (what the Wan nodes do to their start/reference image), so renders line up with it."""
+    x, y, w, h = center_crop_box(camera.width, camera.height, int(width), int(height))
+    sx, sy = width / w, height / h
+    return dataclasses.replace(camera, width=int(width), height=int(height), fx=camera.fx * sx, fy=camera.fy * sy,
+                               cx=(camera.cx - x) * sx, cy=(camera.cy - y) * sy, c2w=camera.c2w.clone())
+
+
+def fit_images(images: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """IMAGE (B,H,W,C) or MASK (B,H,W) batch centre-cropped and bilinearly scaled to width x height,
+    as ``comfy.utils.common_upscale(..., "bilinear", "center")``."""
+    is_mask = images.ndim == 3
+    t = images[..., None] if is_mask else images
+    if t.ndim != 4:
+        raise InputError(f"Expected an IMAGE [B,H,W,C] or MASK [B,H,W] batch; got shape {tuple(images.shape)}")
+    x, y, w, h = center_crop_box(t.shape[2], t.shape[1], int(width), int(height))
+    t = t[:, y:y + h, x:x + w].permute(0, 3, 1, 2).float()
+    if (h, w) != (height, width):
+        t = torch.nn.functional.interpolate(t, size=(int(height), int(width)), mode="bilinear")
+    t = t.permute(0, 2, 3, 1)
+    return t[..., 0] if is_mask else t
+
+
+# ----------------------------------------------------------------------------------------------
+# Time: the video model's frame rate and 4k+1 frame counts
+# ----------------------------------------------------------------------------------------------
+
+
+def sim_fps(sim: SimResult) -> float:
+    return 1.0 / float(sim.times[1] - sim.times[0]) if sim.num_frames > 1 else 24.0
+
+
+def wan_length(num_frames: int, fps_in: float, fps_out: float = WAN_FPS) -> int:
+    """The 4k+1 frame count covering a clip of ``num_frames`` at ``fps_in`` (its duration taken as
+    num_frames / fps_in) at ``fps_out``: 48 frames at 24 fps -> 33 frames at 16 fps."""
+    k = int(math.floor(num_frames * fps_out / fps_in / 4 + 1e-9))
+    return 4 * max(k, 1) + 1
+
+
+def check_length(length: int) -> int:
+    n = int(length)
+    if n < 5 or (n - 1) % 4:
+        raise InputError(f"Wan models take 4k+1 frames (5, 9, ..., 33, 49, 81); got length={n}. Pick the nearest "
+                         f"4k+1 value, e.g. {4 * max(1, round((n - 1) / 4)) + 1}.")
+    return n
+
+
+def resample_plan(num_frames: int, fps_in: float, fps_out: float, length: int):
+    """Linear interpolation indices for output frames at t = j / fps_out.
+
+    Returns (i0, i1, w, held): frame j = (1 - w) * in[i0] + w * in[i1]. A time up to one input frame
+    past the last simulated frame is extrapolated linearly (48 frames at 24 fps end at 47/24 s, the
+    33rd 16 fps frame is at 2.0 s); later ones hold the last frame (``held``)."""
+    t_out = np.arange(int(length), dtype=np.float64) / float(fps_out)
+    if num_frames == 1:
+        z = np.zeros(length, np.int64)
+        return z, z, np.zeros(length), t_out > 0
+    pos = t_out * float(fps_in)
+    held = pos > num_frames - 1 + 1.0 + 1e-9
+    i0 = np.minimum(np.floor(pos + 1e-9).astype(np.int64), num_frames - 2)
+    w = pos - i0
+    i0 = np.where(held, num_frames - 2, i0)
+    w = np.where(held, 1.0, w)
+    return i0, i0 + 1, w, held
+
+
+def _lerp(a: torch.Tensor, i0, i1, w) -> torch.Tensor:
+    wt = torch.as_tensor(w, dtype=a.dtype).reshape((-1,) + (1,) * (a.ndim - 1))
+    return a[torch.as_tensor(i0)] * (1 - wt) + a[torch.as_tensor(i1)] * wt
+
+
+def resample_simulation(sim: SimResult, fps: float = WAN_FPS, length: int = 0) -> SimResult:
+    """The simulation at ``fps`` and ``length`` frames (0 = the 4k+1 count of ``wan_length``).
+
+    Particle positions, deformation gradients and plastic state are interpolated linearly between
+    the simulated frames (exact for uniform motion; no overshoot through the ground at an impact, as
+    a cubic would have), so every control renders sharp frames at the model's own times instead of
+    cross-fading rendered ones."""
+    if not (math.isfinite(fps) and 0 < fps <= 1000):
+        raise InputError(f"fps must be in (0, 1000]; got {fps}")
+    fps_in = sim_fps(sim)
+    length = wan_length(sim.num_frames, fps_in, fps) if not length else int(length)
+    if length < 1:
+        raise InputError(f"length must be at least 1 frame; got {length}")
+    i0, i1, w, held = resample_plan(sim.num_frames, fps_in, fps, length)
+    if bool(held.any()):
+        log.warning("The simulation covers %.3f s but %d frames at %g fps need %.3f s: the last %d frame(s) repeat "
+                    "the final simulated state. Simulate more frames to fill them.", sim.num_frames / fps_in,
+                    length, fps, (length - 1) / fps, int(held.sum()))
+    stats = dict(sim.stats)
+    stats["resampled_from"] = {"frames": sim.num_frames, "fps": fps_in, "held_frames": int(held.sum())}
+    return dataclasses.replace(
+        sim, times=torch.arange(length, dtype=torch.float64) / float(fps),
+        x=_lerp(sim.x, i0, i1, w), F=_lerp(sim.F, i0, i1, w),
+        plastic=None if sim.plastic is None else _lerp(sim.plastic.float(), i0, i1, w).to(sim.plastic.dtype),
+        stats=stats)
+
+
+def resample_points(values: torch.Tensor, fps_in: float, fps_out: float, length: int) -> torch.Tensor:
+    """Any per-frame quantity (T, ...) resampled as ``resample_simulation`` resamples positions."""
+    i0, i1, w, _ = resample_plan(values.shape[0], fps_in, fps_out, length)
+    return _lerp(values, i0, i1, w)
+
+
+# ----------------------------------------------------------------------------------------------
+# Point tracks
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Tracks:
+    """Image-space tracks: ``uv`` (T,N,2) pixel coordinates (x right, y down, pixel centres at +0.5)
+    in a ``width`` x ``height`` frame, ``visible`` (T,N), and the physics particle each object point
+    follows (``particle``, -1 for a still background anchor)."""
+
+    uv: torch.Tensor
+    visible: torch.Tensor
+    particle: torch.Tensor
+    width: int
+    height: int
+    fps: float
+
+    @property
+    def num_frames(self) -> int:
+        return int(self.uv.shape[0])
+
+    @property
+    def num_points(self) -> int:
+        return int(self.uv.shape[1])
+
+
+def sample_even(mask: torch.Tensor, n: int, max_candidates: int = 40_000) -> torch.Tensor:
+    """``n`` pixel centres (n,2) spread evenly over a boolean mask (H,W): farthest-point sampling from
+    the pixel nearest the mask's centroid (deterministic, no clumps). Fewer when the mask is smaller."""
+    ys, xs = torch.nonzero(mask, as_tuple=True)
+    if ys.numel() == 0 or n <= 0:
+        return torch.zeros(0, 2)
+    stride = max(1, int(math.ceil(math.sqrt(ys.numel() / max_candidates))))
+    if stride > 1:  # a regular sub-grid of the mask keeps the search small and still even
+        keep = (ys % stride == 0) & (xs % stride == 0)
+        if bool(keep.any()):
+            ys, xs = ys[keep], xs[keep]
+    pts = torch.stack([xs, ys], dim=1).double() + 0.5
+    n = min(int(n), pts.shape[0])
+    centre = pts.mean(0)
+    first = int(((pts - centre) ** 2).sum(1).argmin())
+    chosen = [first]
+    d = ((pts - pts[first]) ** 2).sum(1)
+    for _ in range(n - 1):
+        j = int(d.argmax())
+        chosen.append(j)
+        d = torch.minimum(d, ((pts - pts[j]) ** 2).sum(1))
+    return pts[chosen].float()
+
+
+def _erode(mask: torch.Tensor, px: int) -> torch.Tensor:
+    if px <= 0:
+        return mask
+    m = (~mask).float()[None, None]
+    grown = torch.nn.functional.max_pool2d(m, 2 * px + 1, stride=1, padding=px)[0, 0] > 0
+    return mask & ~grown
+
+
+def _dilate(mask: torch.Tensor, px: int) -> torch.Tensor:
+    """Grow (…,H,W) boolean masks by ``px`` pixels (square structuring element)."""
+    if px <= 0:
+        return mask
+    m = mask.float().reshape(-1, 1, *mask.shape[-2:])
+    return (torch.nn.functional.max_pool2d(m, 2 * px + 1, stride=1, padding=px) > 0).reshape(mask.shape)
+
+
+def _nearest_particles(points: torch.Tensor, particles: torch.Tensor, chunk: int = 4096) -> torch.Tensor:
+    best = torch.empty(points.shape[0], dtype=torch.int64)
+    for s in range(0, points.shape[0], chunk):
+        best[s:s + chunk] = torch.cdist(points[s:s + chunk].double(), particles.double()).argmin(dim=1)
+    return best
+
+
+def visibility(uv: torch.Tensor, z: torch.Tensor, frames: FrameSet, tolerance: float) -> torch.Tensor:
+    """(T,N) whether each projected point is in the frame, in front of the camera and not behind the
+    rendered surface: its depth is at most the rendered depth plus ``tolerance`` metres, where the
+    object covers the pixel (alpha > 0.5). Both are taken leniently over the point's 3x3 pixels (the
+    farthest covered depth, any covered pixel), so a surface seen at a grazing angle, whose depth
+    changes fast from pixel to pixel, still shows its points; a point behind the object is many
+    tolerances behind every pixel around it."""
+    T, H, W = frames.alpha.shape
+    ix = torch.floor(uv[..., 0]).long()
+    iy = torch.floor(uv[..., 1]).long()
+    inside = (ix >= 0) & (ix < W) & (iy >= 0) & (iy < H) & (z > 0)
+    covered = frames.alpha > 0.5
+    near = torch.where(covered, frames.depth, torch.full_like(frames.depth, -float("inf")))
+    near = torch.nn.functional.max_pool2d(near[:, None], 3, stride=1, padding=1)[:, 0]
+    cov = torch.nn.functional.max_pool2d(covered.float()[:, None], 3, stride=1, padding=1)[:, 0] > 0
+    cx, cy = ix.clamp(0, W - 1), iy.clamp(0, H - 1)
+    t = torch.arange(T)[:, None].expand_as(cx)
+    on_object = cov[t, cy, cx]
+    front = z <= near[t, cy, cx] + tolerance
+    return inside & on_object & front
+
+
+def point_tracks(sim: SimResult, frames: FrameSet, camera: Camera, num_points: int = 64, *,
+                 background_points: int = 0, depth_tolerance: float = 0.0, edge_px: int = 2) -> Tracks:
+    """Tracks of ``num_points`` object points spread evenly over the object's silhouette in frame 0,
+    plus ``background_points`` still anchors on background pixels the object never covers.
+
+    ``sim`` and ``frames`` must hold the same frames (render the resampled simulation). Each object
+    point is the physics particle nearest the surface point seen at a sampled pixel (the pixel
+    unprojected at its rendered depth); its track is that particle's position projected through
+    ``camera`` every frame, visible where it is not behind the rendered surface (``visibility``;
+    ``depth_tolerance`` 0 = 1.5 particle spacings: the particle under a surface point lies up to about one
+    spacing inside the surface)."""
+    T, H, W = frames.alpha.shape
+    if T != sim.num_frames:
+        raise InputError(f"The frames ({T}) and the simulation ({sim.num_frames} frames) differ: render the same "
+                         "(resampled) simulation the tracks follow.")
+    if (W, H) != (camera.width, camera.height):
+        raise InputError(f"The frames are {W}x{H} but the camera is {camera.width}x{camera.height}")
+    if not (1 <= int(num_points) <= 4096):
+        raise InputError(f"num_points must be between 1 and 4096; got {num_points}")
+    if not (0 <= int(background_points) <= 1024):
+        raise InputError(f"background_points must be between 0 and 1024; got {background_points}")
+    mask0 = frames.alpha[0] > 0.5
+    if not bool(mask0.any()):
+        raise InputError("The object is not visible in the first frame through this camera (no pixel with alpha > "
+                         "0.5), so there is nothing to track. Check the camera and the control size.")
+    inner = _erode(mask0, edge_px)  # silhouette edges carry blended depth; sample inside them
+    px = sample_even(inner if bool(inner.any()) else mask0, int(num_points))
+    ix, iy = px[:, 0].long(), px[:, 1].long()
+    surface = camera.unproject(px.double(), frames.depth[0][iy, ix].double())
+    k = _nearest_particles(surface, sim.x[0])
+    _, first = np.unique(k.numpy(), return_index=True)
+    k = k[torch.from_numpy(np.sort(first))]  # two pixels on one particle: keep it once, in sampling order
+    x = sim.x[:, k].reshape(-1, 3).double()
+    uv, z = camera.project(x)
+    uv, z = uv.reshape(T, -1, 2), z.reshape(T, -1)
+    spacing = float(sim.stats.get("particle_spacing", 0.0)) or 0.01 * float(
+        (sim.rest_particles.max(0).values - sim.rest_particles.min(0).values).max())
+    tol = float(depth_tolerance) if depth_tolerance > 0 else 1.5 * spacing
+    vis = visibility(uv, z, frames, tol)
+    particle = k
+    if background_points:
+        never = ~_dilate(frames.alpha.amax(0) > 0.05, 4)
+        bg = sample_even(_erode(never, 4), int(background_points))
+        if bg.shape[0]:
+            bix, biy = bg[:, 0].long(), bg[:, 1].long()
+            bvis = frames.alpha[:, biy, bix] < 0.5
+            uv = torch.cat([uv, bg[None].expand(T, -1, -1).double()], dim=1)
+            vis = torch.cat([vis, bvis], dim=1)
+            particle = torch.cat([k, torch.full((bg.shape[0],), -1, dtype=torch.int64)])
+    return Tracks(uv=uv.float(), visible=vis, particle=particle, width=W, height=H, fps=float(frames.fps))
+
+
+def wan_sample_frames(length: int) -> tuple[np.ndarray, np.ndarray]:
+    """For a WanTrackToVideo clip of ``length`` frames: the output frame (fractional where the node
+    skips the sample) each of the 121 track samples stands for, and which samples the node reads
+    (see the module docstring for the index rule of ``process_tracks`` at 0.3.64)."""
+    F = check_length(length) - 1
+    if F % 120 == 0:
+        # repeat_interleave(b)[1::a] with a = 1 yields F - 1 frames: the node's own reshape then fails.
+        raise InputError(f"WanTrackToVideo (ComfyUI 0.3.64) cannot take length={length}: when length-1 is a multiple "
+                         f"of 120 its track resampling returns one frame too few. Use {length - 4} or {length + 4}.")
+    g = math.gcd(120, F)
+    a, b = 120 // g, F // g
+    read = np.zeros(WAN_TRACK_SAMPLES, bool)
+    frame_of = np.full(WAN_TRACK_SAMPLES, np.nan)
+    read[0], frame_of[0] = True, 0.0
+    for j in range(1, F + 1):
+        s = 1 + (1 + a * (j - 1)) // b
+        if not read[s]:
+            read[s], frame_of[s] = True, float(j)
+    known = np.nonzero(read)[0]
+    frame_of = np.interp(np.arange(WAN_TRACK_SAMPLES), known, frame_of[known])
+    # Samples after the last one read stand for nothing the model sees; keep them on the last frame.
+    return np.clip(frame_of, 0, F), read
+
+
+def wan_tracks_json(tracks: Tracks, length: Optional[int] = None, occlusion: str = "end", decimals: int = 2) -> str:
+    """The ``tracks`` STRING for WanTrackToVideo (``length`` = its length input; default the tracks'
+    frame count, which must then be 4k+1). Tracks must be at the model's frames (16 fps for Wan).
+
+    ``occlusion``: "end" ends a track at its first hidden sample (the parser pads the rest as
+    invisible; the format has no visibility field), "keep" lists every sample."""
+    if occlusion not in ("end", "keep"):
+        raise InputError(f"occlusion must be 'end' or 'keep'; got {occlusion!r}")
+    length = tracks.num_frames if length is None else int(length)
+    if length != tracks.num_frames:
+        raise InputError(f"The tracks have {tracks.num_frames} frames but WanTrackToVideo's length is {length}: "
+                         "make the tracks at the same length.")
+    frame_of, _ = wan_sample_frames(length)
+    f0 = np.floor(frame_of).astype(np.int64).clip(0, length - 1)
+    f1 = np.minimum(f0 + 1, length - 1)
+    w = torch.from_numpy(frame_of - f0).float()[:, None, None]
+    uv = tracks.uv[f0] * (1 - w) + tracks.uv[f1] * w  # (121, N, 2)
+    frac = torch.from_numpy(frame_of - f0)[:, None]
+    vis = tracks.visible[f0] & (tracks.visible[f1] | (frac < 1e-9))
+    out = []
+    uvn = uv.numpy()
+    for n in range(tracks.num_points):
+        count = WAN_TRACK_SAMPLES
+        if occlusion == "end":
+            hidden = np.nonzero(~vis[:, n].numpy())[0]
+            count = int(hidden[0]) if hidden.size else WAN_TRACK_SAMPLES
+        if count == 0:
+            continue
+        out.append([{"x": round(float(uvn[s, n, 0]), decimals), "y": round(float(uvn[s, n, 1]), decimals)}
+                    for s in range(count)])
+    import json
+
+    return json.dumps(out, separators=(",", ":"))
+
+
+def _track_colours(n: int) -> np.ndarray:
+    import cv2
+
+    hsv = np.stack([(np.arange(n) * 137.508) % 180, np.full(n, 220), np.full(n, 255)], 1).astype(np.uint8)
+    return cv2.cvtColor(hsv[None], cv2.COLOR_HSV2RGB)[0]
+
+
+def draw_tracks(images: torch.Tensor, tracks: Tracks, trail: int = 8, radius: int = 0) -> torch.Tensor:
+    """The frames (T,H,W,3) with each track drawn: a filled dot where the point is visible, a ring
+    where it is hidden, and a trail of its last ``trail`` frames."""
+    import cv2
+
+    if images.ndim != 4 or images.shape[0] != tracks.num_frames or images.shape[1:3] != (tracks.height, tracks.width):
+        raise InputError(f"draw_tracks: images {tuple(images.shape)} do not match the tracks' "
+                         f"{tracks.num_frames} frames of {tracks.width}x{tracks.height}")
+    r = radius or max(2, round(min(tracks.width, tracks.height) / 120))
+    cols = _track_colours(tracks.num_points)
+    uv = tracks.uv.numpy()
+    vis = tracks.visible.numpy()
+    out = []
+    for t in range(tracks.num_frames):
+        img = np.ascontiguousarray((images[t, ..., :3].clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8))
+        for n in range(tracks.num_points):
+            c = tuple(int(v) for v in cols[n])
+            pts = [(float(uv[s, n, 0]), float(uv[s, n, 1])) for s in range(max(0, t - trail), t + 1) if vis[s, n]]
+            for p, q in zip(pts[:-1], pts[1:]):
+                cv2.line(img, (round(p[0] - 0.5), round(p[1] - 0.5)), (round(q[0] - 0.5), round(q[1] - 0.5)), c, 1,
+                         cv2.LINE_AA)
+            centre = (round(float(uv[t, n, 0]) - 0.5), round(float(uv[t, n, 1]) - 0.5))
+            cv2.circle(img, centre, r, c, -1 if vis[t, n] else 1, cv2.LINE_AA)
+        out.append(torch.from_numpy(img).float() / 255.0)
+    return torch.stack(out)
+
+
+# ----------------------------------------------------------------------------------------------
+# Control videos
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass
+class ControlVideos:
+    """All (T,H,W,3) IMAGE batches except ``mask`` (T,H,W)."""
+
+    depth: torch.Tensor
+    render: torch.Tensor
+    mask: torch.Tensor
+    blended: torch.Tensor
+    vace: torch.Tensor
+
+
+def control_videos(frames: FrameSet, background: Optional[torch.Tensor] = None, grow_mask: int = 0) -> ControlVideos:
+    """The control videos of a rendered clip (already at the model's size and clock).
+
+    depth: inverse depth, near = bright, normalised over the whole clip (no flicker), black where
+    there is no object (the convention of the depth maps Wan's control models are trained on:
+    Depth-Anything/MiDaS-style disparity); render: the object over black; mask: the object
+    (alpha > 0.5) grown by ``grow_mask`` px; blended: the object over ``background`` (the coarse
+    video; the render when there is no background); vace: depth inside the mask, the blended video
+    outside, for WanVaceToVideo with ``control_masks`` = mask (regenerate the object following the
+    physics, keep the rest)."""
+    from .blend import composite
+    from .render.frames import depth_to_image
+
+    depth = depth_to_image(frames.depth, frames.alpha)
+    mask = _dilate(frames.alpha > 0.5, int(grow_mask)).float()
+    if background is not None:
+        blended = composite(frames.rgb, frames.alpha, background[..., :3])
+    else:
+        blended = frames.rgb.clamp(0, 1)
+    m = mask[..., None]
+    vace = depth * m + blended * (1 - m)
+    return ControlVideos(depth=depth, render=frames.rgb.clamp(0, 1), mask=mask, blended=blended, vace=vace)
+
+
+# ----------------------------------------------------------------------------------------------
+# Exact optical flow
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass
+class Flow:
+    """Optical flow per frame pair: ``flow`` (T-1,H,W,2) in pixels (dx, dy), ``valid`` (T-1,H,W) where
+    the object covers the pixel in the source frame (elsewhere the flow is 0: the background is still).
+
+    forward: pixel p of frame t shows the point that frame t+1 shows at p + flow[t, p] (so sampling
+    frame t+1 at p + flow reproduces frame t: OpenCV's calcOpticalFlowFarneback(prev=t, next=t+1)
+    convention); backward: the same from frame t+1 to frame t."""
+
+    flow: torch.Tensor
+    valid: torch.Tensor
+    fps: float
+    direction: str = "forward"
+
+
+def _stacked_for_affine(sim: SimResult, h: float) -> SimResult:
+    """A copy of ``sim`` whose rest Gaussians are the originals followed by three copies shifted by h
+    along x, y and z: each Gaussian's position is affine in its rest position, so the shifted copies
+    give the linear part of its current map exactly, in the same call that poses the Gaussians."""
+    r, n = sim.rest, len(sim.rest)
+    shifts = [torch.zeros(3)] + [torch.eye(3)[i] * h for i in range(3)]
+    rep = lambda t: None if t is None else torch.cat([t] * 4)  # noqa: E731
+    rest = Gaussians(means=torch.cat([r.means + s.to(r.means.dtype) for s in shifts]), quats=rep(r.quats),
+                     scales=rep(r.scales), opacities=rep(r.opacities), sh=rep(r.sh), covars=rep(r.covars),
+                     object_ids=rep(r.object_ids))
+    return dataclasses.replace(sim, rest=rest, binding=rep(sim.binding), neighbours=rep(sim.neighbours),
+                               weights=rep(sim.weights))
+
+
+def _posed_with_linear_part(stacked: SimResult, frame: int, n: int, h: float):
+    g = stacked.gaussians_at(frame)
+    mu = g.means[:n]
+    L = torch.stack([(g.means[(i + 1) * n:(i + 2) * n] - mu).double() / h for i in range(3)], dim=-1)  # (n,3,3)
+    return g.subset(torch.arange(n)), mu.double(), L
+
+
+def _pixel_grid(camera: Camera) -> torch.Tensor:
+    ys, xs = torch.meshgrid(torch.arange(camera.height, dtype=torch.float64) + 0.5,
+                            torch.arange(camera.width, dtype=torch.float64) + 0.5, indexing="ij")
+    return torch.stack([xs, ys], dim=-1)  # (H,W,2)
+
+
+def exact_flow(sim: SimResult, camera: Camera, *, direction: str = "forward", device: Optional[str] = None,
+               backend: str = "auto", progress: Optional[ProgressFn] = None) -> Flow:
+    """The optical flow of the rendered clip, from the simulation itself.
+
+    Every Gaussian moves from frame s to frame d by an affine map x -> A x + b (A = L_d L_s^-1, b =
+    mu_d - A mu_s, L the linear part of the Gaussian's rest-to-frame map). The 12 numbers of A and b
+    are rendered at frame s like colour (the same compositing weights as the image), so each visible
+    pixel gets the blended map of the splats behind it; the pixel's surface point (the pixel centre
+    unprojected at the rendered depth) is moved by it and projected: flow = project(A x + b) - p.
+    Exact for rigid motion; for deforming material it is first order in the splat size."""
+    from .render.rasterize import rasterize
+
+    if direction not in ("forward", "backward"):
+        raise InputError(f"direction must be 'forward' or 'backward'; got {direction!r}")
+    T = sim.num_frames
+    if T < 2:
+        raise InputError("Optical flow needs at least two frames; the simulation has one.")
+    ext = (sim.rest.means.max(0).values - sim.rest.means.min(0).values).max()
+    h = float(ext) * 0.25 or 0.01
+    stacked = _stacked_for_affine(sim, h)
+    n = len(sim.rest)
+    dev = torch.device(device) if device is not None else torch.device("cpu")
+    H, W = camera.height, camera.width
+    flow = torch.zeros(T - 1, H, W, 2)
+    valid = torch.zeros(T - 1, H, W, dtype=torch.bool)
+    grid = _pixel_grid(camera)
+    posed: dict = {}
+
+    def pose(f):  # each frame is posed once: it is the destination of one pair and the source of the next
+        if f not in posed:
+            for old in [k for k in posed if abs(k - f) > 1]:
+                del posed[old]
+            posed[f] = _posed_with_linear_part(stacked, f, n, h)
+        return posed[f]
+
+    with torch.no_grad():
+        for t in range(T - 1):
+            s, d = (t, t + 1) if direction == "forward" else (t + 1, t)
+            g_s, mu_s, L_s = pose(s)
+            _, mu_d, L_d = pose(d)
+            A = L_d @ torch.linalg.pinv(L_s)
+            b = mu_d - (A @ mu_s[..., None])[..., 0]
+            feats = torch.cat([A.reshape(n, 9), b], dim=1).to(g_s.means.dtype)
+            out = rasterize(g_s.to(dev), camera, extra_features=feats.to(dev), backend=backend)
+            alpha, depth, extra = out.alpha.cpu().double(), out.depth.cpu().double(), out.extra.cpu().double()
+            ok = alpha > 0.5
+            if bool(ok.any()):
+                e = extra[ok] / alpha[ok][:, None]
+                p = grid[ok]
+                X = camera.unproject(p, depth[ok])
+                Xn = (e[:, :9].reshape(-1, 3, 3) @ X[..., None])[..., 0] + e[:, 9:]
+                uv, _ = camera.project(Xn)
+                flow[t][ok] = (uv - p).float()
+                valid[t] = ok
+            report(progress, t + 1, T - 1)
+    return Flow(flow=flow, valid=valid, fps=sim_fps(sim), direction=direction)
+
+
+def flow_to_color(flow: torch.Tensor, max_flow: float = 0.0) -> torch.Tensor:
+    """Colour-wheel picture (…,H,W,3) of flow (…,H,W,2): hue = direction (red = +x, right), saturation =
+    speed / ``max_flow`` (0 = the largest flow in the batch), white = still."""
+    import cv2
+
+    f = flow.detach().float().cpu().numpy()
+    mag = np.sqrt((f ** 2).sum(-1))
+    top = float(max_flow) if max_flow > 0 else float(mag.max()) if mag.size else 0.0
+    ang = np.degrees(np.arctan2(f[..., 1], f[..., 0])) % 360.0
+    hsv = np.stack([ang / 2.0, np.clip(mag / max(top, 1e-9), 0, 1) * 255.0, np.full(mag.shape, 255.0)], -1)
+    hsv = hsv.reshape(-1, 1, 3).astype(np.uint8)
+    rgb = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB).reshape(f.shape[:-1] + (3,))
+    return torch.from_numpy(rgb).float() / 255.0
+
+
+def save_flow_npz(path, flow: Flow, camera: Optional[Camera] = None) -> str:
+    """Write the flow atomically as a compressed .npz: flow (T-1,H,W,2) float32 px, valid (T-1,H,W) bool,
+    fps, direction, the convention in words, and the camera (intrinsics, c2w) when given."""
+    from .fsutil import atomic_output
+
+    arrays = {"flow": flow.flow.numpy().astype(np.float32), "valid": flow.valid.numpy(),
+              "fps": np.float64(flow.fps), "direction": np.str_(flow.direction),
+              "convention": np.str_("flow[t,y,x] = (dx, dy) px; pixel centres at +0.5; forward: frame t+1 at p+flow "
+                                    "shows what frame t shows at p (backward: from t+1 to t)")}
+    if camera is not None:
+        arrays["K"] = camera.K().numpy()
+        arrays["c2w"] = camera.c2w.numpy()
+    with atomic_output(path, suffix=".tmp.npz") as tmp:
+        np.savez_compressed(tmp, **arrays)
+    return str(path)

@@ -1,0 +1,436 @@
+"""Controls for the Wan video models (physmotion_core/controls.py, nodes/video_control.py), checked on an
+analytic scene: a textured rigid cube translating at a known velocity and spinning about the vertical
+axis at a known rate, whose SimResult is built directly (every particle's position is known in closed
+form at any time), rendered through a pinhole camera."""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from physmotion_core import controls as C
+from physmotion_core.errors import InputError
+from physmotion_core.render.frames import render_frames
+from physmotion_core.types import Camera, Gaussians, Material, SimResult
+
+SIDE = 0.3
+GRID = 13  # particles (= Gaussians) per cube edge: spacing 0.025 m
+SPACING = SIDE / (GRID - 1)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def _one_thread():
+    # The renders here are small; on a busy 2-core machine two torch threads spin against each other.
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(before)
+
+
+def rot_y(a: float) -> torch.Tensor:
+    c, s = math.cos(a), math.sin(a)
+    return torch.tensor([[c, 0, s], [0, 1, 0], [-s, 0, c]], dtype=torch.float64)
+
+
+CENTRE = torch.tensor([0.0, SIDE / 2, 0.0], dtype=torch.float64)
+
+
+def rest_points() -> torch.Tensor:
+    lin = torch.linspace(-SIDE / 2, SIDE / 2, GRID, dtype=torch.float64)
+    return torch.stack(torch.meshgrid(lin, lin, lin, indexing="ij"), -1).reshape(-1, 3) + CENTRE
+
+
+def analytic(X: torch.Tensor, t: float, v, omega: float) -> torch.Tensor:
+    """Positions at time t of rest points X of the cube: x = c + v t + R_y(omega t) (X - c)."""
+    return CENTRE + torch.tensor(v, dtype=torch.float64) * t + (X.double() - CENTRE) @ rot_y(omega * t).T
+
+
+def cube_sim(v=(0.15, 0.05, 0.0), omega=1.0, frames=48, fps=24.0, scale=0.45, seed=0) -> SimResult:
+    X = rest_points()
+    n = X.shape[0]
+    rgb = torch.rand(n, 3, generator=torch.Generator().manual_seed(seed))
+    rest = Gaussians.from_rgb(X.float(), rgb, torch.full((n, 3), scale * SPACING), torch.full((n,), 0.95))
+    t = torch.arange(frames, dtype=torch.float64) / fps
+    x = torch.stack([analytic(X, float(tt), v, omega) for tt in t]).float()
+    F = torch.stack([rot_y(omega * float(tt)) for tt in t]).float()[:, None].expand(-1, n, -1, -1).contiguous()
+    return SimResult(rest=rest, times=t, x=x, F=F, binding=torch.arange(n), rest_particles=X.float(),
+                     material=Material(), stats={"particle_spacing": SPACING})
+
+
+def camera(width=192, height=128) -> Camera:
+    return Camera.look_at((0.0, 0.35, 1.3), (0.0, 0.15, 0.0), width=width, height=height, fov_y_deg=40)
+
+
+V, OMEGA = (0.15, 0.05, 0.0), 1.0
+
+
+@pytest.fixture(scope="module")
+def clip():
+    """48 frames at 24 fps resampled to Wan's 16 fps x 33 frames, rendered, tracked."""
+    sim = cube_sim(V, OMEGA)
+    cam = camera()
+    rs = C.resample_simulation(sim, C.WAN_FPS)
+    frames = render_frames(rs, cam)
+    tracks = C.point_tracks(rs, frames, cam, 48, background_points=4)
+    return sim, rs, cam, frames, tracks
+
+
+# ---------------------------------------------------------------------------------------------
+# The upstream parser, re-derived from ComfyUI 0.3.64's comfy_extras/nodes_wan.py (commit
+# 637221995f7424a561bd825de3e61ea117dfe1e3): pad_pts pads/truncates each track to 121 samples with
+# visibility 1 for the listed points and 0 for the padding; process_tracks keeps sample 0 and, of
+# the other 120, repeat_interleave(b)[1::a] with a = 120/gcd(120, F), b = F/gcd(120, F), F = length-1.
+# ---------------------------------------------------------------------------------------------
+
+
+def upstream_frames(tracks_json: str, length: int) -> tuple[np.ndarray, np.ndarray]:
+    """(length, N, 2) positions and (length, N) visibility the Wan node's model sees per output frame."""
+    data = json.loads(tracks_json.replace("'", '"'))
+    pts = np.zeros((len(data), 121, 3), np.float32)
+    for n, tr in enumerate(data):
+        arr = np.array([[p["x"], p["y"], 1] for p in tr], np.float32)[:121]
+        pts[n, :len(arr)] = arr
+    samples = torch.from_numpy(pts).permute(1, 0, 2)  # (121, N, 3)
+    F = length - 1
+    g = math.gcd(120, F)
+    a, b = 120 // g, F // g
+    rest = torch.repeat_interleave(samples[1:], b, dim=0)[1::a]
+    out = torch.cat([samples[:1], rest]).numpy()
+    assert out.shape[0] == length
+    return out[..., :2], out[..., 2] > 0.5
+
+
+def test_sample_rule_matches_the_upstream_index_selection():
+    for length in (5, 9, 33, 49, 81, 125, 161):
+        frame_of, read = C.wan_sample_frames(length)
+        # Put the sample index in x and read back which sample each output frame gets.
+        probe = json.dumps([[{"x": float(s), "y": 0.0} for s in range(121)]])
+        got, _ = upstream_frames(probe, length)
+        used = got[:, 0, 0].round().astype(int)
+        assert set(used) == set(np.nonzero(read)[0]), length
+        for j, s in enumerate(used):
+            assert frame_of[s] == pytest.approx(j) or used.tolist().index(s) < j, (length, j, s)
+        assert np.all(np.diff(frame_of) >= -1e-12)  # monotone in time
+    # length - 1 a multiple of 120: a = 1 and [1::1] drops a frame upstream; refused here.
+    probe = json.dumps([[{"x": float(s), "y": 0.0} for s in range(121)]])
+    with pytest.raises(AssertionError):
+        upstream_frames(probe, 121)
+    with pytest.raises(InputError, match="one frame too few"):
+        C.wan_sample_frames(121)
+
+
+def test_center_crop_box_matches_common_upscale_rounding():
+    # comfy.utils.common_upscale(crop="center"): 600x400 (1.5) to 832x480 (1.733) crops rows:
+    # y = round((400 - 400 * (1.5 / 1.7333)) / 2) = round(26.92) = 27.
+    assert C.center_crop_box(600, 400, 832, 480) == (0, 27, 600, 346)
+    assert C.center_crop_box(400, 600, 832, 480) == (0, 185, 400, 230)
+    assert C.center_crop_box(832, 480, 416, 240) == (0, 0, 832, 480)
+    assert C.center_crop_box(1000, 400, 832, 480) == (153, 0, 694, 400)
+
+
+def test_fit_camera_renders_what_the_cropped_photo_shows():
+    sim = cube_sim(frames=1)
+    cam = camera(300, 200)
+    full = render_frames(sim, cam)
+    fitted = render_frames(sim, C.fit_camera(cam, 160, 80))
+    cropped = C.fit_images(full.alpha, 160, 80)
+    a, b = fitted.alpha[0] > 0.5, cropped[0] > 0.5
+    iou = float((a & b).sum()) / float((a | b).sum())
+    assert iou > 0.95, iou
+    # The camera as the crop: its principal point moved by the crop offset and scaled.
+    x, y, w, h = C.center_crop_box(300, 200, 160, 80)
+    fc = C.fit_camera(cam, 160, 80)
+    assert fc.cy == pytest.approx((cam.cy - y) * 80 / h) and fc.fx == pytest.approx(cam.fx * 160 / w)
+
+
+# ---------------------------------------------------------------------------------------------
+# Time
+# ---------------------------------------------------------------------------------------------
+
+
+def test_resampling_24fps_48_frames_to_16fps_33_frames_keeps_the_trajectory():
+    assert C.wan_length(48, 24.0, 16.0) == 33
+    t_in = np.arange(48) / 24.0
+
+    def curve(t):  # a swing and a fall: x'' bounded by (pi)^2 * 0.2 and 2 * 0.5
+        t = np.asarray(t, np.float64)
+        return np.stack([0.2 * np.sin(np.pi * t), 0.5 * t ** 2 - 0.3 * t, 0.1 * t], -1)
+
+    values = torch.from_numpy(curve(t_in))
+    out = C.resample_points(values, 24.0, 16.0, 33).numpy()
+    t_out = np.arange(33) / 16.0
+    assert out.shape == (33, 3)
+    h = 1 / 24.0
+    acc = np.array([0.2 * np.pi ** 2, 1.0, 0.0])
+    err = np.abs(out - curve(t_out))
+    inside = t_out <= t_in[-1]
+    # Linear interpolation: |error| <= h^2/8 max|x''| between samples; the last frame (t = 2 s) lies one
+    # input frame past the simulation (47/24 s) and is extrapolated: |error| <= h^2 max|x''|.
+    assert np.all(err[inside] <= h ** 2 / 8 * acc + 1e-12), err[inside].max(0)
+    assert np.all(err[~inside] <= h ** 2 * acc + 1e-12)
+    # Frames that fall on simulated times are those exactly (every other one at 24 -> 16 fps).
+    assert np.allclose(out[:32:2], values.numpy()[::3], atol=1e-12)
+    # Holding the nearest frame instead would be ~10x further off: the bound is not loose.
+    nearest = values.numpy()[np.minimum(np.round(t_out * 24).astype(int), 47)]
+    assert np.abs(nearest - curve(t_out)).max() > 10 * err.max()
+
+
+def test_resampled_simulation_is_at_the_model_clock(clip):
+    sim, rs, *_ = clip
+    assert rs.num_frames == 33 and float(rs.times[1]) == pytest.approx(1 / 16)
+    X = sim.rest_particles
+    r_omega2 = math.sqrt(2) * SIDE / 2 * OMEGA ** 2  # the largest centripetal acceleration, m/s^2
+    h = 1 / 24.0
+    for j in (0, 7, 16, 31, 32):
+        exact = analytic(X, j / 16, V, OMEGA)
+        # Linear interpolation between simulated frames: h^2/8 |a|; frame 32 (2.0 s) is one frame past the
+        # last simulated one (47/24 s), extrapolated: h^2 |a|. Both well under 0.1 px here.
+        bound = (h ** 2 if j == 32 else h ** 2 / 8) * r_omega2 + 2e-6
+        assert float((rs.x[j].double() - exact).norm(dim=-1).max()) <= bound, j
+    with pytest.raises(InputError, match="4k\\+1"):
+        C.check_length(32)
+
+
+# ---------------------------------------------------------------------------------------------
+# Point tracks
+# ---------------------------------------------------------------------------------------------
+
+
+def test_tracks_are_the_projected_particle_positions(clip):
+    _, rs, cam, frames, tracks = clip
+    obj = tracks.particle >= 0
+    assert int(obj.sum()) >= 40 and int((~obj).sum()) == 4
+    X = rs.rest_particles[tracks.particle[obj]]
+    worst = 0.0
+    for j in range(tracks.num_frames):
+        uv, _ = cam.project(analytic(X, j / 16, V, OMEGA))
+        worst = max(worst, float((tracks.uv[j, obj].double() - uv).norm(dim=-1).max()))
+    assert worst < 0.5, worst
+    # The same through the JSON, read the way WanTrackToVideo reads it, at every output frame.
+    text = C.wan_tracks_json(tracks, occlusion="keep")
+    pos, vis = upstream_frames(text, 33)
+    assert vis.all() and pos.shape == (33, tracks.num_points, 2)
+    for j in range(33):
+        uv, _ = cam.project(analytic(X, j / 16, V, OMEGA))
+        assert float(np.abs(pos[j, obj.numpy()] - uv.numpy()).max()) < 0.5
+    # Background anchors stay where they are and are never on the object.
+    assert torch.equal(tracks.uv[:, ~obj], tracks.uv[:1, ~obj].expand(33, -1, -1))
+    bx, by = tracks.uv[0, ~obj, 0].long(), tracks.uv[0, ~obj, 1].long()
+    assert float(frames.alpha[:, by, bx].max()) < 0.05
+
+
+def test_track_points_are_spread_evenly_over_the_silhouette(clip):
+    _, _, _, frames, tracks = clip
+    obj = tracks.particle >= 0
+    uv0 = tracks.uv[0, obj]
+    mask = frames.alpha[0] > 0.5
+    assert bool(mask[uv0[:, 1].long(), uv0[:, 0].long()].all())
+    d = torch.cdist(uv0, uv0) + torch.eye(len(uv0)) * 1e9
+    nearest = d.min(1).values
+    cell = math.sqrt(float(mask.sum()) / len(uv0))  # the spacing of an even grid of that many points
+    # Farthest-point sampling: no two points closer than half a grid cell, none stranded far away.
+    assert float(nearest.min()) > 0.5 * cell and float(nearest.max()) < 2.0 * cell, (nearest.min(), nearest.max(), cell)
+
+
+def test_points_behind_the_object_are_invisible_and_their_tracks_end(clip):
+    _, rs, cam, frames, tracks = clip
+    X = rs.rest_particles.double()
+    checked = {"front": 0, "back": 0}
+    for n in torch.nonzero(tracks.particle >= 0)[:, 0].tolist():
+        rel = (X[tracks.particle[n]] - CENTRE) / (SIDE / 2)
+        on = rel.abs() > 0.99
+        # Points within 1.5 particle spacings of an edge are at the particles' resolution; skip them.
+        if int(on.sum()) != 1 or float(rel.abs()[~on].max()) > 1 - 1.5 * SPACING / (SIDE / 2):
+            continue
+        axis = int(on.nonzero()[0])
+        normal0 = torch.zeros(3, dtype=torch.float64)
+        normal0[axis] = float(torch.sign(rel[axis]))
+        for j in range(tracks.num_frames):
+            p = analytic(X[tracks.particle[n]][None], j / 16, V, OMEGA)[0]
+            to_cam = cam.position.double() - p
+            facing = float(rot_y(OMEGA * j / 16) @ normal0 @ to_cam / to_cam.norm())
+            if facing > 0.3:
+                checked["front"] += 1
+                assert bool(tracks.visible[j, n]), (n, j, facing)
+            elif facing < -0.1:  # its face turned away: the cube is between it and the camera
+                checked["back"] += 1
+                assert not bool(tracks.visible[j, n]), (n, j, facing)
+    assert checked["front"] > 100 and checked["back"] > 50, checked
+    # A point on the back face, directly: hidden; the front face centre: visible.
+    back, front = CENTRE + torch.tensor([0, 0, -SIDE / 2]), CENTRE + torch.tensor([0, 0, SIDE / 2])
+    uv, z = cam.project(torch.stack([back, front]))
+    vis = C.visibility(uv[None], z[None], dataclasses.replace(frames, alpha=frames.alpha[:1], depth=frames.depth[:1]),
+                       1.5 * SPACING)
+    assert vis.tolist() == [[False, True]]
+    # In the JSON a point ends its track at the first sample that shows it hidden.
+    text = C.wan_tracks_json(tracks, occlusion="end")
+    data = json.loads(text)
+    frame_of, _ = C.wan_sample_frames(33)
+    kept = [n for n in range(tracks.num_points) if bool(tracks.visible[0, n])]
+    assert len(data) == len(kept)
+    for tr, n in zip(data, kept):
+        hidden = [j for j in range(33) if not bool(tracks.visible[j, n])]
+        if not hidden:
+            assert len(tr) == 121
+        else:
+            assert frame_of[len(tr) - 1] < hidden[0] <= math.ceil(frame_of[min(len(tr), 120)])
+    _, vis_up = upstream_frames(text, 33)
+    assert not vis_up.all()  # some points disappear behind the turning cube, as the parser reads it
+
+
+def test_tracks_refuse_an_empty_first_frame():
+    sim = cube_sim(frames=2)
+    cam = Camera.look_at((0.0, 0.35, -1.3), (0.0, 0.35, -3.0), width=64, height=48)  # looking away
+    frames = render_frames(sim, cam)
+    with pytest.raises(InputError, match="not visible in the first frame"):
+        C.point_tracks(sim, frames, cam, 8)
+
+
+def test_draw_tracks_marks_the_points(clip):
+    _, _, _, frames, tracks = clip
+    img = C.draw_tracks(frames.rgb, tracks)
+    assert img.shape == frames.rgb.shape
+    changed = (img - frames.rgb.clamp(0, 1)).abs().sum(-1) > 0.05
+    u, v = tracks.uv[0, 0].long()
+    assert bool(changed[0, v - 1:v + 2, u - 1:u + 2].any())
+
+
+# ---------------------------------------------------------------------------------------------
+# Exact flow
+# ---------------------------------------------------------------------------------------------
+
+
+def test_exact_flow_warps_better_than_zero_flow_and_farneback():
+    import cv2
+
+    v, omega = (0.9, 0.3, 0.0), 6.0  # 4-10 px per frame and 14 degrees of spin: a real test for an estimator
+    sim = cube_sim(v, omega, frames=6, scale=0.7)
+    j = 4
+    pair = dataclasses.replace(sim, times=sim.times[j:j + 2] - sim.times[j], x=sim.x[j:j + 2], F=sim.F[j:j + 2])
+    cam = camera()
+    frames = render_frames(pair, cam)
+    fwd = C.exact_flow(pair, cam)
+    bwd = C.exact_flow(pair, cam, direction="backward")
+    assert fwd.flow.shape == (1, 128, 192, 2) and bool(fwd.valid.any())
+    I0, I1 = frames.rgb[0].numpy(), frames.rgb[1].numpy()
+    H, W = I0.shape[:2]
+    gx, gy = np.meshgrid(np.arange(W, dtype=np.float32), np.arange(H, dtype=np.float32))
+
+    def sample(img, f):  # img at p + f(p), bilinear
+        return cv2.remap(img, gx + f[..., 0], gy + f[..., 1], cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
+
+    def inside(alpha):
+        return cv2.erode((alpha > 0.5).numpy().astype(np.uint8), np.ones((5, 5), np.uint8)).astype(bool)
+
+    def gray(img):
+        return cv2.cvtColor((np.clip(img, 0, 1) * 255).astype(np.uint8), cv2.COLOR_RGB2GRAY)
+
+    # Frame t warped by the exact flow reproduces frame t+1 (backward flow: frame t sampled at p + flow).
+    m1 = inside(frames.alpha[1])
+    err = {"exact": np.abs(sample(I0, bwd.flow[0].numpy()) - I1)[m1].mean(),
+           "zero": np.abs(I0 - I1)[m1].mean(),
+           "farneback": np.abs(sample(I0, cv2.calcOpticalFlowFarneback(gray(I1), gray(I0), None, 0.5, 3, 15, 3, 5,
+                                                                        1.2, 0)) - I1)[m1].mean()}
+    assert err["exact"] < 0.8 * err["farneback"] and err["exact"] < 0.2 * err["zero"], err
+    # And the forward flow the other way round (frame t+1 sampled along it reproduces frame t).
+    m0 = inside(frames.alpha[0])
+    e_fwd = np.abs(sample(I1, fwd.flow[0].numpy()) - I0)[m0].mean()
+    fb = cv2.calcOpticalFlowFarneback(gray(I0), gray(I1), None, 0.5, 3, 15, 3, 5, 1.2, 0)
+    assert e_fwd < 0.8 * np.abs(sample(I1, fb) - I0)[m0].mean()
+    # The flow is the rigid motion's: each visible pixel's surface point moved and projected again.
+    ok = fwd.valid[0]
+    ys, xs = torch.meshgrid(torch.arange(H) + 0.5, torch.arange(W) + 0.5, indexing="ij")
+    p = torch.stack([xs, ys], -1)[ok].double()
+    X = cam.unproject(p, frames.depth[0][ok].double())
+    t0, t1 = j / 24.0, (j + 1) / 24.0
+    Xn = CENTRE + torch.tensor(v, dtype=torch.float64) * t1 + \
+        (X - CENTRE - torch.tensor(v, dtype=torch.float64) * t0) @ rot_y(omega * (t1 - t0)).T
+    uv, _ = cam.project(Xn)
+    assert float((fwd.flow[0][ok].double() - (uv - p)).norm(dim=-1).max()) < 1e-3
+    assert float(fwd.flow[0][~ok].abs().max()) == 0.0
+
+
+def test_flow_colours_and_npz(tmp_path):
+    f = torch.zeros(1, 4, 4, 2)
+    f[0, 0, 0] = torch.tensor([3.0, 0.0])  # right: red
+    f[0, 0, 1] = torch.tensor([0.0, -3.0])  # up (y down in images)
+    col = C.flow_to_color(f)
+    assert col[0, 1, 1].tolist() == [1.0, 1.0, 1.0]  # still = white
+    assert col[0, 0, 0, 0] > 0.9 and col[0, 0, 0, 1] < 0.2 and col[0, 0, 0, 2] < 0.2
+    assert not torch.allclose(col[0, 0, 0], col[0, 0, 1])
+    flow = C.Flow(flow=f, valid=f.norm(dim=-1) > 0, fps=16.0)
+    path = C.save_flow_npz(tmp_path / "f.npz", flow, camera(8, 8))
+    data = np.load(path)
+    assert np.array_equal(data["flow"], f.numpy()) and data["valid"].sum() == 2 and float(data["fps"]) == 16.0
+    assert data["K"].shape == (3, 3) and str(data["direction"]) == "forward"
+
+
+# ---------------------------------------------------------------------------------------------
+# Control videos
+# ---------------------------------------------------------------------------------------------
+
+
+def test_control_videos(clip):
+    _, _, _, frames, _ = clip
+    bg = torch.full((128, 192, 3), 0.25)
+    v = C.control_videos(frames, bg, grow_mask=3)
+    T = frames.alpha.shape[0]
+    for t in (v.depth, v.render, v.blended, v.vace):
+        assert t.shape == (T, 128, 192, 3) and float(t.min()) >= 0 and float(t.max()) <= 1
+    obj = frames.alpha > 0.5
+    assert bool(v.mask.bool()[obj].all()) and float(v.mask.sum()) > float(obj.sum())  # grown
+    assert float(v.depth[~C._dilate(frames.alpha > 0.0039, 1)].max()) == 0.0  # no object: black
+    # Near is bright: the front face's top edge is nearer than its bottom edge seen from above? use z order.
+    inside = frames.alpha[0] > 0.99
+    d, g = frames.depth[0][inside], v.depth[0][..., 0][inside]
+    assert float(torch.corrcoef(torch.stack([d, g]))[0, 1]) < -0.9
+    assert torch.allclose(v.vace[v.mask.bool()], v.depth[v.mask.bool()])
+    assert torch.allclose(v.vace[~v.mask.bool()], v.blended[~v.mask.bool()])
+    assert torch.allclose(v.blended[~C._dilate(frames.alpha > 0.0039, 1)], torch.tensor(0.25))
+    with pytest.raises(InputError, match="multiple of 16"):
+        C.check_size(100, 64)
+
+
+# ---------------------------------------------------------------------------------------------
+# Nodes
+# ---------------------------------------------------------------------------------------------
+
+
+def test_nodes_run_report_progress_and_cancel(tmp_path, monkeypatch):
+    from comfy_harness import node_classes
+    from fake_comfy import InterruptProcessingException, install_fake_comfy
+
+    monkeypatch.setenv("PHYSMOTION_OUTPUT_DIR", str(tmp_path))
+    monkeypatch.setenv("PHYSMOTION_TEMP_DIR", str(tmp_path / "temp"))
+    state = install_fake_comfy(monkeypatch)
+    classes = node_classes()
+    sim, cam = cube_sim(frames=12), camera(300, 200)
+    common = dict(simulation=sim, camera=cam, width=160, height=96, fps=16.0, length=9)
+    out = classes["PhysMotionPointTracks"]().run(**common, num_points=16, background_points=2, occlusion="end track",
+                                                 background=torch.full((1, 200, 300, 3), 0.5))
+    text, preview, w, h, n = out["result"]
+    assert (w, h, n) == (160, 96, 9) and preview.shape == (9, 96, 160, 3)
+    data = json.loads(text)
+    assert 10 <= len(data) <= 18 and all(set(p) == {"x", "y"} for p in data[0])
+    assert all(0 <= p["x"] < 160 and 0 <= p["y"] < 96 for p in data[0])
+    assert state.updates and state.updates[-1] == (9, 9)  # the render's progress bar
+    out = classes["PhysMotionControlVideos"]().run(**common, grow_mask=2)
+    depth, render, mask, blended, vace, w, h, n = out["result"]
+    assert depth.shape == (9, 96, 160, 3) and mask.shape == (9, 96, 160) and (w, h, n) == (160, 96, 9)
+    out = classes["PhysMotionExactFlow"]().run(**common, direction="forward", max_flow=0.0,
+                                              filename_prefix="flows/cube")
+    flow, preview, path = out["result"]
+    assert flow.flow.shape == (8, 96, 160, 2) and preview.shape == (8, 96, 160, 3)
+    assert np.load(path)["flow"].shape == (8, 96, 160, 2) and str(tmp_path / "flows") in path
+    with pytest.raises(InputError, match="4k\\+1"):
+        classes["PhysMotionControlVideos"]().run(**{**common, "length": 10}, grow_mask=0)
+    # Cancel stops the flow's loop at the next frame pair.
+    state.cancel_after = state.checks + 3
+    with pytest.raises(InterruptProcessingException):
+        classes["PhysMotionExactFlow"]().run(**common, direction="forward", max_flow=0.0, filename_prefix="x")
+    assert state.checks == state.cancel_after + 1
