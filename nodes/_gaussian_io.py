@@ -26,9 +26,25 @@ from physmotion_core.errors import InputError
 
 log = logging.getLogger("physmotion.nodes")
 
-#: ComfyUI's native splat link type (comfy_api IO.Gaussian / Types.GAUSSIAN).
-NATIVE_GAUSSIAN_TYPE = "GAUSSIAN"
-#: The input type of every node input that takes Gaussians.
+
+def _detect_native() -> tuple[Optional[type], str]:
+    """(class, link type) of the running ComfyUI's native splats: comfy_api.latest ``Types.GAUSSIAN`` with
+    ``IO.Gaussian`` (upstream since PR #14190; a later upstream commit names the class ``SPLAT``, so that
+    spelling is accepted too). (None, "GAUSSIAN") outside ComfyUI or on one without the type (0.3.64)."""
+    try:
+        from comfy_api.latest import IO, Types  # noqa: PLC0415 - only inside ComfyUI
+    except Exception:  # noqa: BLE001 - no comfy_api, or one that fails to import here
+        return None, "GAUSSIAN"
+    for cls_name, io_name in (("GAUSSIAN", "Gaussian"), ("SPLAT", "Splat")):
+        cls = getattr(Types, cls_name, None)
+        if cls is not None:
+            io_type = getattr(getattr(IO, io_name, None), "io_type", None) or "GAUSSIAN"
+            return cls, str(io_type)
+    return None, "GAUSSIAN"
+
+
+_NATIVE_CLS, NATIVE_GAUSSIAN_TYPE = _detect_native()
+#: The input type of every node input that takes Gaussians ("PM_GAUSSIANS,GAUSSIAN").
 GAUSSIANS_INPUT = "PM_GAUSSIANS," + NATIVE_GAUSSIAN_TYPE
 #: Say this in the tooltip of such an input.
 GAUSSIANS_TOOLTIP_SUFFIX = (" Also takes ComfyUI's native GAUSSIAN (TripoSplat, 3D File to Gaussian Splat): "
@@ -49,23 +65,6 @@ def as_pm_gaussians(value: Any, name: str = "gaussians"):
 
 
 def native_gaussian_class() -> Optional[type]:
-    """The running ComfyUI's GAUSSIAN class (comfy_api.latest Types.GAUSSIAN), or None when this
+    """The running ComfyUI's native splat class (comfy_api.latest Types.GAUSSIAN), or None when this
     ComfyUI has no such type (e.g. 0.3.64) or runs outside ComfyUI."""
-    try:
-        from comfy_api.latest import Types  # noqa: PLC0415 - only inside ComfyUI
-    except Exception:  # noqa: BLE001 - no comfy_api, or one that fails to import here
-        return None
-    cls = getattr(Types, "GAUSSIAN", None)
-    if cls is None:
-        return None
-    try:
-        from comfy_api.latest import IO  # the link type must be registered as "GAUSSIAN" too
-
-        io_type = getattr(getattr(IO, "Gaussian", None), "io_type", NATIVE_GAUSSIAN_TYPE)
-    except Exception:  # noqa: BLE001
-        io_type = NATIVE_GAUSSIAN_TYPE
-    if io_type != NATIVE_GAUSSIAN_TYPE:
-        log.info("PhysMotion: ComfyUI's Gaussian link type is %r, not %r; GAUSSIAN converters disabled",
-                 io_type, NATIVE_GAUSSIAN_TYPE)
-        return None
-    return cls
+    return _NATIVE_CLS

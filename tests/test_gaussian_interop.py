@@ -231,12 +231,14 @@ def _fresh_pack(name, monkeypatch):
     return pack
 
 
-@pytest.fixture
-def native_comfy_api(monkeypatch):
-    """A comfy_api.latest with Types.GAUSSIAN and IO.Gaussian, as ComfyUI has since the GAUSSIAN type."""
+@pytest.fixture(params=["GAUSSIAN", "SPLAT"])
+def native_comfy_api(monkeypatch, request):
+    """A comfy_api.latest with Types.GAUSSIAN and IO.Gaussian, as ComfyUI has since the GAUSSIAN type (and
+    with the class spelled SPLAT, as a later upstream commit of geometry_types.py names it)."""
     latest = types.ModuleType("comfy_api.latest")
-    latest.Types = types.SimpleNamespace(GAUSSIAN=FakeGAUSSIAN)
-    latest.IO = types.SimpleNamespace(Gaussian=types.SimpleNamespace(io_type="GAUSSIAN"))
+    io_name = "Gaussian" if request.param == "GAUSSIAN" else "Splat"
+    latest.Types = types.SimpleNamespace(**{request.param: FakeGAUSSIAN})
+    latest.IO = types.SimpleNamespace(**{io_name: types.SimpleNamespace(io_type="GAUSSIAN")})
     api = types.ModuleType("comfy_api")
     api.latest = latest
     monkeypatch.setitem(sys.modules, "comfy_api", api)
