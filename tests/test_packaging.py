@@ -39,7 +39,7 @@ def test_requirements_never_pin_torch_gsplat_or_upper_bounds():
         assert "==" not in r and "<" not in r and "~=" not in r, f"pin or upper bound in requirements.txt: {r}"
         assert ">=" in r, f"give a lower bound: {r}"
     # Every third-party module the pack imports at load time is in the list (or comes with ComfyUI).
-    with_comfyui = {"torch", "torchvision", "comfy", "folder_paths", "server", "gsplat"}
+    with_comfyui = {"torch", "torchvision", "comfy", "comfy_api", "folder_paths", "server", "gsplat"}
     import_names = {"numpy": "numpy", "warp": "warp-lang", "cv2": "opencv-python-headless", "av": "av",
                     "safetensors": "safetensors", "diffusers": "diffusers", "transformers": "transformers",
                     "peft": "peft", "segment_anything": "segment-anything", "PIL": "pillow"}
