@@ -912,39 +912,73 @@ def rigid_reduce(
     f_ext: wp.array(dtype=wp.vec3),
     body: wp.array(dtype=int),
     centre: wp.array(dtype=wp.vec3),
+    lin_vel: wp.array(dtype=wp.vec3),
+    ang_vel: wp.array(dtype=wp.vec3),
     dt_arr: wp.array(dtype=float),
-    momentum: wp.array(dtype=wp.vec3),
-    ang_momentum: wp.array(dtype=wp.vec3),
+    d_momentum: wp.array(dtype=wp.vec3),
+    d_ang_momentum: wp.array(dtype=wp.vec3),
+    ext_momentum: wp.array(dtype=wp.vec3),
+    ext_ang_momentum: wp.array(dtype=wp.vec3),
 ):
-    """Linear and angular momentum (about the body's centre) of each rigid body's particles, plus
-    the impulse of the external forces on them (applied here exactly, not through the grid)."""
+    """What this substep changed in each rigid body's linear and angular momentum (about its
+    centre): the grid's exchange, m (v_grid − v_body), where v_body = V + ω × r is the velocity the
+    body gave the particle (so a body alone in free flight gets exactly m g dt from the grid and no
+    torque), plus the impulse of the external forces (applied here exactly, not through the grid),
+    which is also summed on its own (the constant part integrated at the half step)."""
     p = wp.tid()
     b = body[p]
     if b < 0:
         return
-    mv = mass[p] * v[p] + dt_arr[0] * f_ext[p]
-    wp.atomic_add(momentum, b, mv)
-    wp.atomic_add(ang_momentum, b, wp.cross(x[p] - centre[b], mv))
+    r = x[p] - centre[b]
+    v_body = lin_vel[b] + wp.cross(ang_vel[b], r)
+    imp = dt_arr[0] * f_ext[p]
+    dmv = mass[p] * (v[p] - v_body) + imp
+    wp.atomic_add(d_momentum, b, dmv)
+    wp.atomic_add(d_ang_momentum, b, wp.cross(r, dmv))
+    wp.atomic_add(ext_momentum, b, imp)
+    wp.atomic_add(ext_ang_momentum, b, wp.cross(r, imp))
+
+
+@wp.func
+def body_axes(q: wp.quat, axes0: wp.mat33) -> wp.mat33:
+    """The body's principal axes in the world frame (columns), from its rotation q and the axes
+    at rest."""
+    return wp.quat_to_matrix(q) * axes0
+
+
+@wp.func
+def body_omega(A: wp.mat33, moments: wp.vec3, L: wp.vec3) -> wp.vec3:
+    """ω = I(t)⁻¹ L with I(t) = A diag(moments) Aᵀ (A: the principal axes in the world frame)."""
+    lb = wp.transpose(A) * L
+    return A * wp.vec3(lb[0] / moments[0], lb[1] / moments[1], lb[2] / moments[2])
+
+
+@wp.func
+def body_iinv(A: wp.mat33, moments: wp.vec3) -> wp.mat33:
+    return A * wp.diag(wp.vec3(1.0 / moments[0], 1.0 / moments[1], 1.0 / moments[2])) * wp.transpose(A)
 
 
 @wp.kernel
 def rigid_velocity(
     orient: wp.array(dtype=wp.quat),
-    inertia_body: wp.array(dtype=wp.mat33),
+    axes0: wp.array(dtype=wp.mat33),
+    moments: wp.array(dtype=wp.vec3),
     body_mass: wp.array(dtype=float),
-    momentum: wp.array(dtype=wp.vec3),
+    d_momentum: wp.array(dtype=wp.vec3),
+    d_ang_momentum: wp.array(dtype=wp.vec3),
     ang_momentum: wp.array(dtype=wp.vec3),
     lin_vel: wp.array(dtype=wp.vec3),
     ang_vel: wp.array(dtype=wp.vec3),
 ):
-    """Each body's velocity and spin from its particles' momenta: V = P / M, ω = I_world⁻¹ L."""
+    """Each body's momenta take the substep's change: V += ΔP / M, L += ΔL (L is kept in the world
+    frame); its spin is ω = I(t)⁻¹ L, with the inertia tensor turned with the body."""
     b = wp.tid()
-    R = wp.quat_to_matrix(orient[b])
-    I_world = R * inertia_body[b] * wp.transpose(R)
-    lin_vel[b] = momentum[b] / body_mass[b]
-    ang_vel[b] = wp.inverse(I_world) * ang_momentum[b]
-    momentum[b] = wp.vec3(0.0, 0.0, 0.0)
-    ang_momentum[b] = wp.vec3(0.0, 0.0, 0.0)
+    L = ang_momentum[b] + d_ang_momentum[b]
+    ang_momentum[b] = L
+    lin_vel[b] = lin_vel[b] + d_momentum[b] / body_mass[b]
+    ang_vel[b] = body_omega(body_axes(orient[b], axes0[b]), moments[b], L)
+    d_momentum[b] = wp.vec3(0.0, 0.0, 0.0)
+    d_ang_momentum[b] = wp.vec3(0.0, 0.0, 0.0)
 
 
 @wp.func
@@ -986,10 +1020,13 @@ def rigid_contacts(
     body_end: wp.array(dtype=int),
     centre: wp.array(dtype=wp.vec3),
     orient: wp.array(dtype=wp.quat),
-    inertia_body: wp.array(dtype=wp.mat33),
+    axes0: wp.array(dtype=wp.mat33),
+    moments: wp.array(dtype=wp.vec3),
     body_mass: wp.array(dtype=float),
     lin_vel: wp.array(dtype=wp.vec3),
     ang_vel: wp.array(dtype=wp.vec3),
+    ang_momentum: wp.array(dtype=wp.vec3),
+    contact: wp.array(dtype=int),
     grid: GridInfo,
     bc: Boundary,
     iterations: int,
@@ -1005,9 +1042,10 @@ def rigid_contacts(
     particles' order, so a body resting flat does not start to spin or creep.
     """
     b = wp.tid()
-    R = wp.quat_to_matrix(orient[b])
-    Iinv = wp.inverse(R * inertia_body[b] * wp.transpose(R))
+    Iinv = body_iinv(body_axes(orient[b], axes0[b]), moments[b])
     inv_m = 1.0 / body_mass[b]
+    L = ang_momentum[b]
+    touched = int(0)
     lo = grid.origin + float(bc.pad) * grid.dx * wp.vec3(1.0, 1.0, 1.0)
     hi = grid.origin + wp.vec3(float(grid.nx - bc.pad), float(grid.ny - bc.pad), float(grid.nz - bc.pad)) * grid.dx
     ground_y = grid.origin[1] + float(bc.ground_node) * grid.dx
@@ -1017,6 +1055,7 @@ def rigid_contacts(
         w = ang_vel[b]
         dV = wp.vec3(0.0, 0.0, 0.0)
         dw = wp.vec3(0.0, 0.0, 0.0)
+        dL = wp.vec3(0.0, 0.0, 0.0)
         count = float(0.0)
         for p in range(body_start[b], body_end[b]):
             xp = x[p]
@@ -1042,28 +1081,88 @@ def rigid_contacts(
             if wp.length(J) > 0.0:
                 dV += inv_m * J
                 dw += Iinv * wp.cross(r, J)
+                dL += wp.cross(r, J)
                 count += 1.0
         if count == 0.0:
             break
+        touched = 1
         lin_vel[b] = V + dV / count
         ang_vel[b] = w + dw / count
+        L = L + dL / count
+    ang_momentum[b] = L
+    contact[b] = touched
+
+
+@wp.func
+def turn_about(q: wp.quat, axis: wp.vec3, angle: float) -> wp.quat:
+    """q turned by ``angle`` about the world axis ``axis`` (unit)."""
+    if wp.abs(angle) > 0.0:
+        return wp.quat_from_axis_angle(axis, angle) * q
+    return q
 
 
 @wp.kernel
 def rigid_integrate(
     centre: wp.array(dtype=wp.vec3),
     orient: wp.array(dtype=wp.quat),
+    axes0: wp.array(dtype=wp.mat33),
+    moments: wp.array(dtype=wp.vec3),
+    body_mass: wp.array(dtype=float),
     lin_vel: wp.array(dtype=wp.vec3),
     ang_vel: wp.array(dtype=wp.vec3),
+    ang_momentum: wp.array(dtype=wp.vec3),
+    ext_momentum: wp.array(dtype=wp.vec3),
+    ext_ang_momentum: wp.array(dtype=wp.vec3),
+    contact: wp.array(dtype=int),
+    gravity: wp.vec3,
     dt_arr: wp.array(dtype=float),
 ):
+    """Move each body over the substep, from the momenta at its end (V, L).
+
+    Translation: a body that touched nothing moves by dt (V − ½ dt a), a the constant part of its
+    acceleration (gravity and the external forces): exact for constant acceleration, where plain
+    dt V overshoots by ½ a dt² per step. A body in contact moves by dt V (its impulses act at the
+    step's start).
+
+    Rotation: the free rigid body's exact flow for L constant, by splitting its kinetic energy
+    H = Σ L_k² / (2 I_k) (principal moments I1 ≤ I2 ≤ I3, L_k = L · a_k on the principal axes a_k) as
+    |L|² / (2 I2) + L1² (1/I1 − 1/I2) / 2 + L3² (1/I3 − 1/I2) / 2. Each part's flow is exact (a turn
+    about the world axis L̂, or about the body axis a_1 or a_3, by a fixed angle), so L is kept
+    exactly; the symmetric Strang composition a_1 (½) · a_3 (1) · a_1 (½), then L̂, is second order,
+    symplectic (the energy error stays bounded, no drift) and exact for a symmetric top (the axial
+    part vanishes: the precession comes out at the analytic rate). Under a torque the same uses
+    L − ½ ΔL_ext, the momentum at the half step (exact for a constant torque about a principal axis).
+    The spin the particles get is ω = I(t)⁻¹ L at the new orientation."""
     b = wp.tid()
     dt = dt_arr[0]
-    w = ang_vel[b]
-    centre[b] = centre[b] + dt * lin_vel[b]
-    angle = wp.length(w) * dt
-    if angle > 1.0e-12:
-        orient[b] = wp.normalize(wp.quat_from_axis_angle(w / wp.length(w), angle) * orient[b])
+    V = lin_vel[b]
+    L = ang_momentum[b]
+    if contact[b] == 0:
+        V = V - 0.5 * (dt * gravity + ext_momentum[b] / body_mass[b])
+        L = L - 0.5 * ext_ang_momentum[b]
+    centre[b] = centre[b] + dt * V
+    I = moments[b]
+    q = orient[b]
+    c1 = 1.0 / I[0] - 1.0 / I[1]
+    c3 = 1.0 / I[2] - 1.0 / I[1]
+    A = body_axes(q, axes0[b])
+    a1 = wp.vec3(A[0, 0], A[1, 0], A[2, 0])
+    q = turn_about(q, a1, 0.5 * dt * c1 * wp.dot(L, a1))
+    A = body_axes(q, axes0[b])
+    a3 = wp.vec3(A[0, 2], A[1, 2], A[2, 2])
+    q = turn_about(q, a3, dt * c3 * wp.dot(L, a3))
+    A = body_axes(q, axes0[b])
+    a1 = wp.vec3(A[0, 0], A[1, 0], A[2, 0])
+    q = turn_about(q, a1, 0.5 * dt * c1 * wp.dot(L, a1))
+    nL = wp.length(L)
+    if nL > 0.0:
+        q = turn_about(q, L / nL, dt * nL / I[1])
+    q = wp.normalize(q)
+    orient[b] = q
+    ang_vel[b] = body_omega(body_axes(q, axes0[b]), I, ang_momentum[b])
+    ext_momentum[b] = wp.vec3(0.0, 0.0, 0.0)
+    ext_ang_momentum[b] = wp.vec3(0.0, 0.0, 0.0)
+    contact[b] = 0
 
 
 @wp.kernel

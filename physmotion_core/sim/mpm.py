@@ -198,6 +198,7 @@ class MPMSolver:
         cfl: float = 0.4,
         device: str = "cpu",
         v0: Optional[np.ndarray] = None,
+        C0: Optional[np.ndarray] = None,
         anchored: Optional[np.ndarray] = None,
         body: Optional[np.ndarray] = None,
         torque_mask: Optional[np.ndarray] = None,
@@ -275,7 +276,8 @@ class MPMSolver:
         with wp.ScopedDevice(device):
             self.x = wp.array(x.astype(np.float32), dtype=wp.vec3)
             self.v = wp.array(np.zeros((n, 3), np.float32) if v0 is None else v0.astype(np.float32), dtype=wp.vec3)
-            self.C = wp.zeros(n, dtype=wp.mat33)
+            self.C = (wp.zeros(n, dtype=wp.mat33) if C0 is None
+                      else wp.array(np.asarray(C0, np.float32).reshape(n, 3, 3), dtype=wp.mat33))
             self.F = wp.array(np.tile(np.eye(3, dtype=np.float32), (n, 1, 1)), dtype=wp.mat33)
             self.tau = wp.zeros(n, dtype=wp.mat33)
             self.rot = wp.array(np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1)), dtype=wp.quat)
@@ -320,7 +322,7 @@ class MPMSolver:
             self.torque_taus = wp.zeros(max(self.n_torques, 1), dtype=wp.vec3)
             self._torques_on = False
             if self.n_bodies:
-                self._init_bodies(x, mass, volume)
+                self._init_bodies(x, mass, volume, v0)
 
         g = K.GridInfo()
         g.origin = wp.vec3(*domain.origin.astype(np.float32))
@@ -390,11 +392,24 @@ class MPMSolver:
         self._programs.clear()
 
     # -- rigid bodies -------------------------------------------------------------------------
-    def _init_bodies(self, x: np.ndarray, mass: np.ndarray, volume: np.ndarray) -> None:
+    def _init_bodies(self, x: np.ndarray, mass: np.ndarray, volume: np.ndarray,
+                     v0: Optional[np.ndarray] = None) -> None:
+        """Each rigid body's centre, inertia (with its principal axes) and initial momenta.
+
+        The body starts with the linear and angular momentum of its particles' initial velocities
+        (float64), and its particles start on the rigid motion that carries them: v = V + ω × r and
+        the affine velocity C = [ω]× (so the first transfer to the grid is exact, as every later
+        one is)."""
         wp = self.wp
         nb = self.n_bodies
         centres = np.zeros((nb, 3))
         inertia = np.zeros((nb, 3, 3))
+        axes = np.zeros((nb, 3, 3))
+        moments = np.zeros((nb, 3))
+        lin = np.zeros((nb, 3))
+        ang = np.zeros((nb, 3))
+        omega = np.zeros((nb, 3))
+        v_all = None if v0 is None else np.asarray(v0, np.float64)
         masses = np.zeros(nb)
         offsets = np.zeros_like(x, dtype=np.float64)
         starts, ends = np.zeros(nb, np.int32), np.zeros(nb, np.int32)
@@ -414,6 +429,28 @@ class MPMSolver:
             inertia[b] = np.eye(3) * (m * (r * r).sum(1)).sum() - (r.T * m) @ r
             centres[b], masses[b] = c, m.sum()
             offsets[sel] = r
+            # Principal axes (columns, right-handed) and moments I1 <= I2 <= I3; a degenerate
+            # direction (particles on a line) gets a tiny moment instead of a division by zero.
+            evals, evecs = np.linalg.eigh(inertia[b])
+            if np.linalg.det(evecs) < 0:
+                evecs[:, 2] *= -1
+            axes[b] = evecs
+            moments[b] = np.maximum(evals, 1e-9 * max(float(evals[-1]), 1e-30))
+            if v_all is not None:
+                mv = m[:, None] * v_all[sel]
+                lin[b] = mv.sum(0) / m.sum()
+                ang[b] = np.cross(r, mv).sum(0)
+                omega[b] = evecs @ ((evecs.T @ ang[b]) / moments[b])
+        if v_all is not None:
+            v_rigid = v_all.copy()
+            C = self.C.numpy()
+            for b in range(nb):
+                sel = self.body_np == b
+                v_rigid[sel] = lin[b] + np.cross(omega[b], offsets[sel])
+                C[sel] = np.array([[0.0, -omega[b][2], omega[b][1]], [omega[b][2], 0.0, -omega[b][0]],
+                                   [-omega[b][1], omega[b][0], 0.0]])
+            self.v.assign(wp.array(v_rigid.astype(np.float32), dtype=wp.vec3))
+            self.C.assign(wp.array(C.astype(np.float32), dtype=wp.mat33))
         self.body_centre0 = centres
         self.body_radius = np.array([np.linalg.norm(offsets[self.body_np == b], axis=1).max() for b in range(nb)])
         self.body_radius_w = wp.array(self.body_radius.astype(np.float32), dtype=float)
@@ -423,14 +460,20 @@ class MPMSolver:
         self.body_offset = wp.array(offsets.astype(np.float32), dtype=wp.vec3)
         self.body_centre = wp.array(centres.astype(np.float32), dtype=wp.vec3)
         self.body_orient = wp.array(np.tile(np.array([0, 0, 0, 1], np.float32), (nb, 1)), dtype=wp.quat)
-        self.body_inertia_w = wp.array(inertia.astype(np.float32), dtype=wp.mat33)
+        self.body_axes_np, self.body_moments_np = axes, moments
+        self.body_axes = wp.array(axes.astype(np.float32), dtype=wp.mat33)
+        self.body_moments = wp.array(moments.astype(np.float32), dtype=wp.vec3)
         self.body_mass = wp.array(masses.astype(np.float32), dtype=float)
         self.body_start = wp.array(starts, dtype=int)
         self.body_end = wp.array(ends, dtype=int)
-        self.body_p = wp.zeros(nb, dtype=wp.vec3)
-        self.body_l = wp.zeros(nb, dtype=wp.vec3)
-        self.body_v = wp.zeros(nb, dtype=wp.vec3)
-        self.body_w = wp.zeros(nb, dtype=wp.vec3)
+        self.body_dp = wp.zeros(nb, dtype=wp.vec3)  # the substep's change of momentum (rigid_reduce)
+        self.body_dl = wp.zeros(nb, dtype=wp.vec3)  # ... of angular momentum
+        self.body_ext_p = wp.zeros(nb, dtype=wp.vec3)  # ... of which the external forces' impulse
+        self.body_ext_l = wp.zeros(nb, dtype=wp.vec3)
+        self.body_l = wp.array(ang.astype(np.float32), dtype=wp.vec3)  # angular momentum, world frame
+        self.body_v = wp.array(lin.astype(np.float32), dtype=wp.vec3)
+        self.body_w = wp.array(omega.astype(np.float32), dtype=wp.vec3)
+        self.body_contact = wp.zeros(nb, dtype=int)
 
     # -- host-side controls -------------------------------------------------------------------
     def set_external_forces(self, f: np.ndarray) -> None:
@@ -643,14 +686,19 @@ class MPMSolver:
             step(K.merge_stats, 1, [self.stats_rows, self.stats])
         if self.n_bodies:
             step(K.rigid_reduce, self.n, [self.x, self.v, self.mass, forces, self.body, self.body_centre,
-                                          self.dt_arr, self.body_p, self.body_l])
-            step(K.rigid_velocity, self.n_bodies, [self.body_orient, self.body_inertia_w, self.body_mass,
-                                                   self.body_p, self.body_l, self.body_v, self.body_w])
+                                          self.body_v, self.body_w, self.dt_arr, self.body_dp, self.body_dl,
+                                          self.body_ext_p, self.body_ext_l])
+            step(K.rigid_velocity, self.n_bodies, [self.body_orient, self.body_axes, self.body_moments,
+                                                   self.body_mass, self.body_dp, self.body_dl, self.body_l,
+                                                   self.body_v, self.body_w])
             step(K.rigid_contacts, self.n_bodies, [self.x, self.vol, self.body_start, self.body_end,
-                                                   self.body_centre, self.body_orient, self.body_inertia_w,
-                                                   self.body_mass, self.body_v, self.body_w, self.grid, self.bc, 8])
-            step(K.rigid_integrate, self.n_bodies, [self.body_centre, self.body_orient, self.body_v, self.body_w,
-                                                    self.dt_arr])
+                                                   self.body_centre, self.body_orient, self.body_axes,
+                                                   self.body_moments, self.body_mass, self.body_v, self.body_w,
+                                                   self.body_l, self.body_contact, self.grid, self.bc, 8])
+            step(K.rigid_integrate, self.n_bodies, [self.body_centre, self.body_orient, self.body_axes,
+                                                    self.body_moments, self.body_mass, self.body_v, self.body_w,
+                                                    self.body_l, self.body_ext_p, self.body_ext_l,
+                                                    self.body_contact, self._gravity_w, self.dt_arr])
             step(K.rigid_apply, self.n, [self.x, self.v, self.C, self.F, self.body, self.body_offset,
                                          self.body_centre, self.body_orient, self.body_v, self.body_w, self.grid,
                                          self.stats, lo, hi, self.status])
@@ -844,3 +892,9 @@ class MPMSolver:
             return z, np.zeros((0, 4)), z, z
         return (self.body_centre.numpy().copy(), self.body_orient.numpy().copy(), self.body_v.numpy().copy(),
                 self.body_w.numpy().copy())
+
+    def body_angular_momentum(self) -> np.ndarray:
+        """Rigid bodies' angular momenta about their centres, world frame (N·m·s), as the solver keeps them."""
+        if not self.n_bodies:
+            return np.zeros((0, 3))
+        return self.body_l.numpy().astype(np.float64)
