@@ -59,7 +59,7 @@ def as_pm_gaussians(value: Any, name: str = "gaussians"):
     if isinstance(value, Gaussians):
         return value
     if is_native_gaussian(value):
-        return from_native_scene(value, axes="y_down")
+        return from_native_scene(value, axes="y_down").to("cpu")  # links carry CPU Gaussians
     raise InputError(f"{name}: expected PM_GAUSSIANS or a native GAUSSIAN, got {type(value).__name__}. "
                      "Connect a lift node, Load Gaussians, or one of ComfyUI's Gaussian nodes.")
 

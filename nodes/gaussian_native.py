@@ -42,7 +42,7 @@ class PhysMotionFromGAUSSIAN:
 
         if not is_native_gaussian(gaussian):
             return (as_pm_gaussians(gaussian, "gaussian"),)  # clear error, or our own Gaussians passed through
-        return (from_native_scene(gaussian, axes=axes),)
+        return (from_native_scene(gaussian, axes=axes).to("cpu"),)  # links carry CPU Gaussians
 
 
 class PhysMotionToGAUSSIAN:

@@ -210,10 +210,15 @@ def _field(obj, name: str) -> torch.Tensor:
 
 
 def from_native(obj, *, axes: str = "y_down") -> list[Gaussians]:
-    """Each batch item of a native GAUSSIAN as our Gaussians (its real length, per ``counts``)."""
+    """Each batch item of a native GAUSSIAN as our Gaussians (its real length, per ``counts``).
+
+    float32 fields are taken bit for bit; other floating types (half, bfloat16, double) become float32,
+    the precision the rest of the pipeline works in. The tensors stay on their device.
+    """
     _check_axes(axes)
     pos, scl, rot = _field(obj, "positions"), _field(obj, "scales"), _field(obj, "rotations")
     opa, sh = _field(obj, "opacities"), _field(obj, "sh")
+    pos, scl, rot, opa, sh = (t.float() if t.dtype != torch.float32 else t for t in (pos, scl, rot, opa, sh))
     if pos.ndim == 2:  # an unbatched item: accept it as a batch of one
         pos, scl, rot, opa, sh = pos[None], scl[None], rot[None], opa[None], sh[None]
     if pos.ndim != 3 or pos.shape[-1] != 3:

@@ -165,6 +165,15 @@ def test_deformed_covariances_convert_within_float32_rounding():
     assert torch.equal(back.means, g.means)
 
 
+def test_half_precision_native_fields_become_float32():
+    g = _random(20, 4, seed=10)
+    nat = ig.to_native(g, FakeGAUSSIAN)
+    half = FakeGAUSSIAN(*(getattr(nat, f).half() for f in ig.NATIVE_FIELDS))
+    (back,) = ig.from_native(half)
+    assert all(getattr(back, f).dtype == torch.float32 for f in FIELDS)
+    assert torch.allclose(back.means, g.means, rtol=1e-3, atol=1e-3)
+
+
 def test_bad_native_input_is_refused_clearly():
     with pytest.raises(InputError, match="rotations"):
         ig.from_native(FakeGAUSSIAN(torch.zeros(1, 4, 3), torch.ones(1, 4, 3), torch.zeros(1, 4, 3),
