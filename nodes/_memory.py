@@ -28,6 +28,19 @@ from ._util import free_memory_for, log, offload_device, torch_device
 PATCHER_ATTR = "_physmotion_model_patcher"
 
 
+def make_room(need_bytes: int, device) -> None:
+    """Ask ComfyUI to evict cached models (its own and ours) until ``need_bytes`` are free on a CUDA
+    ``device``, for work it does not manage (the simulation). A no-op outside ComfyUI or on the CPU."""
+    dev = torch.device(device)
+    if dev.type != "cuda":
+        return
+    try:
+        import comfy.model_management as mm
+    except ImportError:
+        return
+    mm.free_memory(int(need_bytes * 1.1) + (256 << 20), dev)
+
+
 def model_modules(obj) -> dict[str, torch.nn.Module]:
     """The torch modules of one of our model objects (SAM, depth, LGM, ImageDream, the diffusion stack)."""
     if isinstance(obj, torch.nn.Module):

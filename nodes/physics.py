@@ -370,11 +370,13 @@ class PhysMotionMPMSimulate:
         from physmotion_core.sim import simulate
         from physmotion_core.types import SimSettings
 
+        from ._memory import make_room
+
         settings = SimSettings(frames=int(frames), fps=float(fps), grid_res=int(grid_res), quality=quality,
                                particles_per_cell=int(particles_per_cell), cfl=float(cfl),
                                domain_margin=float(domain_margin), device=sim_device(device), seed=int(seed))
         return (simulate(as_pm_gaussians(gaussians), material, _chain(conditions), settings, camera=camera,
-                         progress=progress_callback()),)
+                         progress=progress_callback(), make_room=make_room),)
 
 
 class PhysMotionSaveGaussianSequence:

@@ -149,3 +149,12 @@ def test_real_model_patcher_loads_and_evicts_our_modules():
     out = subprocess.run([sys.executable, "-c", script], cwd=os.environ["COMFYUI_DIR"], capture_output=True,
                          text=True, timeout=300)
     assert out.returncode == 0 and "OK 48" in out.stdout, out.stderr[-3000:]
+
+
+def test_make_room_asks_comfyui_to_free_cuda_memory_only(comfy, monkeypatch):
+    calls = []
+    monkeypatch.setattr(sys.modules["comfy.model_management"], "free_memory", lambda need, dev: calls.append((need, dev)))
+    MEMORY.make_room(10 << 20, "cpu")
+    assert calls == []
+    MEMORY.make_room(10 << 20, "cuda:1")
+    assert len(calls) == 1 and calls[0][1] == torch.device("cuda:1") and calls[0][0] >= 10 << 20

@@ -5,7 +5,7 @@ from __future__ import annotations
 import logging
 import math
 import time
-from typing import Optional, Sequence, Union
+from typing import Callable, Optional, Sequence, Union
 
 import numpy as np
 import torch
@@ -95,6 +95,7 @@ def simulate(
     camera: Optional[Camera] = None,
     progress: Optional[ProgressFn] = None,
     record_all: bool = False,
+    make_room: Optional[Callable[[int, str], None]] = None,
 ) -> SimResult:
     """Simulate the object(s) the Gaussians describe and return their trajectory.
 
@@ -102,7 +103,9 @@ def simulate(
     own (``fill_particles``) and gets its material (``material`` may be one per object). Every
     Gaussian follows a weighted blend of its nearest particles' local affine maps. Time steps come from the CFL limits every
     substep; frames are recorded at t = k / fps for k = 0..frames-1. ``record_all`` keeps every
-    particle's trajectory (default: only those carrying Gaussians).
+    particle's trajectory (default: only those carrying Gaussians). ``make_room(bytes, device)`` is
+    called on CUDA with the device memory the run needs before it checks that it fits (ComfyUI's
+    nodes free cached models there).
     """
     settings = settings or SimSettings()
     settings.validate()
@@ -165,6 +168,8 @@ def simulate(
     recorded = np.arange(len(x0)) if record_all else np.unique(neighbours)
     need = estimate_bytes(x0.shape[0], domain.dims, settings.frames, recorded.shape[0],
                           chunks=cpu_chunks(x0.shape[0], device))
+    if make_room is not None and device.startswith("cuda"):
+        make_room(int(need["device"]), device)
     dev_free = device_available_bytes(device)
     if device.startswith("cuda"):
         if need["device"] > 0.9 * dev_free:
