@@ -1,4 +1,4 @@
-"""H.264 mp4 writing and reading with PyAV."""
+"""Video writing (mp4 / mov / mkv / webm / avi with PyAV, animated GIF with Pillow) and reading."""
 
 from __future__ import annotations
 
@@ -28,35 +28,98 @@ def _to_uint8_frames(frames) -> np.ndarray:
     return arr
 
 
-def write_mp4(path: str | os.PathLike, frames, fps: float = 24.0, crf: int = 18) -> Path:
-    """Write (T,H,W,3) frames (float 0..1 or uint8) as H.264 yuv420p mp4, atomically.
+#: Video containers by file extension: (PyAV format, codec, pixel format). Each gets a codec it
+#: is made for: H.264 in mp4 / mov / mkv, VP9 in webm, MPEG-4 Part 2 in avi (what AVI players
+#: expect), and an animated GIF (256-colour palette per frame, written by Pillow).
+VIDEO_FORMATS = {
+    ".mp4": ("mp4", "libx264", "yuv420p"),
+    ".m4v": ("mp4", "libx264", "yuv420p"),
+    ".mov": ("mov", "libx264", "yuv420p"),
+    ".mkv": ("matroska", "libx264", "yuv420p"),
+    ".webm": ("webm", "libvpx-vp9", "yuv420p"),
+    ".avi": ("avi", "mpeg4", "yuv420p"),
+    ".gif": ("gif", "gif", "pal8"),
+}
+
+
+def video_format(path: str | os.PathLike) -> tuple[str, str, str]:
+    """(container, codec, pixel format) for ``path``'s extension; InputError for any other."""
+    ext = Path(path).suffix.lower()
+    if ext not in VIDEO_FORMATS:
+        raise InputError(f"Cannot write a video as '{Path(path).name}': the extension "
+                         f"{ext or '(none)'} is not a video format this writes. Use one of "
+                         f"{', '.join(VIDEO_FORMATS)} (e.g. '{Path(path).stem or 'clip'}.mp4').")
+    return VIDEO_FORMATS[ext]
+
+
+def write_video(path: str | os.PathLike, frames, fps: float = 24.0, crf: int = 18) -> Path:
+    """Write (T,H,W,3) frames (float 0..1 or uint8) atomically, in the container its extension
+    names (``VIDEO_FORMATS``); any other extension is refused before encoding.
 
     yuv420p needs even width and height: odd sizes are padded by one edge-replicated pixel
-    (never cropped), so no image content is lost.
+    (never cropped), so no image content is lost. ``crf`` is the quality (18: visually lossless
+    H.264; mapped onto VP9's scale for webm; a bit rate for avi; unused for GIF).
     """
     import av
 
+    container_fmt, codec, pix_fmt = video_format(path)
     arr = _to_uint8_frames(frames)
     if not (0 < fps <= 1000):
         raise InputError(f"fps must be in (0, 1000]; got {fps}")
+    path = Path(path)
+    if container_fmt == "gif":
+        return _write_gif(path, arr, fps)
     t, h, w, _ = arr.shape
     ph, pw = h % 2, w % 2
     if ph or pw:
         arr = np.pad(arr, ((0, 0), (0, ph), (0, pw), (0, 0)), mode="edge")
-    path = Path(path)
     rate = Fraction(fps).limit_denominator(1001)
-    with atomic_output(path, suffix=".tmp.mp4") as tmp:
-        with av.open(str(tmp), mode="w") as container:
-            stream = container.add_stream("libx264", rate=rate)
+    with atomic_output(path, suffix=".tmp" + path.suffix.lower()) as tmp:
+        with av.open(str(tmp), mode="w", format=container_fmt) as container:
+            stream = container.add_stream(codec, rate=rate)
             stream.width, stream.height = arr.shape[2], arr.shape[1]
-            stream.pix_fmt = "yuv420p"
-            stream.options = {"crf": str(int(crf)), "preset": "medium"}
+            stream.pix_fmt = pix_fmt
+            if codec == "libx264":
+                stream.options = {"crf": str(int(crf)), "preset": "medium"}
+            elif codec == "libvpx-vp9":  # constant quality (b:v 0); VP9's 0..63 scale sits above x264's
+                stream.options = {"crf": str(min(63, int(crf) + 13)), "b:v": "0", "deadline": "good",
+                                  "cpu-used": "4", "row-mt": "1"}
+            else:  # mpeg4: a bit rate that keeps crf 18's look (about 0.5 bit per pixel at 24 fps)
+                bits_per_pixel = 0.5 * 2.0 ** ((18 - int(crf)) / 6.0)
+                stream.bit_rate = int(min(80e6, max(1e6, bits_per_pixel * arr.shape[1] * arr.shape[2] * fps)))
             for frame in arr:
                 for packet in stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")):
                     container.mux(packet)
             for packet in stream.encode():
                 container.mux(packet)
     return path
+
+
+def _write_gif(path: Path, arr: np.ndarray, fps: float) -> Path:
+    """An animated GIF that loops: each frame quantised to its own 256-colour palette. GIF delays
+    are whole centiseconds, and players slow delays under 2 cs down, so fps above 50 is written at
+    50 (logged)."""
+    import logging
+
+    from PIL import Image
+
+    delay_cs = max(2, round(100.0 / fps))
+    if abs(100.0 / delay_cs - fps) > 0.05 * fps:
+        logging.getLogger("physmotion").warning(
+            "GIF frame delays are whole hundredths of a second: %s plays at %.3g fps instead of %.3g; use .mp4 "
+            "for the exact rate", path.name, 100.0 / delay_cs, fps)
+    images = [Image.fromarray(f).quantize(256, method=Image.Quantize.MEDIANCUT, dither=Image.Dither.NONE)
+              for f in arr]
+    with atomic_output(path, suffix=".tmp.gif") as tmp:
+        images[0].save(tmp, format="GIF", save_all=True, append_images=images[1:], duration=delay_cs * 10,
+                       loop=0, optimize=False, disposal=1)
+    return path
+
+
+def write_mp4(path: str | os.PathLike, frames, fps: float = 24.0, crf: int = 18) -> Path:
+    """``write_video`` (the name is historical: the container follows ``path``'s extension, H.264
+    mp4 for ``.mp4``)."""
+    return write_video(path, frames, fps=fps, crf=crf)
 
 
 def read_video(path: str | os.PathLike) -> tuple[np.ndarray, float]:
