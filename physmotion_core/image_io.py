@@ -1,8 +1,10 @@
 """Loading and saving images as the library's float tensors.
 
 Everything inside the library is RGB float32 in 0..1 with shape (H, W, 3); an alpha channel, when
-an image has a meaningful one, travels separately as (H, W) float32 in 0..1. OpenCV does the file
-work (it reads PNG, JPEG, WebP and TIFF at 8 or 16 bits) so no extra imaging dependency is needed.
+an image has a meaningful one, travels separately as (H, W) float32 in 0..1. OpenCV decodes the
+pixels (PNG, JPEG, WebP and TIFF at 8 or 16 bits); Pillow reads the header first (the size, checked
+against a pixel limit before decoding, and the EXIF orientation, applied to the decoded pixels).
+Every image file the library reads goes through ``load_image``.
 """
 
 from __future__ import annotations
@@ -70,13 +72,104 @@ def decode_image(array: np.ndarray, name: str = "image") -> tuple[torch.Tensor, 
     return rgb_t, alpha_t
 
 
+#: The most pixels an image file may have before it is decoded (Pillow's own default limit, about
+#: 9459 x 9459). Larger files are refused from their header, before any pixel is decoded: a
+#: "decompression bomb" (a few KB that claim 100000 x 100000 pixels, or a real 25000 x 25000 PNG of
+#: 2 MB) would otherwise take tens of GB. ``$PHYSMOTION_MAX_IMAGE_PIXELS`` changes it.
+MAX_IMAGE_PIXELS = 89_478_485
+#: RAM a decode takes per pixel at most: the decoded array (up to 4 channels of 16 bits), its
+#: float32 copy and the (H,W,3) + (H,W) float32 results.
+DECODE_BYTES_PER_PIXEL = 8 + 16 + 16
+
+# EXIF orientation (tag 0x0112) -> how to turn the stored pixels upright (as Pillow's
+# ImageOps.exif_transpose does): phones store the sensor's pixels and say how to rotate them.
+_ORIENT = {
+    2: lambda a: a[:, ::-1],                     # mirrored left-right
+    3: lambda a: a[::-1, ::-1],                  # rotated 180
+    4: lambda a: a[::-1, :],                     # mirrored top-bottom
+    5: lambda a: np.swapaxes(a, 0, 1),           # transposed
+    6: lambda a: np.rot90(a, -1),                # rotated 90 clockwise to be upright
+    7: lambda a: np.swapaxes(a[::-1, ::-1], 0, 1),  # transversed
+    8: lambda a: np.rot90(a, 1),                 # rotated 90 counter-clockwise to be upright
+}
+
+
+def max_image_pixels() -> int:
+    env = os.environ.get("PHYSMOTION_MAX_IMAGE_PIXELS", "").strip()
+    if env:
+        try:
+            return max(1, int(float(env)))
+        except ValueError:
+            raise InputError(f"$PHYSMOTION_MAX_IMAGE_PIXELS must be a number of pixels; got {env!r}") from None
+    return MAX_IMAGE_PIXELS
+
+
+def image_header(data: bytes, name: str = "image") -> tuple[Optional[tuple[int, int]], int]:
+    """((width, height) or None when Pillow does not know the format, EXIF orientation 1..8) from a
+    file's header, without decoding its pixels."""
+    import io
+    import warnings
+
+    from PIL import Image
+
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # DecompressionBombWarning: we apply our own limit
+            saved, Image.MAX_IMAGE_PIXELS = Image.MAX_IMAGE_PIXELS, None
+            try:
+                im = Image.open(io.BytesIO(data))
+            finally:
+                Image.MAX_IMAGE_PIXELS = saved
+            size = (int(im.size[0]), int(im.size[1]))
+            try:
+                if im.format == "PNG":
+                    # Pillow's PNG getexif() decodes the whole image to look for an eXIf chunk after
+                    # the pixels (a bomb would be decoded here); the chunk belongs before them.
+                    exif = Image.Exif()
+                    if im.info.get("exif"):
+                        exif.load(im.info["exif"])
+                else:
+                    exif = im.getexif()  # JPEG, WebP, TIFF: read from the header, no pixels decoded
+                orientation = int(exif.get(0x0112, 1) or 1)
+            except Exception:  # noqa: BLE001 - a damaged EXIF block: treat the pixels as upright
+                orientation = 1
+    except Exception:  # noqa: BLE001 - not a format Pillow reads (OpenCV may); no header facts
+        return None, 1
+    return size, orientation if orientation in range(1, 9) else 1
+
+
+def check_image_size(width: int, height: int, name: str = "image") -> None:
+    """Refuse, before decoding, an image with more pixels than the limit or than RAM can hold."""
+    from .memory import fmt_bytes, host_available_bytes
+
+    px, limit = int(width) * int(height), max_image_pixels()
+    if width <= 0 or height <= 0:
+        raise InputError(f"{name} claims a size of {width}x{height} pixels; the file is damaged")
+    if px > limit:
+        raise InputError(f"{name} is {width}x{height} pixels ({px / 1e6:.0f} megapixels), more than the "
+                         f"{limit / 1e6:.0f} megapixels an image may have (a file this large, or one whose header "
+                         "claims it, would need "
+                         f"{fmt_bytes(px * DECODE_BYTES_PER_PIXEL)} to decode). Scale it down first (the pipeline "
+                         "works at 1024 pixels on the long side by default), or raise the limit with "
+                         "$PHYSMOTION_MAX_IMAGE_PIXELS.")
+    need, have = px * DECODE_BYTES_PER_PIXEL, host_available_bytes()
+    if need > 0.8 * have:
+        raise InputError(f"{name} is {width}x{height} pixels: decoding it needs about {fmt_bytes(need)} of RAM but "
+                         f"only {fmt_bytes(have)} is available. Scale the image down first.")
+
+
 def load_image(path: PathLike) -> tuple[torch.Tensor, Optional[torch.Tensor]]:
     """Read an image file as (rgb (H,W,3) float32 0..1, alpha (H,W) float32 0..1 or None).
 
     Grayscale becomes three equal channels; 16-bit files keep their precision; an alpha channel
     that is fully opaque is dropped (returned as None) since it says nothing about the object.
+    The EXIF orientation is applied (a phone photo taken upright is upright here). An image with
+    more pixels than ``MAX_IMAGE_PIXELS`` (or than RAM holds) is refused from its header, before
+    any decoding.
     """
     p = Path(path)
+    if "\x00" in os.fspath(path):
+        raise InputError(f"image path {os.fspath(path)!r} contains a NUL byte; no file name can hold one")
     if not p.exists():
         raise InputError(f"Image file not found: '{p}'. Check the path (relative paths are taken "
                          f"from the current directory '{os.getcwd()}').")
@@ -87,10 +180,24 @@ def load_image(path: PathLike) -> tuple[torch.Tensor, Optional[torch.Tensor]]:
         data = np.fromfile(str(p), dtype=np.uint8)
     except OSError as exc:
         raise InputError(f"Cannot read image file '{p}': {exc}") from exc
-    array = cv2.imdecode(data, cv2.IMREAD_UNCHANGED) if data.size else None
+    if not data.size:
+        raise InputError(f"Cannot decode image file '{p}': the file is empty")
+    size, orientation = image_header(data.tobytes(), f"image '{p}'")
+    if size is not None:
+        check_image_size(size[0], size[1], f"image '{p}'")
+    try:
+        array = cv2.imdecode(data, cv2.IMREAD_UNCHANGED)
+    except cv2.error as exc:  # OpenCV's own limits (CV_IO_MAX_IMAGE_PIXELS), unsupported variants
+        raise InputError(f"Cannot decode image file '{p}': {str(exc).strip().splitlines()[-1][:200]}. Use a "
+                         "PNG/JPEG/WebP/TIFF image of at most "
+                         f"{max_image_pixels() / 1e6:.0f} megapixels.") from None
     if array is None:
         raise InputError(f"Cannot decode image file '{p}': not a PNG/JPEG/WebP/TIFF image OpenCV "
                          "can read, or the file is damaged")
+    if size is None:
+        check_image_size(array.shape[1], array.shape[0], f"image '{p}'")
+    if orientation != 1:
+        array = np.ascontiguousarray(_ORIENT[orientation](array))
     return decode_image(array, name=f"image '{p}'")
 
 
