@@ -68,36 +68,85 @@ def write_ply(path: str | os.PathLike, gaussians: Gaussians) -> Path:
     return path
 
 
+_MAX_HEADER_LINES = 10_000
+
+
 def _parse_header(fh, path) -> tuple[str, int, list[tuple[str, str]], int]:
-    first = fh.readline()
+    """(format, vertex count, vertex properties, byte offset of the vertex data). Every malformed
+    header (a format line without a value, a missing, negative or non-numeric count, a property
+    given twice, an element before the vertices that cannot be skipped) is refused naming the
+    file and the line."""
+    first = fh.readline(64)
     if first.strip() != b"ply":
         raise InputError(f"{path} is not a .ply file (it does not start with 'ply')")
     fmt, count, props, in_vertex = None, None, [], False
-    while True:
-        line = fh.readline()
+    pre, current, seen_vertex = [], None, False  # [count, bytes per item] of elements before the vertices
+    for lineno in range(2, _MAX_HEADER_LINES):
+        line = fh.readline(4096)
         if not line:
             raise InputError(f"{path}: the .ply header has no end_header line (truncated file?)")
         text = line.decode("ascii", errors="replace").strip()
         if text == "end_header":
             break
         parts = text.split()
+        where = f"{path}, header line {lineno} ('{text[:60]}')"
         if not parts or parts[0] in ("comment", "obj_info"):
             continue
         if parts[0] == "format":
+            if len(parts) < 2:
+                raise InputError(f"{where}: the format line has no value; expected 'format binary_little_endian 1.0'")
+            if fmt is not None:
+                raise InputError(f"{where}: a second format line")
             fmt = parts[1]
         elif parts[0] == "element":
+            if len(parts) != 3:
+                raise InputError(f"{where}: an element line needs a name and a count, e.g. 'element vertex 1000'")
+            try:
+                n = int(parts[2])
+            except ValueError:
+                raise InputError(f"{where}: the element count '{parts[2]}' is not a whole number") from None
+            if n < 0:
+                raise InputError(f"{where}: the element count {n} is negative")
             in_vertex = parts[1] == "vertex"
             if in_vertex:
-                count = int(parts[2])
-        elif parts[0] == "property" and in_vertex:
+                if seen_vertex:
+                    raise InputError(f"{where}: a second vertex element")
+                seen_vertex, count = True, n
+            elif not seen_vertex:
+                current = [n, 0]
+                pre.append(current)
+            else:
+                current = None
+        elif parts[0] == "property":
+            if len(parts) < 3 or (parts[1] == "list" and len(parts) < 5):
+                raise InputError(f"{where}: a property line needs a type and a name, e.g. 'property float x'")
             if parts[1] == "list":
-                raise InputError(f"{path}: list properties in the vertex element are not a Gaussian splat layout")
+                if in_vertex:
+                    raise InputError(f"{path}: list properties in the vertex element are not a Gaussian splat layout")
+                if current is not None and current[0] > 0:
+                    raise InputError(f"{where}: an element with list properties comes before the vertices; "
+                                     "re-save the file with the vertex element first")
+                continue
             if parts[1] not in _PLY_TYPES:
-                raise InputError(f"{path}: unsupported property type '{parts[1]}'")
-            props.append((parts[2], _PLY_TYPES[parts[1]]))
-    if fmt is None or count is None:
-        raise InputError(f"{path}: the .ply header lacks a format line or a vertex element")
-    return fmt, count, props, fh.tell()
+                raise InputError(f"{where}: unsupported property type '{parts[1]}'; expected one of "
+                                 f"{sorted(set(_PLY_TYPES))}")
+            if in_vertex:
+                if any(name == parts[2] for name, _ in props):
+                    raise InputError(f"{where}: the vertex property '{parts[2]}' is given twice")
+                props.append((parts[2], _PLY_TYPES[parts[1]]))
+            elif current is not None:
+                current[1] += np.dtype(_PLY_TYPES[parts[1]]).itemsize
+        else:
+            raise InputError(f"{where}: unknown header keyword '{parts[0]}'")
+    else:
+        raise InputError(f"{path}: the .ply header is longer than {_MAX_HEADER_LINES} lines; the file is damaged")
+    if fmt is None:
+        raise InputError(f"{path}: the .ply header has no format line")
+    if count is None:
+        raise InputError(f"{path}: the .ply header has no vertex element (it holds no points)")
+    if not props:
+        raise InputError(f"{path}: the vertex element has no properties")
+    return fmt, count, props, fh.tell() + sum(n * size for n, size in pre)
 
 
 def read_ply(path: str | os.PathLike) -> Gaussians:
@@ -113,10 +162,14 @@ def read_ply(path: str | os.PathLike) -> Gaussians:
         if order is None:
             raise InputError(f"{path}: unknown .ply format '{fmt}'")
         dtype = np.dtype([(name, order + t) for name, t in props])
-        raw = fh.read()
+        if count == 0:
+            raise InputError(f"{path} holds no Gaussians (its header says 0 vertices)")
+        available = max(os.fstat(fh.fileno()).st_size - offset, 0)
+        # Never read more than the file holds: a header may promise any count.
+        raw = b"" if available < count * dtype.itemsize else (fh.seek(offset), fh.read(count * dtype.itemsize))[1]
     if len(raw) < count * dtype.itemsize:
         raise InputError(f"{path} is truncated: the header promises {count} vertices "
-                         f"({count * dtype.itemsize} bytes) but only {len(raw)} bytes follow")
+                         f"({count * dtype.itemsize} bytes) but only {available} bytes follow the header")
     data = np.frombuffer(raw, dtype=dtype, count=count)
     names = set(dtype.names)
     required = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2",
@@ -128,6 +181,12 @@ def read_ply(path: str | os.PathLike) -> Gaussians:
 
     def col(name):
         return np.asarray(data[name], dtype=np.float64)
+
+    for name in required + [nm for nm in names if re.fullmatch(r"f_rest_\d+", nm)]:
+        bad = int(np.count_nonzero(~np.isfinite(col(name))))
+        if bad:
+            raise InputError(f"{path}: {bad} of {count} Gaussians have a NaN or infinite '{name}' value; the file "
+                             "is damaged or was written by a diverged optimisation. Re-export it.")
 
     rest_names = sorted((nm for nm in names if re.fullmatch(r"f_rest_\d+", nm)), key=lambda s: int(s[7:]))
     if len(rest_names) % 3:
@@ -151,20 +210,25 @@ def read_ply(path: str | os.PathLike) -> Gaussians:
         opacities=torch.from_numpy(opacities).float(),
         sh=torch.from_numpy(sh),
     )
-    if not all(bool(torch.isfinite(t).all()) for t in (g.means, g.scales, g.sh, g.quats)):
-        raise InputError(f"{path} contains NaN/Inf values; the file is corrupt")
+    if not all(bool(torch.isfinite(t).all()) for t in (g.means, g.scales, g.sh, g.quats, g.opacities)):
+        raise InputError(f"{path}: a scale overflows (scale_* log values above 88); the file is damaged")
     return g
 
 
 def write_ply_sequence(folder: str | os.PathLike, sim, every: int = 1, progress=None) -> list[Path]:
-    """One 3DGS .ply per simulated frame (every ``every``-th), named frame_00000.ply, ... in ``folder``."""
+    """One 3DGS .ply per simulated frame (every ``every``-th), named frame_00000.ply, ... in ``folder``
+    (all or nothing: see below)."""
     from .progress import report
 
+    from .fsutil import atomic_folder
+
     folder = Path(folder)
-    folder.mkdir(parents=True, exist_ok=True)
     frames = list(range(0, sim.num_frames, max(1, int(every))))
-    out = []
-    for i, k in enumerate(frames):
-        out.append(write_ply(folder / f"frame_{k:05d}.ply", sim.gaussians_at(k)))
-        report(progress, i + 1, len(frames))
-    return out
+    # Written into a hidden temporary folder that is renamed to ``folder`` only when every frame is
+    # there: a Cancel half-way leaves no folder under that name that a later run would take as a
+    # complete sequence.
+    with atomic_folder(folder) as tmp:
+        for i, k in enumerate(frames):
+            write_ply(tmp / f"frame_{k:05d}.ply", sim.gaussians_at(k))
+            report(progress, i + 1, len(frames))
+    return [folder / f"frame_{k:05d}.ply" for k in frames]
