@@ -215,21 +215,30 @@ def load_state_dict_file(path: os.PathLike, *, allow_pickle: Optional[bool] = No
 
 
 def check_state_dict(state: Mapping, expected: Mapping[str, Sequence[int]], what: str,
-                     path: Optional[os.PathLike] = None, limit: int = 5) -> None:
-    """Raise InputError unless ``state`` has exactly the keys and shapes of ``expected``.
+                     path: Optional[os.PathLike] = None, limit: int = 5, float_keys: Iterable[str] = ()) -> None:
+    """Raise InputError unless ``state`` has exactly the keys and shapes of ``expected``, every
+    entry is a tensor, and the keys in ``float_keys`` (the model's floating-point parameters) hold
+    floating-point tensors (an integer or boolean tensor there is not a weight of this model).
 
-    The message says how many keys are missing / unexpected / mis-shaped with examples, so a user
-    who picked the wrong file (an SD checkpoint in the LGM folder, a vit_b in place of vit_h) sees
-    it at once.
+    The message names the file and says how many keys are missing / unexpected / mis-shaped /
+    of the wrong dtype with examples, so a user who picked the wrong file (an SD checkpoint in the
+    LGM folder, a vit_b in place of vit_h, a quantised or damaged export) sees it at once.
     """
+    import torch
+
+    src = f" ({path})" if path else ""
+    not_tensors = sorted(k for k, v in state.items() if not isinstance(v, torch.Tensor))
+    if not_tensors:
+        raise InputError(f"The weights{src} are not a state dict of {what}: {len(not_tensors)} entries are not tensors "
+                         f"(e.g. {', '.join(map(str, not_tensors[:limit]))}). Use the official checkpoint file.")
     got = {k: tuple(v.shape) for k, v in state.items()}
     exp = {k: tuple(v) for k, v in expected.items()}
     missing = sorted(set(exp) - set(got))
     unexpected = sorted(set(got) - set(exp))
     shape = sorted(k for k in set(exp) & set(got) if exp[k] != got[k])
-    if not (missing or unexpected or shape):
+    dtype = sorted(k for k in set(float_keys) & set(got) if not state[k].is_floating_point())
+    if not (missing or unexpected or shape or dtype):
         return
-    src = f" ({path})" if path else ""
     parts = []
     if missing:
         parts.append(f"{len(missing)} missing (e.g. {', '.join(missing[:limit])})")
@@ -238,6 +247,9 @@ def check_state_dict(state: Mapping, expected: Mapping[str, Sequence[int]], what
     if shape:
         parts.append(f"{len(shape)} with other shapes (e.g. " + ", ".join(
             f"{k}: file {got[k]} vs model {exp[k]}" for k in shape[:limit]) + ")")
+    if dtype:
+        parts.append(f"{len(dtype)} not floating-point (e.g. " + ", ".join(
+            f"{k}: {str(state[k].dtype).replace('torch.', '')}" for k in dtype[:limit]) + ")")
     raise InputError(f"The weights{src} do not match {what}: " + "; ".join(parts) +
                      f". The checkpoint holds {len(got)} tensors, the model expects {len(exp)}. "
                      "Check that the file is the official release for this model.")

@@ -490,13 +490,14 @@ def load_lgm(name: Optional[str] = None, *, root=None, device=None, dtype=None, 
         with torch.device("meta"):
             net = LGMNet(cfg, _rotation_choice(rotation, path))
         expected = {k: tuple(v.shape) for k, v in net.state_dict().items()}
+        float_keys = [k for k, v in net.state_dict().items() if v.is_floating_point()]
         if strict_official:
             with torch.device("meta"):
                 official = LGMNet(LGM_BIG.replace(input_size=cfg.input_size))
             expected = {k: tuple(v.shape) for k, v in official.state_dict().items()}
         check_state_dict(state, expected, "LGM ('big', the released model)" if strict_official else
                          f"LGM (layout read from the file: down {list(cfg.down_channels)}, up "
-                         f"{list(cfg.up_channels)})", path)
+                         f"{list(cfg.up_channels)})", path, float_keys=float_keys)
     except InputError as exc:
         raise InputError(f"{exc}{where()}") from exc
     net.load_state_dict({k: v.float() if v.is_floating_point() else v for k, v in state.items()},

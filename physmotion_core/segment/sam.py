@@ -31,7 +31,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError, MissingModelError
-from ..models import describe_folder, load_state_dict_file, pick_device, resolve_weight_file
+from ..models import check_state_dict, describe_folder, load_state_dict_file, pick_device, resolve_weight_file
 from .classic import Segmentation, as_image_array, auto_box, clean_mask, segment
 
 log = logging.getLogger(__name__)
@@ -131,7 +131,25 @@ def load_sam(name: Optional[str] = None, *, device=None, root=None) -> SamModel:
     expected = "an official segment-anything checkpoint (" + ", ".join(OFFICIAL_FILES.values()) + ")"
     path = resolve_weight_file("sams", name, expected=expected, root=root, suffixes=(".pth", ".pt", ".safetensors"))
     state = load_state_dict_file(path)
-    arch = sam_architecture(state)
+    try:
+        arch = sam_architecture(state)
+    except InputError as exc:
+        raise InputError(f"{path}: {exc}") from None
+    except (KeyError, IndexError, ValueError, TypeError, AttributeError, ZeroDivisionError) as exc:
+        # A tensor SAM's layout is read from has another rank or size (a damaged or modified file).
+        raise InputError(f"{path} is not a SAM checkpoint this can read: a tensor that gives the network's layout has "
+                         f"an unexpected shape ({type(exc).__name__}: {exc}). Use an unmodified official checkpoint "
+                         f"({', '.join(OFFICIAL_FILES.values())}).") from None
+    try:
+        with torch.device("meta"):
+            model = build_sam(arch)
+    except Exception as exc:  # noqa: BLE001 - e.g. a head count that does not divide the width
+        raise InputError(f"{path} describes a SAM network that cannot be built ({exc}); use an unmodified official "
+                         "checkpoint.") from None
+    reference = model.state_dict()
+    check_state_dict(state, {k: tuple(v.shape) for k, v in reference.items()},
+                     f"SAM (layout read from the file: width {arch['embed_dim']}, depth {arch['depth']})", path,
+                     float_keys=[k for k, v in reference.items() if v.is_floating_point()])
     model = build_sam(arch)
     try:
         model.load_state_dict(state, strict=True)
