@@ -76,7 +76,12 @@ def region_from_ui(mode: str, u: float = 0.0, v: float = 0.0, radius_px: float =
             raise InputError("region is 'mask' but no mask is connected: connect a MASK (paint it in the mask editor)")
         m = np.asarray(mask.detach().cpu() if hasattr(mask, "detach") else mask, dtype=np.float32)
         if m.ndim == 3:
+            if m.shape[0] == 0:
+                raise InputError(f"the region mask is an empty MASK batch (shape {m.shape}): the node upstream "
+                                 "produced no mask; connect a painted mask")
             m = m[0]
+        if m.ndim != 2 or m.size == 0:
+            raise InputError(f"the region mask must be a MASK [H,W] with pixels; got shape {m.shape}")
         if not (m > 0.5).any():
             raise InputError("the region mask is empty: paint the part of the object the condition acts on")
         return Region(kind="image", mask=m, object_id=obj)
