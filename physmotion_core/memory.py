@@ -92,3 +92,43 @@ class oom_as_input_error:
         except Exception:  # noqa: BLE001
             pass
         raise InputError(f"{self.what} ran out of memory ({str(exc).splitlines()[0][:160]}). {self.advice}") from exc
+
+
+# The up-front estimate of what a whole `generate` run adds to the process's memory (the pipeline
+# checks it against free RAM before any work). Calibrated from measured peaks of RGBA cut-outs of
+# several sizes and clip lengths (benchmarks/bench_memory.py, numbers in docs/reliability.md,
+# "memory" section): a fixed part (simulation grid, Gaussians, rasterizer chunks, encoder), a part
+# per pixel of the photo (loading, segmentation, inpainting, the silhouette lift's buffers) and a
+# part per pixel per frame (rendered colour, alpha and depth, the composite, the encoder's input),
+# times a safety margin.
+# Fitted to the measurements (1365x1024 at 2 and 6 frames gives the per-frame part, 2048x1536 at 2
+# frames the per-pixel part, the rest is fixed), rounded up; the margin covers what varies between
+# runs and machines (allocator, thread count). The simulation's own share beyond the benchmark's
+# grid is checked again by the simulator's estimate before its first substep.
+NEED_FIXED_BYTES = 512 << 20
+NEED_BYTES_PER_PIXEL = 72
+NEED_BYTES_PER_PIXEL_FRAME = 56
+NEED_MARGIN = 1.25
+
+
+def pipeline_need_bytes(width: int, height: int, frames: int) -> int:
+    """Bytes a `generate` run on a ``width`` x ``height`` photo for ``frames`` frames is expected to
+    add at its peak (see the constants above)."""
+    px = int(width) * int(height)
+    return int(NEED_MARGIN * (NEED_FIXED_BYTES + NEED_BYTES_PER_PIXEL * px
+                              + NEED_BYTES_PER_PIXEL_FRAME * px * int(frames)))
+
+
+def check_pipeline_fits(width: int, height: int, frames: int, what: str = "This video",
+                        fraction: float = 0.8) -> None:
+    """Refuse, before any work, a run whose estimated peak (``pipeline_need_bytes``) is over
+    ``fraction`` of the RAM available now."""
+    from .errors import InputError
+
+    need, have = pipeline_need_bytes(width, height, frames), host_available_bytes()
+    if need > fraction * have:
+        per_frame = NEED_MARGIN * NEED_BYTES_PER_PIXEL_FRAME * int(width) * int(height)
+        fit = max(int((fraction * have - pipeline_need_bytes(width, height, 0)) // max(per_frame, 1)), 0)
+        raise InputError(f"{what} needs about {fmt_bytes(need)} of RAM for {frames} frames of {width}x{height} "
+                         f"but only {fmt_bytes(have)} is available. Lower the frame count (at most about {fit} at "
+                         "this size) or the image size (max_side / --max-side, or scale the photo down).")

@@ -112,6 +112,21 @@ def _as_rgb_tensor(image) -> torch.Tensor:
     return t.clamp(0.0, 1.0)
 
 
+def _check_condition_windows(conditions: Optional[Conditions], settings: SimSettings) -> None:
+    """A force, torque or anchor whose time window starts after the clip's last frame changes
+    nothing: refuse it rather than silently making a video without it."""
+    if not conditions:
+        return
+    last = (int(settings.frames) - 1) / float(settings.fps)  # frames are at t = k / fps
+    for c in conditions:
+        t_start = getattr(c, "t_start", None)
+        if t_start is not None and float(t_start) > 0 and float(t_start) >= last:
+            raise InputError(
+                f"{type(c).__name__} acts from t = {float(t_start):.4g} s, but the clip's last frame is at "
+                f"t = {last:.4g} s ({settings.frames} frames at {settings.fps:g} fps): it would change nothing. Start it "
+                "earlier (--force-time T0,T1) or make the clip longer (more frames).")
+
+
 def generate(
     image: Union[str, Path, torch.Tensor, np.ndarray],
     *,
@@ -159,8 +174,17 @@ def generate(
     def stage(name: str) -> Optional[ProgressFn]:
         return progress(name) if progress is not None else None
 
+    from .fsutil import check_outputs, protect_inputs
+
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
+    if output is not None:
+        # Every output location is checked before any work (a writable folder, a name the file
+        # system takes, a video extension this writes, never the input photo itself).
+        from .video import video_format
+
+        check_outputs({"output": output}, inputs=[image if isinstance(image, (str, Path)) else None])
+        video_format(output)
     alpha = None
     if isinstance(image, (str, Path)):
         rgb, alpha = load_image(image)
@@ -172,6 +196,7 @@ def generate(
             rgb, alpha = rgb[..., :3], rgb[..., 3]
     settings = settings or SimSettings()
     settings.validate()
+    _check_condition_windows(conditions, settings)
     if models not in MODEL_CHOICES:
         raise InputError(f"models must be one of {MODEL_CHOICES} ('auto' uses the weights found in the models "
                          f"folder, 'none' never loads a model); got {models!r}")
@@ -194,10 +219,11 @@ def generate(
         H, W = h, w
         if conditions is not None:
             conditions = _scale_image_regions(conditions, scale, (h, w))
-    # The whole clip (render: colour, alpha, depth; composite; encode) must fit before anything runs.
-    from .render.frames import FRAME_BYTES_PER_PIXEL, check_frames_fit
+    # The whole run (segment, lift, simulate, render colour/alpha/depth, composite, encode) must fit
+    # before anything runs: an estimate calibrated on measured peaks (memory.pipeline_need_bytes).
+    from .memory import check_pipeline_fits
 
-    check_frames_fit(settings.frames, W, H, "This video", per_pixel=FRAME_BYTES_PER_PIXEL + 12 + 3)
+    check_pipeline_fits(W, H, settings.frames, "This video")
     mat = material if isinstance(material, Material) else Material.preset(material, **(material_params or {}))
     conditions = conditions or Conditions()
     if ground is not None and conditions.ground() is None:
@@ -276,7 +302,8 @@ def generate(
         from .video import write_mp4
 
         t = time.perf_counter()
-        result.video_path = write_mp4(output, video, fps=settings.fps)
+        with protect_inputs(image if isinstance(image, (str, Path)) else None):
+            result.video_path = write_mp4(output, video, fps=settings.fps)
         timings["encode_s"] = time.perf_counter() - t
     timings["total_s"] = time.perf_counter() - t0
     return result
