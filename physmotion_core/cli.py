@@ -5,6 +5,7 @@ from __future__ import annotations
 import argparse
 import json
 import logging
+import re
 import sys
 from pathlib import Path
 from typing import Optional, Sequence
@@ -34,7 +35,8 @@ def _build_parser() -> argparse.ArgumentParser:
                        description="Segment the object in IMAGE, lift it to 3D Gaussians, simulate it with MPM "
                                    "under the given forces, render and blend it over the inpainted background.")
     g.add_argument("image", type=Path, help="input photo (PNG/JPEG; an alpha channel is used as the object mask)")
-    g.add_argument("-o", "--output", type=Path, default=Path("physmotion.mp4"), help="output .mp4 path")
+    g.add_argument("-o", "--output", type=Path, default=Path("physmotion.mp4"),
+                   help="output video: .mp4 (H.264), .mov, .mkv, .webm (VP9), .avi (MPEG-4) or .gif")
     g.add_argument("--mask", type=Path, help="optional object mask image (white = object)")
     g.add_argument("--material", default="jelly", choices=material_names(), help="material preset")
     g.add_argument("--E", type=float, help="override Young's modulus (Pa)")
@@ -46,7 +48,7 @@ def _build_parser() -> argparse.ArgumentParser:
                    help="pixel (column,row) of the input image where the matching --force is applied; "
                         "omitted = the whole object")
     g.add_argument("--radius", type=float, default=25.0, help="pixel radius of the --at region (default 25)")
-    g.add_argument("--force-time", default="0,0.25", metavar="T0,T1",
+    g.add_argument("--force-time", default=None, metavar="T0,T1",
                    help="time window of every --force in seconds (default 0,0.25)")
     g.add_argument("--frames", type=int, default=48, help="number of frames (default 48)")
     g.add_argument("--fps", type=float, default=24.0, help="frames per second (default 24)")
@@ -80,9 +82,20 @@ def _generate(args) -> int:
     from .progress import TextBar
     from .types import Conditions, Force, Ground, Region, SimSettings
 
+    from .fsutil import atomic_write_text, check_outputs, protect_inputs
+    from .video import video_format
+
     if len(args.at) > len(args.force):
         raise PhysMotionError("each --at needs a matching --force (they pair up in order)")
-    t0, t1 = _floats(args.force_time, 2, "--force-time")
+    if args.force_time is not None and not args.force:
+        raise PhysMotionError("--force-time sets the time window of the --force pushes, but no --force is given; "
+                              "add one (e.g. --force 20,0,0) or drop --force-time")
+    t0, t1 = _floats(args.force_time or "0,0.25", 2, "--force-time")
+    # Every output is checked before any work: a writable folder, a name the file system takes, a
+    # video format this writes, no output replacing an input or another output, never a device.
+    inputs = [args.image, args.mask]
+    check_outputs({"-o/--output": args.output, "--stats": args.stats, "--save-ply": args.save_ply}, inputs=inputs)
+    video_format(args.output)
     conds = []
     for i, f in enumerate(args.force):
         vec = _floats(f, 3, "--force")
@@ -103,22 +116,23 @@ def _generate(args) -> int:
         mask = (m_rgb.mean(dim=-1) > 0.5).float()
     params = {k: getattr(args, k) for k in ("E", "nu", "density") if getattr(args, k) is not None}
     progress = None if args.quiet else (lambda name: TextBar(name))
-    res = generate(args.image, conditions=Conditions(conds), material=args.material, material_params=params,
-                   mask=mask, ground=ground, object_height=args.object_height, settings=settings,
-                   output=args.output, progress=progress, max_side=args.max_side, models=args.models,
-                   seed=args.seed,
-                   object_point=_floats(args.object_point, 2, "--object-point") if args.object_point else None)
-    if args.save_ply is not None:
-        from .ply import write_ply
+    with protect_inputs(*inputs):
+        res = generate(args.image, conditions=Conditions(conds), material=args.material, material_params=params,
+                       mask=mask, ground=ground, object_height=args.object_height, settings=settings,
+                       output=args.output, progress=progress, max_side=args.max_side, models=args.models,
+                       seed=args.seed,
+                       object_point=_floats(args.object_point, 2, "--object-point") if args.object_point else None)
+        if args.save_ply is not None:
+            from .ply import write_ply
 
-        write_ply(args.save_ply, res.gaussians)
+            write_ply(args.save_ply, res.gaussians)
     summary = {"output": str(res.video_path), "frames": int(res.frames.shape[0]), "stages": res.stages,
                "size": [int(res.frames.shape[2]), int(res.frames.shape[1])],
                "timings_s": {k: round(v, 3) for k, v in res.timings.items()},
                "simulation": {k: v for k, v in res.sim.stats.items()}}
     if args.stats is not None:
-        args.stats.parent.mkdir(parents=True, exist_ok=True)
-        args.stats.write_text(json.dumps(summary, indent=2))
+        with protect_inputs(*inputs):
+            atomic_write_text(args.stats, json.dumps(summary, indent=2))
     if not args.quiet:
         t = res.timings
         print(f"wrote {res.video_path} ({summary['frames']} frames, {summary['size'][0]}x{summary['size'][1]}) in "
@@ -231,9 +245,65 @@ def _comfy_run(args) -> int:
     return 0
 
 
+#: Options whose value is a comma-separated vector: a value such as "-20,0,0" starts with "-" and
+#: argparse would take it for an option, so it is joined to its option ("--force=-20,0,0") first.
+VECTOR_OPTIONS = ("--force", "--at", "--force-time", "--object-point", "--torque", "--velocity", "--point")
+_NUMBERS = re.compile(r"^-[0-9.]?[0-9.eE+\-]*(,\s*[-+]?[0-9.eE+\-]*)*$")
+
+
+def _join_vector_values(argv: Sequence[str]) -> list[str]:
+    """``--force -20,0,0`` -> ``--force=-20,0,0`` (any option in VECTOR_OPTIONS, or an unambiguous
+    prefix of one, followed by a value that starts with '-' and is made of numbers and commas)."""
+    out, i, argv = [], 0, list(argv)
+    while i < len(argv):
+        tok = argv[i]
+        is_vec = tok.startswith("--") and "=" not in tok and len(tok) > 2 and (
+            tok in VECTOR_OPTIONS or sum(o.startswith(tok) for o in VECTOR_OPTIONS) == 1)
+        if is_vec and i + 1 < len(argv) and _NUMBERS.match(argv[i + 1]):
+            out.append(f"{tok}={argv[i + 1]}")
+            i += 2
+            continue
+        out.append(tok)
+        i += 1
+    return out
+
+
+class Terminated(BaseException):
+    """SIGTERM, raised in the main thread like Ctrl-C so every atomic write removes its temporary
+    file on the way out."""
+
+
+def _on_sigterm(signum, frame):  # noqa: ARG001
+    raise Terminated()
+
+
 def main(argv: Optional[Sequence[str]] = None) -> int:
+    import signal
+
+    try:
+        previous = signal.signal(signal.SIGTERM, _on_sigterm)
+    except (ValueError, OSError):  # not the main thread (an embedding application): leave it be
+        previous = None
+    try:
+        return _main(argv)
+    except KeyboardInterrupt:
+        # Ctrl-C at any point, start-up included. Outputs are written atomically: nothing
+        # half-written is left behind.
+        print("physmotion: interrupted; no output was written for the unfinished step", file=sys.stderr)
+        return 130
+    except Terminated:
+        print("physmotion: terminated (SIGTERM); no output was written for the unfinished step", file=sys.stderr)
+        return 143
+    finally:
+        if previous is not None:
+            signal.signal(signal.SIGTERM, previous)
+
+
+def _main(argv: Optional[Sequence[str]] = None) -> int:
+    from .fsutil import OutputLocationError
+
     parser = _build_parser()
-    args = parser.parse_args(argv)
+    args = parser.parse_args(_join_vector_values(sys.argv[1:] if argv is None else argv))
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
     try:
@@ -251,13 +321,12 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             return _batch(args)
     except argparse.ArgumentTypeError as exc:
         parser.error(str(exc))
+    except OutputLocationError as exc:  # a folder that cannot be created or written: a file-system error
+        print(f"physmotion: error: {exc}", file=sys.stderr)
+        return 1
     except PhysMotionError as exc:
         print(f"physmotion: error: {exc}", file=sys.stderr)
         return 2
-    except KeyboardInterrupt:
-        # Outputs are written atomically: nothing half-written is left behind.
-        print("physmotion: interrupted; no output was written for the unfinished step", file=sys.stderr)
-        return 130
     except OSError as exc:  # disk full, permissions, a path that is a folder, ...
         print(f"physmotion: error: {exc.strerror or exc} ({exc.filename or 'file system'}); check that the output "
               "folder exists, is writable and has free space", file=sys.stderr)
