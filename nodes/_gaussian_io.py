@@ -32,9 +32,13 @@ def _detect_native() -> tuple[Optional[type], str]:
     ``IO.Gaussian`` (upstream since PR #14190; a later upstream commit names the class ``SPLAT``, so that
     spelling is accepted too). (None, "GAUSSIAN") outside ComfyUI or on one without the type (0.3.64)."""
     try:
-        from comfy_api.latest import IO, Types  # noqa: PLC0415 - only inside ComfyUI
+        from comfy_api.latest import Types  # noqa: PLC0415 - only inside ComfyUI
     except Exception:  # noqa: BLE001 - no comfy_api, or one that fails to import here
         return None, "GAUSSIAN"
+    try:
+        from comfy_api.latest import IO  # 0.3.64 has no IO alias (and no GAUSSIAN)
+    except Exception:  # noqa: BLE001
+        IO = None
     for cls_name, io_name in (("GAUSSIAN", "Gaussian"), ("SPLAT", "Splat")):
         cls = getattr(Types, cls_name, None)
         if cls is not None:
