@@ -33,6 +33,9 @@ def main(names: list[str]) -> int:
         if any("Loader" in n["class_type"] for n in prompt.values()):
             print(f"{path.stem}: skipped (needs learned weights)", flush=True)
             continue
+        if any(n["class_type"] not in node_classes() for n in prompt.values()):
+            print(f"{path.stem}: skipped (needs nodes newer than this harness has)", flush=True)
+            continue
         with tempfile.TemporaryDirectory() as tmp:
             os.environ["PHYSMOTION_OUTPUT_DIR"] = tmp
             t0 = time.perf_counter()

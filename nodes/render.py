@@ -113,10 +113,14 @@ class PhysMotionSaveVideo:
                             "tooltip": "H.264 quality: lower is better and larger (18 ≈ visually lossless)."}),
         }}
 
-    RETURN_TYPES = ("STRING",)
-    RETURN_NAMES = ("video_path",)
-    OUTPUT_TOOLTIPS = ("Absolute path of the saved mp4.",)
-    DESCRIPTION = "Writes the frames as an H.264 mp4 (yuv420p, plays everywhere) to the output folder and previews it."
+    RETURN_TYPES = ("STRING", "VIDEO")
+    RETURN_NAMES = ("video_path", "video")
+    OUTPUT_TOOLTIPS = ("Absolute path of the saved mp4.",
+                       "The saved mp4 as ComfyUI's VIDEO, for the native video nodes (Save Video, Get Video "
+                       "Components, ...).")
+    DESCRIPTION = ("Writes the frames as an H.264 mp4 (yuv420p, plays everywhere) to the output folder and previews "
+                   "it. The templates save with ComfyUI's own Create Video -> Save Video (which embeds the "
+                   "workflow in the file); this node is for a chosen crf, and it also returns the file as a VIDEO.")
     OUTPUT_NODE = True
     FUNCTION = "run"
     CATEGORY = f"{CATEGORY}/io"
@@ -130,7 +134,20 @@ class PhysMotionSaveVideo:
         path, filename, subfolder = output_path(filename_prefix, "mp4")
         write_mp4(path, frames, fps=float(fps), crf=int(crf))
         preview = {"filename": filename, "subfolder": subfolder, "type": "output"}
-        return {"ui": {"images": [preview], "animated": (True,)}, "result": (str(path),)}
+        return {"ui": {"images": [preview], "animated": (True,)}, "result": (str(path), video_value(path))}
+
+
+def video_value(path):
+    """The saved file as a VIDEO: ComfyUI's own VideoFromFile where comfy_api has it (0.3.64 and
+    newer), else the library's stand-in with the same methods (outside ComfyUI)."""
+    try:
+        from comfy_api.latest import InputImpl  # noqa: PLC0415 - only inside ComfyUI
+
+        return InputImpl.VideoFromFile(str(path))
+    except (ImportError, AttributeError):
+        from physmotion_core.video_file import VideoFile
+
+        return VideoFile(path)
 
 
 NODE_CLASS_MAPPINGS = {

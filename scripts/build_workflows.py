@@ -14,7 +14,7 @@ ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT))
 sys.path.insert(0, str(ROOT / "tests"))
 
-from comfy_harness import node_classes  # noqa: E402
+from comfy_schemas import all_schemas  # noqa: E402
 
 from physmotion_core.workflow import api_to_ui  # noqa: E402
 
@@ -26,11 +26,9 @@ SIZES = {"PhysMotionForce": [360, 600], "PhysMotionTorque": [360, 600]}
 
 
 def schemas() -> dict:
-    out = {}
-    for name, cls in node_classes().items():
-        out[name] = {"input": cls.INPUT_TYPES(), "output": list(cls.RETURN_TYPES),
-                     "output_name": list(getattr(cls, "RETURN_NAMES", cls.RETURN_TYPES))}
-    return out
+    """The node schemas the frontend would have: ComfyUI 0.3.64's /object_info for its own nodes, the
+    newer upstream nodes (GAUSSIAN, TripoSplat) typed from their source, the pack's classes."""
+    return all_schemas()
 
 
 def build_ui(prompt: dict, sch: dict | None = None) -> dict:

@@ -26,11 +26,20 @@ from comfy_harness import node_classes, run_prompt  # noqa: E402
 
 
 def frames_node(prompt: dict) -> str:
-    """The node whose first output feeds the video saver."""
-    for node in prompt.values():
-        if node["class_type"] == "PhysMotionSaveVideo":
-            return node["inputs"]["frames"][0]
-    raise ValueError("workflow has no PhysMotionSaveVideo node")
+    """The node whose first output feeds the first video: CreateVideo's images (the templates save
+    with ComfyUI's Create Video -> Save Video), or PhysMotion Save Video's frames."""
+    found = None
+    for nid in sorted(prompt, key=int):
+        node = prompt[nid]
+        if node["class_type"] == "CreateVideo":
+            found = node["inputs"]["images"][0]
+        elif node["class_type"] == "PhysMotionSaveVideo":
+            found = node["inputs"]["frames"][0]
+        if found is not None:
+            break
+    if found is None:
+        raise ValueError("workflow has no CreateVideo or PhysMotionSaveVideo node")
+    return found
 
 
 def contact_sheet(frames, path: Path) -> None:

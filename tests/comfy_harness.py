@@ -2,7 +2,9 @@
 
 Only what the tests need of ComfyUI's behaviour is reproduced: the package import of the pack's
 ``__init__.py``, widget/link input resolution in topological order, OUTPUT_NODE results, and the
-core ``LoadImage`` node (IMAGE plus MASK = 1 - alpha, or a 64x64 zero mask without alpha).
+core ``LoadImage`` node (IMAGE plus MASK = 1 - alpha, or a 64x64 zero mask without alpha), and the
+native video pair ``CreateVideo`` (IMAGE + fps -> VIDEO) -> ``SaveVideo`` (an H.264 mp4 in the output
+folder with the prompt as metadata), as comfy_extras/nodes_video.py does in 0.3.64.
 """
 
 from __future__ import annotations
@@ -10,6 +12,7 @@ from __future__ import annotations
 import importlib.util
 import json
 import sys
+from fractions import Fraction
 from pathlib import Path
 
 import numpy as np
@@ -59,7 +62,80 @@ class LoadImage:
         return (rgb[None], mask[None])
 
 
-CORE_NODES = {"LoadImage": LoadImage}
+class _FramesVideo:
+    """Stand-in for comfy_api's VideoFromComponents (what 0.3.64's CreateVideo returns)."""
+
+    def __init__(self, images: torch.Tensor, frame_rate: Fraction, audio=None):
+        self.images, self.frame_rate, self.audio = images, frame_rate, audio
+
+    def get_components(self):
+        from physmotion_core.video_file import VideoComponents
+
+        return VideoComponents(images=self.images, frame_rate=self.frame_rate, audio=self.audio)
+
+    def get_dimensions(self) -> tuple[int, int]:
+        return int(self.images.shape[2]), int(self.images.shape[1])
+
+    def save_to(self, path, format="auto", codec="auto", metadata=None):
+        """As VideoFromComponents.save_to in 0.3.64: H.264 yuv420p mp4, the metadata as JSON tags."""
+        import av
+
+        if format not in ("auto", "mp4") or codec not in ("auto", "h264"):
+            raise ValueError("Only MP4 format and H264 codec are supported")
+        with av.open(str(path), mode="w", options={"movflags": "use_metadata_tags"}) as out:
+            for key, value in (metadata or {}).items():
+                out.metadata[key] = json.dumps(value)
+            stream = out.add_stream("h264", rate=Fraction(round(self.frame_rate * 1000), 1000))
+            stream.width, stream.height = self.get_dimensions()
+            stream.pix_fmt = "yuv420p"
+            for frame in self.images:
+                img = (frame * 255).clamp(0, 255).byte().cpu().numpy()
+                out.mux(stream.encode(av.VideoFrame.from_ndarray(img, format="rgb24").reformat(format="yuv420p")))
+            out.mux(stream.encode(None))
+
+
+class CreateVideo:
+    """Stand-in for ComfyUI's CreateVideo (comfy_extras/nodes_video.py, 0.3.64): IMAGE + fps -> VIDEO."""
+
+    @classmethod
+    def INPUT_TYPES(cls):
+        return {"required": {"images": ("IMAGE", {}), "fps": ("FLOAT", {"default": 30.0, "min": 1.0, "max": 120.0,
+                                                                          "step": 1.0})},
+                "optional": {"audio": ("AUDIO", {})}}
+
+    RETURN_TYPES = ("VIDEO",)
+    FUNCTION = "run"
+    CATEGORY = "image/video"
+
+    def run(self, images, fps, audio=None):
+        return (_FramesVideo(images, Fraction(fps), audio),)
+
+
+class SaveVideo:
+    """Stand-in for ComfyUI's SaveVideo (0.3.64): ``video.save_to(<output>/<prefix>_NNNNN_.mp4, format, codec,
+    metadata={"prompt": ...})`` and the PreviewVideo ui ({"images": [...], "animated": (True,)})."""
+
+    @classmethod
+    def INPUT_TYPES(cls):
+        return {"required": {"video": ("VIDEO", {}), "filename_prefix": ("STRING", {"default": "video/ComfyUI"}),
+                             "format": (["auto", "mp4"], {"default": "auto"}),
+                             "codec": (["auto", "h264"], {"default": "auto"})},
+                "hidden": {"prompt": "PROMPT"}}
+
+    RETURN_TYPES = ()
+    OUTPUT_NODE = True
+    FUNCTION = "run"
+    CATEGORY = "image/video"
+
+    def run(self, video, filename_prefix, format, codec, prompt=None):
+        output_path = sys.modules[load_pack().__name__ + ".nodes._util"].output_path
+        path, name, subfolder = output_path(filename_prefix, "mp4")
+        video.save_to(str(path), format=format, codec=codec, metadata={"prompt": prompt} if prompt else None)
+        return {"ui": {"images": [{"filename": name, "subfolder": subfolder, "type": "output"}], "animated": (True,)},
+                "result": ()}
+
+
+CORE_NODES = {"LoadImage": LoadImage, "CreateVideo": CreateVideo, "SaveVideo": SaveVideo}
 
 
 def node_classes() -> dict:
@@ -119,6 +195,8 @@ def run_prompt(prompt: dict, overrides: dict | None = None, class_overrides: dic
         node = prompt[nid]
         cls = classes[node["class_type"]]
         kwargs = {}
+        if "prompt" in cls.INPUT_TYPES().get("hidden", {}):  # ComfyUI's hidden PROMPT: the prompt being run
+            kwargs["prompt"] = prompt
         for name, value in node["inputs"].items():
             if isinstance(value, list) and len(value) == 2 and isinstance(value[0], str):
                 kwargs[name] = results[value[0]][value[1]]

@@ -118,7 +118,7 @@ class FakeComfy:
                              {"type": "progress", "data": {"value": 3, "max": 47, "node": "7", "prompt_id": pid}},
                              {"type": "executing", "data": {"node": None, "prompt_id": pid}}]
             self.done[pid] = {"status": {"status_str": "success", "completed": True, "messages": []},
-                              "outputs": {"10": {"images": [{"filename": "push_a_jelly_00001.mp4",
+                              "outputs": {"12": {"images": [{"filename": "push_a_jelly_00001.mp4",
                                                              "subfolder": "PhysMotion", "type": "output"}],
                                                  "animated": [True]},
                                           "8": {"images": [{"filename": "PhysMotion_render_1a2b.mp4",
@@ -143,14 +143,14 @@ def test_run_uploads_edits_queues_follows_and_downloads(tmp_path, photo, websock
     fake = FakeComfy(websocket=websocket)
     events = []
     try:
-        saved = run_workflow(WORKFLOW, fake.url, tmp_path / "out", image=photo, sets=["PhysMotionSaveVideo.crf=23"],
+        saved = run_workflow(WORKFLOW, fake.url, tmp_path / "out", image=photo, sets=["SaveVideo.codec=h264"],
                              on_event=lambda k, d: events.append(k), timeout=20)
     finally:
         fake.close()
     assert fake.uploads == {"photo.png": b"\x89PNG fake"}
     prompt = fake.prompts["p0"]
     assert prompt["1"]["inputs"]["image"] == "photo.png"
-    assert prompt["10"]["inputs"]["crf"] == 23
+    assert prompt["12"]["inputs"]["codec"] == "h264"
     assert [p.name for p in saved] == ["push_a_jelly_00001.mp4"]  # the Render preview (type temp) is skipped
     assert saved[0].read_bytes() == b"PhysMotion/push_a_jelly_00001.mp4"
     if websocket:
@@ -182,15 +182,15 @@ def test_unreachable_server_gives_a_clear_error(tmp_path, capsys):
 
 def test_set_edits_are_checked():
     prompt = json.loads(WORKFLOW.read_text())
-    apply_sets(prompt, ["10.crf=20", "PhysMotionSaveVideo.filename_prefix=run/a", "10.fps=12.5"])
-    assert prompt["10"]["inputs"]["crf"] == 20 and prompt["10"]["inputs"]["fps"] == 12.5
-    assert prompt["10"]["inputs"]["filename_prefix"] == "run/a"
+    apply_sets(prompt, ["12.codec=h264", "SaveVideo.filename_prefix=run/a", "10.fps=12.5"])
+    assert prompt["12"]["inputs"]["codec"] == "h264" and prompt["10"]["inputs"]["fps"] == 12.5
+    assert prompt["12"]["inputs"]["filename_prefix"] == "run/a"
     with pytest.raises(InputError, match="No node 'Nope'"):
         apply_sets(prompt, ["Nope.x=1"])
     with pytest.raises(InputError, match="has no input 'bogus'"):
         apply_sets(prompt, ["10.bogus=1"])
     with pytest.raises(InputError, match="is connected to node"):
-        apply_sets(prompt, ["10.frames=1"])
+        apply_sets(prompt, ["10.images=1"])
     with pytest.raises(InputError, match="NODE.INPUT=VALUE"):
         apply_sets(prompt, ["crf20"])
 
@@ -199,7 +199,7 @@ def test_cli_prints_the_saved_files(tmp_path, photo, capsys):
     fake = FakeComfy()
     try:
         code = main(["comfy-run", str(WORKFLOW), "--server", fake.url, "--image", str(photo), "-o",
-                     str(tmp_path / "o"), "--set", "10.crf=30"])
+                     str(tmp_path / "o"), "--set", "10.fps=30"])
     finally:
         fake.close()
     assert code == 0

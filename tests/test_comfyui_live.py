@@ -98,12 +98,12 @@ def test_previews_are_in_the_history_and_served(comfy_server, tmp_path):
     entry = client.wait(client.queue(prompt), timeout=600)
     outputs = entry["outputs"]
     by_class = {prompt[nid]["class_type"]: out for nid, out in outputs.items()}
-    for cls in ("PhysMotionRender", "PhysMotionBlend", "PhysMotionSaveVideo"):
+    for cls in ("PhysMotionRender", "PhysMotionBlend", "SaveVideo"):
         ui = by_class[cls]
         assert ui["animated"] == [True], (cls, ui)
         item = ui["images"][0]
         assert item["filename"].endswith(".mp4")
-        assert item["type"] == ("output" if cls == "PhysMotionSaveVideo" else "temp")
+        assert item["type"] == ("output" if cls == "SaveVideo" else "temp")
         data = comfy_server.get_bytes(f"/view?filename={item['filename']}&subfolder={item['subfolder']}"
                                       f"&type={item['type']}")
         clip = tmp_path / f"{cls}.mp4"

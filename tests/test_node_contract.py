@@ -21,7 +21,7 @@ from comfy_harness import load_pack
 PACK = load_pack()
 NODES = PACK.NODE_CLASS_MAPPINGS
 CORE_TYPES = {"IMAGE", "MASK", "STRING", "INT", "FLOAT", "BOOLEAN", "LATENT", "CONDITIONING", "MODEL", "VAE",
-              "CLIP"}
+              "CLIP", "VIDEO"}
 WIDGET_TYPES = {"INT", "FLOAT", "STRING", "BOOLEAN"}
 #: ComfyUI's own types that a PM_ input may also take, as a comma-separated union ("PM_GAUSSIANS,GAUSSIAN")
 NATIVE_UNION_TYPES = {"GAUSSIAN"}

@@ -10,7 +10,7 @@ import torch
 from comfy_harness import ROOT, input_spec, is_widget, load_pack, node_classes, run_prompt
 
 from physmotion_core.video import read_video
-from physmotion_core.workflow import api_to_ui, types_compatible, ui_to_api
+from physmotion_core.workflow import api_to_ui, node_schemas, ui_to_api, validate_prompt_against_schemas
 
 API_DIR = ROOT / "example_workflows" / "api"
 API_WORKFLOWS = sorted(API_DIR.glob("*.json"))
@@ -41,7 +41,7 @@ def test_node_class_is_a_valid_classic_node(name):
     if hasattr(cls, "RETURN_NAMES"):
         assert len(cls.RETURN_NAMES) == len(cls.RETURN_TYPES)
     for rt in cls.RETURN_TYPES:
-        assert rt in ("IMAGE", "MASK", "STRING", "INT", "FLOAT") or rt.startswith("PM_"), rt
+        assert rt in ("IMAGE", "MASK", "STRING", "INT", "FLOAT", "VIDEO") or rt.startswith("PM_"), rt
     for section in ("required", "optional"):
         for inp, spec in types.get(section, {}).items():
             assert isinstance(spec, tuple) and 1 <= len(spec) <= 2, (inp, spec)
@@ -64,37 +64,34 @@ def test_node_class_is_a_valid_classic_node(name):
 
 
 def _schemas():
-    return {n: {"input": c.INPUT_TYPES(), "output": list(c.RETURN_TYPES),
-                "output_name": list(getattr(c, "RETURN_NAMES", c.RETURN_TYPES))} for n, c in node_classes().items()}
+    from comfy_schemas import all_schemas  # the real native schemas, as the frontend has them
+
+    return all_schemas()
 
 
-@pytest.mark.parametrize("path", API_WORKFLOWS, ids=lambda p: p.stem)
-def test_api_workflow_matches_the_node_classes(path):
-    prompt = json.loads(path.read_text())
+def _runs_in_process(path) -> bool:
+    """Every node of the template is one the in-process harness has (the pack and its stand-ins for
+    LoadImage / CreateVideo / SaveVideo); templates with newer upstream nodes (TripoSplat, File3D)
+    are only checked against the schemas (tests/test_template_schemas.py)."""
     classes = node_classes()
-    for nid, node in prompt.items():
-        assert node["class_type"] in classes, f"node {nid}: unknown class {node['class_type']}"
-        cls = classes[node["class_type"]]
-        spec = input_spec(cls)
-        required = cls.INPUT_TYPES().get("required", {})
-        missing = set(required) - set(node["inputs"])
-        assert not missing, f"node {nid} lacks required inputs {missing}"
+    return all(n["class_type"] in classes for n in json.loads(Path(path).read_text()).values())
+
+
+IN_PROCESS = [p for p in API_WORKFLOWS if _runs_in_process(p)]
+
+
+@pytest.mark.parametrize("path", IN_PROCESS, ids=lambda p: p.stem)
+def test_api_workflow_matches_the_node_classes(path):
+    """The classes the harness runs (not only the captured schemas) accept every template it runs."""
+    from comfy_schemas import TEMPLATE_MODEL_FILES
+
+    prompt = json.loads(path.read_text())
+    errors = validate_prompt_against_schemas(prompt, node_schemas(node_classes()), TEMPLATE_MODEL_FILES)
+    assert errors == [], "\n".join(errors)
+    for node in prompt.values():  # a literal on a link-only input would be passed through unchecked
+        spec = input_spec(node_classes()[node["class_type"]])
         for name, value in node["inputs"].items():
-            assert name in spec, f"node {nid}: unknown input {name}"
-            s = spec[name]
-            if isinstance(value, list):
-                src, slot = value
-                assert src in prompt, f"node {nid}.{name} links to missing node {src}"
-                src_cls = classes[prompt[src]["class_type"]]
-                assert 0 <= slot < len(src_cls.RETURN_TYPES)
-                assert types_compatible(src_cls.RETURN_TYPES[slot], s[0]), (nid, name, src_cls.RETURN_TYPES[slot], s[0])
-            else:
-                assert is_widget(s), f"node {nid}.{name} is a link input but holds a literal"
-                opts = s[1] if len(s) > 1 else {}
-                if isinstance(s[0], list):
-                    assert value in s[0], (nid, name, value)
-                elif s[0] in ("INT", "FLOAT"):
-                    assert opts.get("min", -np.inf) <= value <= opts.get("max", np.inf), (nid, name, value)
+            assert isinstance(value, list) or is_widget(spec[name]), (node["class_type"], name)
 
 
 @pytest.mark.parametrize("path", API_WORKFLOWS, ids=lambda p: p.stem)
@@ -121,7 +118,7 @@ def test_workflow_conversion_detects_a_changed_link():
     assert ui_to_api(ui, _schemas()) != api
 
 
-SMALL = {"3.max_gaussians": 6000, "7.frames": 8, "7.grid_res": 10, "10.filename_prefix": "test/push"}
+SMALL = {"3.max_gaussians": 6000, "7.frames": 8, "7.grid_res": 10, "12.filename_prefix": "test/push"}
 TINY = {"PhysMotionSilhouetteLift.max_gaussians": 4000, "PhysMotionMPMSimulate.frames": 5,
         "PhysMotionMPMSimulate.grid_res": 8,
         # the learned front end on tiny random-weight models (see _learned_models below)
@@ -156,18 +153,29 @@ def _learned_models(request, monkeypatch):
         monkeypatch.setenv("PHYSMOTION_MODELS", str(request.getfixturevalue("tiny_models_root")))
 
 
-@pytest.mark.parametrize("path", API_WORKFLOWS, ids=lambda p: p.stem)
+@pytest.mark.parametrize("path", IN_PROCESS, ids=lambda p: p.stem)
 def test_every_api_workflow_runs_in_process_at_a_small_size(path, tmp_path, monkeypatch):
     monkeypatch.setenv("PHYSMOTION_OUTPUT_DIR", str(tmp_path))
     prompt = json.loads(path.read_text())
     out = run_prompt(prompt, class_overrides=TINY)
-    saver = next(nid for nid, n in prompt.items() if n["class_type"] == "PhysMotionSaveVideo")
-    frames = out["results"][prompt[saver]["inputs"]["frames"][0]][0]
-    assert frames.shape[0] == 5 and bool(torch.isfinite(frames).all())
-    # Something moves between the first and the last frame.
-    assert float((frames[-1] - frames[0]).abs().mean()) > 1e-4
-    video = tmp_path / out["ui"][saver]["images"][0]["subfolder"] / out["ui"][saver]["images"][0]["filename"]
-    assert read_video(video)[0].shape[0] == 5
+    # The templates save through ComfyUI's CreateVideo -> SaveVideo (the harness's stand-ins).
+    savers = [nid for nid, n in prompt.items() if n["class_type"] == "SaveVideo"]
+    assert savers and not any(n["class_type"] == "PhysMotionSaveVideo" for n in prompt.values())
+    for saver in savers:
+        create = prompt[saver]["inputs"]["video"][0]
+        assert prompt[create]["class_type"] == "CreateVideo"
+        frames = out["results"][prompt[create]["inputs"]["images"][0]][0]
+        assert frames.shape[0] == 5 and bool(torch.isfinite(frames).all())
+        # Something moves between the first and the last frame.
+        assert float((frames[-1] - frames[0]).abs().mean()) > 1e-4
+        item = out["ui"][saver]["images"][0]
+        assert out["ui"][saver]["animated"] == (True,) and item["type"] == "output"
+        video, fps = read_video(tmp_path / item["subfolder"] / item["filename"])
+        assert video.shape[:3] == tuple(frames.shape[:3])
+        assert fps == pytest.approx(prompt[create]["inputs"]["fps"])
+        # The decoded clip is the frames (up to H.264 at its default quality).
+        err = np.abs(video.astype(np.float32) / 255 - frames.numpy()).mean()
+        assert err < 0.03, err
 
 
 def test_push_a_jelly_runs_in_process(tmp_path, monkeypatch):
@@ -185,12 +193,18 @@ def test_push_a_jelly_runs_in_process(tmp_path, monkeypatch):
     photo = out["results"]["1"][0][0]
     err = (frames[0][mask] - photo[mask]).abs().mean()
     assert float(err) < 0.05
-    # The save node wrote a playable mp4 and previews it; the .ply went to the output folder.
-    ui = out["ui"]["10"]
+    # Create Video -> Save Video wrote a playable mp4 with the prompt in its metadata (as ComfyUI's
+    # SaveVideo embeds it) and previews it; the .ply went to the output folder.
+    ui = out["ui"]["12"]
     assert ui["animated"] == (True,)
     video_path = tmp_path / ui["images"][0]["subfolder"] / ui["images"][0]["filename"]
     video, fps = read_video(video_path)
     assert video.shape == (8, 400, 600, 3) and fps == pytest.approx(24.0)
+    import av
+
+    with av.open(str(video_path)) as c:
+        embedded = json.loads(c.metadata["prompt"])
+    assert embedded["7"]["class_type"] == "PhysMotionMPMSimulate" and embedded["7"]["inputs"]["frames"] == 8
     ply = tmp_path / out["results"]["11"][0]
     assert ply.exists() and ply.stat().st_size > 1000
 
@@ -223,3 +237,45 @@ def test_output_paths_never_leave_the_output_folder(tmp_path, monkeypatch):
     first = save.run(torch.zeros(2, 8, 8, 3), 24.0, "clips/a", 18)["result"][0]
     second = save.run(torch.zeros(2, 8, 8, 3), 24.0, "clips/a", 18)["result"][0]
     assert Path(first).parent == tmp_path / "clips" and first != second
+
+
+def test_save_video_also_returns_a_video_the_native_nodes_take(tmp_path, monkeypatch):
+    """PhysMotion Save Video's second output is a VIDEO: outside ComfyUI the library's VideoFile, with
+    ComfyUI's comfy_api its VideoFromFile; the native SaveVideo (stand-in) re-saves it unchanged."""
+    import sys
+    import types
+
+    from comfy_harness import SaveVideo
+
+    monkeypatch.setenv("PHYSMOTION_OUTPUT_DIR", str(tmp_path))
+    t = torch.linspace(0, 1, 6)[:, None, None, None]
+    frames = (torch.ones(6, 32, 48, 3) * t).clamp(0, 1)  # a fade from black to white
+    cls = node_classes()["PhysMotionSaveVideo"]
+    assert cls.RETURN_TYPES == ("STRING", "VIDEO")
+    path, video = cls().run(frames, 12.0, "clips/fade", 18)["result"]
+    assert Path(video.get_stream_source()) == Path(path)
+    comp = video.get_components()
+    assert tuple(comp.images.shape) == (6, 32, 48, 3) and comp.frame_rate == 12
+    assert float(comp.images[0].mean()) < 0.05 and float(comp.images[-1].mean()) > 0.95
+    assert video.get_dimensions() == (48, 32)
+    ui = SaveVideo().run(video, "clips/again", "auto", "auto", prompt={"1": {"class_type": "X", "inputs": {}}})["ui"]
+    again = tmp_path / ui["images"][0]["subfolder"] / ui["images"][0]["filename"]
+    assert np.array_equal(read_video(again)[0], read_video(path)[0])  # a stream copy, not a re-encode
+    import av
+
+    with av.open(str(again)) as c:
+        assert json.loads(c.metadata["prompt"])["1"]["class_type"] == "X"
+    with pytest.raises(ValueError, match="not converted"):
+        video.save_to(tmp_path / "x.webm", format="webm")
+
+    # Inside ComfyUI the node hands over comfy_api's own class.
+    class VideoFromFile:
+        def __init__(self, file):
+            self.file = file
+
+    latest = types.ModuleType("comfy_api.latest")
+    latest.InputImpl = types.SimpleNamespace(VideoFromFile=VideoFromFile)
+    monkeypatch.setitem(sys.modules, "comfy_api", types.ModuleType("comfy_api"))
+    monkeypatch.setitem(sys.modules, "comfy_api.latest", latest)
+    path, video = cls().run(frames, 12.0, "clips/fade", 18)["result"]
+    assert isinstance(video, VideoFromFile) and video.file == path

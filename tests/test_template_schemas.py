@@ -92,7 +92,7 @@ def test_a_valid_prompt_has_no_errors_and_each_fault_is_named(schemas):
 
 def test_output_nodes_cycles_and_native_v3_widgets(schemas):
     p = _jelly()
-    for nid in [n for n, v in p.items() if v["class_type"] in ("PhysMotionSaveVideo", "PhysMotionSaveGaussians")]:
+    for nid in [n for n, v in p.items() if v["class_type"] in ("SaveVideo", "PhysMotionSaveGaussians")]:
         del p[nid]
     assert validate_prompt_against_schemas(p, schemas) == [
         "prompt_no_outputs: the prompt has no output node (e.g. SaveVideo)"]
