@@ -5,6 +5,7 @@ from __future__ import annotations
 import os
 from fractions import Fraction
 from pathlib import Path
+from typing import Optional
 
 import numpy as np
 import torch
@@ -52,13 +53,16 @@ def video_format(path: str | os.PathLike) -> tuple[str, str, str]:
     return VIDEO_FORMATS[ext]
 
 
-def write_video(path: str | os.PathLike, frames, fps: float = 24.0, crf: int = 18) -> Path:
+def write_video(path: str | os.PathLike, frames, fps: float = 24.0, crf: int = 18,
+                threads: Optional[int] = None) -> Path:
     """Write (T,H,W,3) frames (float 0..1 or uint8) atomically, in the container its extension
     names (``VIDEO_FORMATS``); any other extension is refused before encoding.
 
     yuv420p needs even width and height: odd sizes are padded by one edge-replicated pixel
     (never cropped), so no image content is lost. ``crf`` is the quality (18: visually lossless
-    H.264; mapped onto VP9's scale for webm; a bit rate for avi; unused for GIF).
+    H.264; mapped onto VP9's scale for webm; a bit rate for avi; unused for GIF). ``threads``: a
+    fixed number of encoder threads (x264 writes it into the stream and slices frames by it, so a
+    fixed count makes the bytes independent of the machine); None lets the encoder choose.
     """
     import av
 
@@ -79,8 +83,13 @@ def write_video(path: str | os.PathLike, frames, fps: float = 24.0, crf: int = 1
             stream = container.add_stream(codec, rate=rate)
             stream.width, stream.height = arr.shape[2], arr.shape[1]
             stream.pix_fmt = pix_fmt
+            if threads is not None:
+                if int(threads) < 1:
+                    raise InputError(f"threads must be a positive number of encoder threads; got {threads}")
+                stream.codec_context.thread_count = int(threads)
             if codec == "libx264":
-                stream.options = {"crf": str(int(crf)), "preset": "medium"}
+                stream.options = {"crf": str(int(crf)), "preset": "medium",
+                                  **({"threads": str(int(threads))} if threads is not None else {})}
             elif codec == "libvpx-vp9":  # constant quality (b:v 0); VP9's 0..63 scale sits above x264's
                 stream.options = {"crf": str(min(63, int(crf) + 13)), "b:v": "0", "deadline": "good",
                                   "cpu-used": "4", "row-mt": "1"}
@@ -116,10 +125,11 @@ def _write_gif(path: Path, arr: np.ndarray, fps: float) -> Path:
     return path
 
 
-def write_mp4(path: str | os.PathLike, frames, fps: float = 24.0, crf: int = 18) -> Path:
+def write_mp4(path: str | os.PathLike, frames, fps: float = 24.0, crf: int = 18,
+              threads: Optional[int] = None) -> Path:
     """``write_video`` (the name is historical: the container follows ``path``'s extension, H.264
     mp4 for ``.mp4``)."""
-    return write_video(path, frames, fps=fps, crf=crf)
+    return write_video(path, frames, fps=fps, crf=crf, threads=threads)
 
 
 def read_video(path: str | os.PathLike) -> tuple[np.ndarray, float]:

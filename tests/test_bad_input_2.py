@@ -216,6 +216,10 @@ def test_every_video_extension_gets_its_own_container_and_codec(tmp_path, capsys
         err = np.abs(video[:, :33, :47].astype(float) - frames).mean()
         assert err < 12, (ext, err)  # the picture survives each codec (chroma subsampling / palette)
     assert (tmp_path / "clip.gif").read_bytes()[:6] == b"GIF89a"
+    # A fixed encoder thread count reaches x264 (it writes its settings into the stream).
+    big = np.repeat(np.repeat(frames[:2], 10, axis=1), 10, axis=2)
+    write_video(tmp_path / "threads.mp4", big, fps=10, threads=3)
+    assert b"threads=3 " in (tmp_path / "threads.mp4").read_bytes()
     assert (tmp_path / "clip.avi").read_bytes()[:4] == b"RIFF"
     with pytest.raises(InputError, match=r"\.xyz.*\.mp4"):
         write_video(tmp_path / "clip.xyz", frames)
