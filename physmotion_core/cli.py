@@ -187,6 +187,9 @@ def _validate(args) -> int:
     from .validate.cases import all_cases, run_cases
     from .validate.report import cases_markdown
 
+    from .fsutil import check_outputs
+
+    check_outputs({"--json": args.json, "--markdown": args.markdown})  # before minutes of cases
     names = [n for n, _ in all_cases(quick=False)]
     if args.list:
         print("\n".join(names))
@@ -199,8 +202,9 @@ def _validate(args) -> int:
         print(f"{'PASS' if r.passed else 'FAIL'}  {r.name}: {r.quantity}: measured {r.measured:.6g}, expected "
               f"{r.expected:.6g}, error {r.error:+.3g} (tolerance {r.tolerance:.3g}) [{r.seconds:.1f}s]")
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps([r.as_dict() for r in results], indent=2, default=float))
+        from .fsutil import atomic_write_text
+
+        atomic_write_text(args.json, json.dumps([r.as_dict() for r in results], indent=2, default=float))
     if args.markdown:
         table = cases_markdown(results, machine_description())
         update_section(args.markdown, "validate", "## The accuracy suite\n\n" + table
@@ -214,14 +218,18 @@ def _stress(args) -> int:
     from .report import machine_description, update_section
     from .validate.stress import markdown, run_matrix, summary
 
+    from .fsutil import check_outputs
+
+    check_outputs({"--json": args.json, "--markdown": args.markdown})  # before minutes of cases
     results = run_matrix(quick=args.quick, progress=_progress_line)
     for r in results:
         print(f"{r.status:9s} {r.group}: {r.name} [{r.seconds:.1f}s] {r.reason}")
     s = summary(results)
     print(f"{len(results)} cases: {s['completed']} completed, {s['refused']} refused, {s['failed']} failed")
     if args.json:
-        args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps([asdict(r) for r in results], indent=2, default=float))
+        from .fsutil import atomic_write_text
+
+        atomic_write_text(args.json, json.dumps([asdict(r) for r in results], indent=2, default=float))
     if args.markdown:
         update_section(args.markdown, "stress", markdown(results, machine_description()))
     return 0 if s["failed"] == 0 else 1
@@ -238,6 +246,9 @@ def _comfy_run(args) -> int:
         elif kind == "executing" and data.get("node") is not None:
             print(f"running node {data['node']}", file=sys.stderr, flush=True)
 
+    from .fsutil import check_outputs
+
+    check_outputs({"-o/--output": args.output}, inputs=[args.workflow, args.image], folders=["-o/--output"])
     saved = run_workflow(args.workflow, args.server, args.output, image=args.image, sets=args.set,
                          on_event=on_event, timeout=args.timeout, previews=args.previews)
     for path in saved:

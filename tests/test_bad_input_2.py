@@ -159,7 +159,7 @@ def test_writers_refuse_to_replace_a_protected_input(tmp_path):
 # ----------------------------------------------------------------------------------------------
 
 
-def test_unwritable_output_locations_are_found_before_any_work(cutout, tmp_path, capsys, no_work):
+def test_unwritable_output_locations_are_found_before_any_work(cutout, tmp_path, capsys, no_work, monkeypatch):
     blocker = tmp_path / "a_file"
     blocker.write_text("x")
     for opt, path in [("-o", blocker / "out.mp4"), ("--stats", blocker / "s.json"), ("--save-ply", "/proc/nope/g.ply"),
@@ -170,6 +170,18 @@ def test_unwritable_output_locations_are_found_before_any_work(cutout, tmp_path,
         assert opt in err and ("writable" in err or "not a folder" in err), err
     with pytest.raises(OutputLocationError):
         check_outputs({"--stats": blocker / "x" / "s.json"})
+    # The other commands check theirs before their minutes of work too.
+    import physmotion_core.validate.cases as cases
+    import physmotion_core.validate.stress as stress
+
+    def started(*a, **kw):
+        raise AssertionError("work started before the outputs were checked")
+
+    monkeypatch.setattr(stress, "run_matrix", started)
+    monkeypatch.setattr(cases, "run_cases", started)
+    assert cli(["stress", "--json", blocker / "s.json"], capsys)[0] == 1
+    assert cli(["validate", "--markdown", tmp_path], capsys)[0] == 2  # a folder, not a page
+    assert cli(["comfy-run", "wf.json", "-o", blocker / "out"], capsys)[0] == 1
     # A file name longer than the file system allows: refused before the run, naming the limit.
     rc, err = cli(["generate", cutout, *FAST, "-o", tmp_path / ("b" * 252 + ".mp4")], capsys)
     assert rc == 2 and "256 bytes" in err and "at most 255" in err
