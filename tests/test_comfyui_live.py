@@ -59,11 +59,18 @@ def test_object_info_lists_every_node_with_its_inputs_outputs_and_category(comfy
     assert sorted(listed) == sorted(p.stem for p in (ROOT / "example_workflows").glob("*.json")), listed
     # ... and served from the template route: each UI file and its thumbnail (the api/ twins are not
     # listed as templates).
+    import urllib.error
+
     for name in listed:
-        served = json.loads(comfy_server.get_bytes(f"/api/workflow_templates/ComfyUI-PhysMotion/{name}.json"))
-        assert served == json.loads((ROOT / "example_workflows" / f"{name}.json").read_text()), name
-        thumb = comfy_server.get_bytes(f"/api/workflow_templates/ComfyUI-PhysMotion/{name}.jpg")
-        assert thumb[:3] == b"\xff\xd8\xff", name
+        for ext in ("json", "jpg"):
+            try:
+                data = comfy_server.get_bytes(f"/api/workflow_templates/ComfyUI-PhysMotion/{name}.{ext}")
+            except urllib.error.HTTPError as exc:
+                raise AssertionError(f"the template route answers {exc.code} for {name}.{ext}") from exc
+            if ext == "json":
+                assert json.loads(data) == json.loads((ROOT / "example_workflows" / f"{name}.json").read_text()), name
+            else:
+                assert data[:3] == b"\xff\xd8\xff", f"{name}.jpg is not a JPEG"
 
 
 def _video_moves(path, frames: int) -> None:
