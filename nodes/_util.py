@@ -189,6 +189,9 @@ def output_path(prefix: str, extension: str) -> tuple[Path, str, str]:
     taken = [int(m.group(1)) for p in folder.iterdir() if (m := pattern.match(p.name))]
     counter = max(taken, default=0) + 1
     name = f"{stem}_{counter:05d}_{suffix}"
+    if len(name.encode("utf-8", "surrogateescape")) > 255:
+        raise InputError(f"filename_prefix ends in a name of {len(stem.encode())} bytes; with the counter and extension "
+                         "the file name would exceed the 255 bytes file systems allow. Use a shorter prefix.")
     subfolder = os.path.relpath(folder, root)
     return folder / name, name, "" if subfolder == "." else subfolder
 

@@ -526,6 +526,8 @@ def test_nodes_refuse_empty_batches_and_nul_bytes_clearly():
     for prefix in ("PhysMotion/a\x00b", "bad\nname"):
         with pytest.raises(InputError, match="NUL byte or a control character"):
             nodes["PhysMotionSaveGaussians"]().run(g, prefix)
+    with pytest.raises(InputError, match="255 bytes"):
+        nodes["PhysMotionSaveGaussians"]().run(g, "PhysMotion/" + "n" * 250)
 
 
 # ----------------------------------------------------------------------------------------------
