@@ -18,7 +18,7 @@ _HERE = os.path.dirname(os.path.abspath(__file__))
 if _HERE not in sys.path:
     sys.path.append(_HERE)
 
-NODE_MODULES = ("segment", "lift", "refine", "physics", "render", "enhance", "gaussian_native", "video_control")
+NODE_MODULES = ("segment", "lift", "refine", "physics", "render", "enhance", "fit", "gaussian_native", "video_control")
 
 NODE_CLASS_MAPPINGS: dict = {}
 NODE_DISPLAY_NAME_MAPPINGS: dict = {}

@@ -1,0 +1,676 @@
+"""Fit any Gaussians to the photo: the rotation, scale, position and focal length that make them
+look like the masked object, then put them on the ground at the object's real height.
+
+Lifts the pack did not make (TripoSplat, a .ply from any 3DGS tool, LGM, SAM 3D Objects) come in
+their own canonical frame: any axis may be up, the input view may look along any axis, units and
+centring are arbitrary. ``fit_gaussians_to_photo`` finds the similarity transform and the camera
+through which the rendered silhouette and colours match the photo's masked object:
+
+1. **Normalise.** Centre on the middle of the robust (2-98 %) extents of the significant
+   (opacity >= 0.05) Gaussian centres and divide by the largest robust extent, so the object
+   spans about one unit whatever its units.
+2. **Coarse search** over the canonical frames: the 24 axis-aligned rotations (any input axis up,
+   the input view along any of the 4 remaining axes), plus, with ``yaw_steps = 8``, the 24 in-between
+   45° turns about the up axis. For each, the object is placed in front of the camera, rendered at
+   low resolution (``COARSE_SIDE`` px) and its size and position corrected twice from the render
+   (area ratio and centroid of alpha vs the mask), then scored with the loss below.
+3. **Refinement** of the ``keep`` best candidates (a short run each, the best survives), then
+   coarse-to-fine (``levels``): Adam on a rotation increment (axis-angle), the log of the object's
+   on-screen size, its on-screen position and the log focal length (unless given), against
+   ``(1 - soft IoU(alpha, mask)) + colour_weight · L1(colour, photo over the mask)``.
+4. **Place**: a similarity about the camera centre leaves the image unchanged, so the fitted
+   solution is scaled until the object (its significant Gaussian centres) is ``object_height``
+   metres tall and shifted so its lowest centre is on the ground (y = 0) with its footprint
+   centred on the y axis; the camera moves with it (level, looking down -z, OpenGL).
+
+The result carries the hard IoU (alpha > 0.5 vs mask > 0.5 at the final fitting resolution); below
+``iou_threshold`` it is marked as not lined up (``FitResult.ok``), with a message and an overlay
+that shows where it went wrong. Hollow shells (a surface-only .ply) need nothing here: the
+simulator fills the enclosed volume with particles (``sim/fill.py``).
+"""
+
+from __future__ import annotations
+
+import logging
+import math
+import time
+from dataclasses import dataclass, field
+from typing import Optional, Sequence
+
+import numpy as np
+import torch
+import torch.nn.functional as F
+
+from ..errors import InputError
+from ..progress import ProgressFn, report
+from ..segment.classic import as_image_array, as_mask_array
+from ..types import Camera, Gaussians, quat_to_rotmat, rotmat_to_quat
+
+log = logging.getLogger(__name__)
+
+DEFAULT_FOV_Y = 40.0  # degrees; the silhouette lift's default, between a phone's main camera and a portrait lens
+FOV_RANGE = (8.0, 110.0)  # the focal length is kept within these vertical fields of view (degrees)
+DEFAULT_IOU_THRESHOLD = 0.85  # see docs/lift.md, "Fitting any Gaussians to the photo"
+SIGNIFICANT_OPACITY = 0.05
+COARSE_SIDE = 40
+MIN_LEVEL_GAUSSIANS = 600  # a level renders about one Gaussian per 3 of its pixels, at least this many
+MIN_MASK_PIXELS = 16
+
+
+class FitError(InputError):
+    """The Gaussians could not be lined up with the photo (IoU below the threshold).
+
+    ``result`` is the best fit found (with its overlay), for a preview of what went wrong.
+    """
+
+    def __init__(self, message: str, result: "FitResult"):
+        super().__init__(message)
+        self.result = result
+
+
+@dataclass
+class FitResult:
+    """What ``fit_gaussians_to_photo`` found.
+
+    ``gaussians`` (world: metres, +y up, on the ground) and ``camera`` reproduce the photo;
+    ``rotation`` (3,3), ``scale`` and ``translation`` (3,) are the similarity applied to the input
+    (``x_world = scale · rotation @ x_in + translation``); ``iou`` is the final hard IoU of the
+    rendered silhouette with the mask, ``color_error`` the mean absolute colour difference (0..1)
+    over the mask; ``overlay`` (H', W', 3) is the render over the photo beside the two silhouettes
+    (mask green, render red, overlap yellow). ``ok`` is ``iou >= iou_threshold``.
+    """
+
+    gaussians: Gaussians
+    camera: Camera
+    iou: float
+    color_error: float
+    rotation: torch.Tensor
+    scale: float
+    translation: torch.Tensor
+    focal: float
+    ok: bool
+    iou_threshold: float
+    overlay: torch.Tensor
+    message: str
+    seconds: float
+    candidates: list = field(default_factory=list)
+    info: dict = field(default_factory=dict)
+
+    def report(self) -> str:
+        """A few lines for a node's STRING output / the log."""
+        r = self.rotation.double()
+        angle = math.degrees(math.acos(max(-1.0, min(1.0, (float(torch.trace(r)) - 1) / 2))))
+        return (f"{self.message}\nIoU {self.iou:.3f} (threshold {self.iou_threshold:.2f}), colour error "
+                f"{self.color_error:.3f}, focal {self.focal:.1f} px (fov_y {self.camera.fov_y_deg:.1f}°), "
+                f"rotation {angle:.1f}° from the input frame, scale {self.scale:.4g} m per input unit, "
+                f"{len(self.gaussians)} Gaussians, {self.seconds:.1f} s")
+
+    def raise_if_failed(self) -> "FitResult":
+        if not self.ok:
+            raise FitError(self.message, self)
+        return self
+
+
+# ----------------------------------------------------------------------------------------------
+# Rotations
+# ----------------------------------------------------------------------------------------------
+
+
+def _rot_y(angle: float) -> torch.Tensor:
+    c, s = math.cos(angle), math.sin(angle)
+    return torch.tensor([[c, 0.0, s], [0.0, 1.0, 0.0], [-s, 0.0, c]])
+
+
+def canonical_rotations(yaw_steps: int = 8) -> torch.Tensor:
+    """(6·yaw_steps, 3, 3) rotations: each input axis (±x, ±y, ±z) turned to +y (up), then turned
+    about the up axis in ``yaw_steps`` equal steps. ``yaw_steps = 4`` gives the 24 rotations of
+    the cube (every axis-aligned frame, y-up or z-up, input view along ±z or ±x); 8 adds the 45°
+    turns in between."""
+    if int(yaw_steps) < 1:
+        raise InputError(f"yaw_steps must be at least 1; got {yaw_steps}")
+    ups = []
+    e = torch.eye(3)
+    # A proper rotation taking input axis a to +y: rows of the matrix are the world axes in input
+    # coordinates; pick x_w, z_w so that the frame is right-handed.
+    for axis in range(3):
+        for sign in (1.0, -1.0):
+            up = sign * e[axis]
+            side = e[(axis + 1) % 3]
+            back = torch.linalg.cross(side, up)
+            ups.append(torch.stack([side, up, back]))  # maps up -> +y, side -> +x
+    out = []
+    for R_up in ups:
+        assert abs(float(torch.linalg.det(R_up)) - 1.0) < 1e-6
+        for k in range(int(yaw_steps)):
+            out.append(_rot_y(2 * math.pi * k / int(yaw_steps)) @ R_up)
+    return torch.stack(out)
+
+
+def _skew(w: torch.Tensor) -> torch.Tensor:
+    z = torch.zeros((), dtype=w.dtype)
+    return torch.stack([torch.stack([z, -w[2], w[1]]), torch.stack([w[2], z, -w[0]]),
+                        torch.stack([-w[1], w[0], z])])
+
+
+def axis_angle_to_matrix(w: torch.Tensor) -> torch.Tensor:
+    """Rodrigues' formula, differentiable everywhere (including w = 0)."""
+    t2 = (w * w).sum()
+    small = t2 < 1e-8
+    t = torch.sqrt(torch.where(small, torch.ones_like(t2), t2))
+    a = torch.where(small, 1.0 - t2 / 6.0, torch.sin(t) / t)
+    b = torch.where(small, 0.5 - t2 / 24.0, (1.0 - torch.cos(t)) / torch.where(small, torch.ones_like(t2), t2))
+    K = _skew(w)
+    return torch.eye(3, dtype=w.dtype) + a * K + b * (K @ K)
+
+
+def rotation_angle_deg(R: torch.Tensor) -> float:
+    """Angle (degrees) of a rotation matrix."""
+    c = (float(torch.trace(R.double())) - 1.0) / 2.0
+    return math.degrees(math.acos(max(-1.0, min(1.0, c))))
+
+
+# ----------------------------------------------------------------------------------------------
+# Spherical harmonics under rotation (3DGS real SH basis, degrees 0-3)
+# ----------------------------------------------------------------------------------------------
+
+_C1 = 0.4886025119029199
+_C2 = (1.0925484305920792, -1.0925484305920792, 0.31539156525252005, -1.0925484305920792, 0.5462742152960396)
+_C3 = (-0.5900435899266435, 2.890611442640554, -0.4570457994644658, 0.3731763325901154,
+       -0.4570457994644658, 1.445305721320277, -0.5900435899266435)
+
+
+def _sh_basis(d: torch.Tensor, degree: int) -> torch.Tensor:
+    """(M, (degree+1)²) real SH basis of unit directions d (M, 3), in 3DGS's order and signs."""
+    x, y, z = d.unbind(-1)
+    cols = [torch.full_like(x, 0.28209479177387814)]
+    if degree >= 1:
+        cols += [-_C1 * y, _C1 * z, -_C1 * x]
+    if degree >= 2:
+        xx, yy, zz = x * x, y * y, z * z
+        cols += [_C2[0] * x * y, _C2[1] * y * z, _C2[2] * (2 * zz - xx - yy), _C2[3] * x * z, _C2[4] * (xx - yy)]
+    if degree >= 3:
+        cols += [_C3[0] * y * (3 * xx - yy), _C3[1] * x * y * z, _C3[2] * y * (4 * zz - xx - yy),
+                 _C3[3] * z * (2 * zz - 3 * xx - 3 * yy), _C3[4] * x * (4 * zz - xx - yy),
+                 _C3[5] * z * (xx - yy), _C3[6] * x * (xx - 3 * yy)]
+    return torch.stack(cols, -1)
+
+
+def rotate_sh(sh: torch.Tensor, R: torch.Tensor) -> torch.Tensor:
+    """SH coefficients (N, K, 3) of Gaussians rotated by R: the colour seen along direction d
+    after the rotation is the colour seen along Rᵀd before it. Each band transforms on its own by
+    a (2l+1)² matrix, found here by least squares on sample directions (exact up to round-off,
+    since a band is closed under rotation). K must be 1, 4, 9 or 16 (degree 0-3)."""
+    K = sh.shape[1]
+    degree = int(round(math.sqrt(K))) - 1
+    if (degree + 1) ** 2 != K or degree > 3:
+        raise InputError(f"rotate_sh: {K} SH coefficients per channel is not degree 0-3 (1, 4, 9 or 16)")
+    if degree == 0:
+        return sh.clone()
+    g = torch.Generator().manual_seed(0)
+    d = F.normalize(torch.randn(64, 3, generator=g, dtype=torch.float64), dim=-1)
+    Rd = R.to(torch.float64)
+    Y = _sh_basis(d, degree)
+    Yr = _sh_basis(d @ Rd, degree)  # rows: Rᵀ d_i
+    out = sh.clone()
+    for l in range(1, degree + 1):
+        sl = slice(l * l, (l + 1) * (l + 1))
+        # Y[:, sl] @ D = Yr[:, sl]  ->  new coefficients c' = D c.
+        D = torch.linalg.lstsq(Y[:, sl], Yr[:, sl]).solution  # ((2l+1), (2l+1))
+        out[:, sl, :] = torch.einsum("ij,njc->nic", D.to(sh.dtype), sh[:, sl, :])
+    return out
+
+
+# ----------------------------------------------------------------------------------------------
+# Targets and the differentiable placement
+# ----------------------------------------------------------------------------------------------
+
+
+@dataclass
+class _Level:
+    """The photo at one working resolution."""
+
+    width: int
+    height: int
+    factor: float  # this level's pixels per photo pixel
+    mask: torch.Tensor  # (h, w) soft, area-averaged
+    hard: torch.Tensor  # (h, w) bool, mask > 0.5
+    target: torch.Tensor  # (h, w, 3) photo colours (premultiplied by the soft mask)
+    inside: torch.Tensor  # (h, w) bool: pixels where colour is compared
+
+
+def _level(img: torch.Tensor, m: torch.Tensor, max_side: int) -> _Level:
+    H, W = m.shape
+    factor = min(1.0, float(max_side) / float(max(H, W)))
+    w, h = max(8, int(round(W * factor))), max(8, int(round(H * factor)))
+    if (w, h) == (W, H):
+        ms, tg = m.clone(), img * m[..., None]
+    else:
+        ms = F.interpolate(m[None, None], size=(h, w), mode="area")[0, 0]
+        tg = F.interpolate((img * m[..., None]).permute(2, 0, 1)[None], size=(h, w), mode="area")[0].permute(1, 2, 0)
+    # Colour is compared well inside the object only, where the premultiplied photo is its colour.
+    inside = ms > 0.99
+    if int(inside.sum()) < 4:
+        inside = ms > 0.5
+    return _Level(width=w, height=h, factor=w / W, mask=ms, hard=ms > 0.5, target=tg, inside=inside)
+
+
+@dataclass
+class _Prep:
+    """The input Gaussians, normalised (centred, about one unit across), ready to render."""
+
+    means: torch.Tensor  # (N, 3) normalised
+    cov: torch.Tensor  # (N, 3, 3) normalised
+    opacities: torch.Tensor
+    rgb: torch.Tensor  # (N, 3) DC colour, clamped to 0..1
+    significant: torch.Tensor  # (N,) bool
+
+
+def _prep(g: Gaussians, centre: torch.Tensor, extent: float, index: Optional[torch.Tensor] = None,
+          inflate: float = 1.0) -> _Prep:
+    if index is not None:
+        g = g.subset(index)
+    means = (g.means.double() - centre) / extent
+    cov = g.covariance().double() / (extent * extent) * (inflate * inflate)
+    return _Prep(means=means.float(), cov=cov.float(), opacities=g.opacities.float(),
+                 rgb=g.rgb.float().clamp(0.0, 1.0), significant=g.opacities >= SIGNIFICANT_OPACITY)
+
+
+def _subset(n: int, keep: int, opacities: torch.Tensor, seed: int) -> tuple[Optional[torch.Tensor], float]:
+    """A seeded random subset of at most ``keep`` (preferring significant Gaussians) and the factor
+    that widens each kept splat to cover the area of the ones left out (a surface: √(n/keep))."""
+    if n <= keep:
+        return None, 1.0
+    gen = torch.Generator().manual_seed(int(seed))
+    sig = torch.nonzero(opacities >= SIGNIFICANT_OPACITY)[:, 0]
+    pool = sig if sig.numel() >= keep else torch.arange(n)
+    idx = pool[torch.randperm(pool.numel(), generator=gen)[:keep]]
+    return torch.sort(idx).values, math.sqrt(pool.numel() / keep)
+
+
+class _Params:
+    """The fit's free parameters, each in well-scaled units.
+
+    rotation = exp(ω) · R0; on-screen size σ (photo pixels per normalised unit at the object's
+    centre); on-screen position (u, v) of the centre (photo pixels, as fractions of the longer
+    side); focal f (photo pixels). The object sits at depth D0 = 1: scaling the object and its
+    distance together leaves the image unchanged, so s = σ·D0/f is the object's scale and the
+    perspective strength is σ/f.
+    """
+
+    def __init__(self, R0: torch.Tensor, log_sigma: float, uv: Sequence[float], log_f: float, side: float):
+        self.R0 = R0.float()
+        self.omega = torch.zeros(3, requires_grad=True)
+        self.log_sigma = torch.tensor(float(log_sigma), requires_grad=True)
+        self.uv = torch.tensor([float(uv[0]) / side, float(uv[1]) / side], requires_grad=True)
+        self.log_f = torch.tensor(float(log_f), requires_grad=True)
+        self.side = float(side)
+
+    def clone(self) -> "_Params":
+        with torch.no_grad():
+            return _Params(self.rotation(), float(self.log_sigma), (float(self.uv[0]) * self.side,
+                           float(self.uv[1]) * self.side), float(self.log_f), self.side)
+
+    def rotation(self) -> torch.Tensor:
+        return axis_angle_to_matrix(self.omega) @ self.R0
+
+    def place(self, prep: _Prep, cx: float, cy: float) -> tuple[torch.Tensor, torch.Tensor]:
+        """Camera-frame means and covariances (camera at the origin looking down -z)."""
+        R = self.rotation()
+        f = torch.exp(self.log_f)
+        s = torch.exp(self.log_sigma) / f  # D0 = 1
+        u, v = self.uv[0] * self.side, self.uv[1] * self.side
+        t = torch.stack([(u - cx) / f, -(v - cy) / f, -torch.ones((), dtype=f.dtype)])
+        means = s * (prep.means @ R.T) + t
+        cov = (s * s) * (R @ prep.cov @ R.T)
+        return means, cov
+
+
+def _render(prep: _Prep, p: _Params, lv: _Level, cx: float, cy: float, colors: bool = True):
+    from ..render.rasterize import rasterize
+
+    means, cov = p.place(prep, cx, cy)
+    f = torch.exp(p.log_f)
+    n = means.shape[0]
+    g = Gaussians(means=means, quats=torch.zeros(n, 4).index_fill_(1, torch.tensor([0]), 1.0),
+                  scales=torch.ones(n, 3), opacities=prep.opacities, sh=torch.zeros(n, 1, 3), covars=cov)
+    k = lv.factor
+    fl = float(f.detach()) * k
+    cam = Camera(lv.width, lv.height, fl, fl, cx * k, cy * k, torch.eye(4), near=1e-3, far=1e3)
+    if f.requires_grad:
+        # The rasterizer takes the focal as a number. Scaling camera-frame x and y by ρ (at fixed
+        # z; covariances by diag(ρ, ρ, 1) on both sides) gives exactly the image of focal ρ·f, so
+        # with ρ = f / f.detach() (= 1 in value) the focal's gradient flows through the means.
+        ratio = f / f.detach()
+        d = torch.stack([ratio, ratio, torch.ones((), dtype=ratio.dtype)])
+        g = Gaussians(means=means * d, quats=g.quats, scales=g.scales, opacities=g.opacities, sh=g.sh,
+                      covars=cov * d[:, None] * d[None, :])
+    return rasterize(g, cam, colors=prep.rgb if colors else torch.zeros_like(prep.rgb))
+
+
+def _losses(out, lv: _Level, colour_weight: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    a = out.alpha.clamp(0.0, 1.0)
+    inter = (a * lv.mask).sum()
+    union = (a + lv.mask - a * lv.mask).sum().clamp_min(1e-6)
+    soft_iou = inter / union
+    col = (out.rgb - lv.target).abs()[lv.inside].mean()
+    return (1.0 - soft_iou) + colour_weight * col, soft_iou, col
+
+
+def _hard_iou(alpha: torch.Tensor, hard: torch.Tensor) -> float:
+    r = alpha > 0.5
+    union = int((r | hard).sum())
+    return float(int((r & hard).sum()) / union) if union else 0.0
+
+
+def _align(prep: _Prep, p: _Params, lv: _Level, cx: float, cy: float, m_area: float,
+           m_centroid: torch.Tensor, passes: int = 1) -> None:
+    """Correct size (area ratio) and position (centroid) of a candidate from its own render."""
+    with torch.no_grad():
+        for _ in range(passes):
+            out = _render(prep, p, lv, cx, cy, colors=False)
+            a = out.alpha.clamp(0, 1)
+            area = float(a.sum())
+            if area < 1e-3:
+                p.log_sigma += math.log(2.0)
+                continue
+            ys, xs = torch.meshgrid(torch.arange(lv.height) + 0.5, torch.arange(lv.width) + 0.5, indexing="ij")
+            c = torch.stack([(a * xs).sum() / area, (a * ys).sum() / area])
+            p.log_sigma += 0.5 * math.log(m_area / area)
+            # Centroid offset (level pixels -> photo pixels -> fraction of the longer side); the
+            # centroid scales about the object's centre with the size change, close enough here.
+            p.uv += (m_centroid - c) / lv.factor / p.side
+
+
+# ----------------------------------------------------------------------------------------------
+# The entry point
+# ----------------------------------------------------------------------------------------------
+
+
+def _check_number(name, value, ok, what) -> float:
+    try:
+        v = float(value)
+        good = math.isfinite(v) and ok(v)
+    except (TypeError, ValueError):
+        good = False
+    if not good:
+        raise InputError(f"fit_gaussians_to_photo: {name} must be {what}; got {value!r}")
+    return v
+
+
+def fit_gaussians_to_photo(
+    gaussians: Gaussians, image, mask, *, object_height: float = 0.3, focal: Optional[float] = None,
+    principal_point: Optional[Sequence[float]] = None, iou_threshold: float = DEFAULT_IOU_THRESHOLD,
+    on_ground: bool = True, ground_height: float = 0.0, colour_weight: float = 0.5, yaw_steps: int = 8,
+    keep: int = 3, levels: Sequence[tuple[int, int]] = ((48, 30), (96, 30), (160, 20)),
+    screen_steps: int = 12, max_fit_gaussians: int = 20000, lr: float = 0.02, seed: int = 0,
+    raise_on_failure: bool = False, progress: Optional[ProgressFn] = None,
+) -> FitResult:
+    """Line ``gaussians`` (any frame, any units) up with the masked object of ``image``.
+
+    Args:
+        gaussians: the lift to fit (its own frame; hollow shells are fine, see the module doc).
+        image: the photo (H, W, 3) in 0..1 (or uint8), torch or numpy.
+        mask: the object's mask (H, W), 1 on the object.
+        object_height: the object's real height in metres (the fitted object is scaled to it).
+        focal: the photo's focal length in pixels (fx = fy); None = fitted, starting from a
+            40° vertical field of view.
+        principal_point: (cx, cy) in pixels; None = the image centre.
+        iou_threshold: the fit counts as lined up when the final IoU reaches this (default 0.85).
+        on_ground: put the lowest significant Gaussian centre on ``ground_height`` (else centre
+            the object on it).
+        colour_weight: weight of the masked colour L1 against (1 - soft IoU).
+        yaw_steps: turns about the up axis tried per up axis in the coarse search (4: the 24
+            axis-aligned frames; 8: also the 45° turns between them).
+        keep: coarse candidates refined before the best one is carried on.
+        levels: (max image side in px, Adam steps) of each refinement level, coarse to fine; the
+            candidates compete at the first level (``screen_steps`` steps each).
+        max_fit_gaussians: at most this many Gaussians are rendered while fitting (a seeded
+            random subset, splats widened to cover the rest); the reported IoU uses all of them.
+        lr: Adam learning rate (radians for the rotation, log units for size and focal).
+        seed: seeds the subsets.
+        raise_on_failure: raise ``FitError`` (carrying the result) instead of returning a result
+            with ``ok = False``.
+        progress: ``progress(done, total)``, called every step (raise from it to cancel).
+    """
+    t_start = time.perf_counter()
+    if not isinstance(gaussians, Gaussians):
+        raise InputError(f"fit_gaussians_to_photo: gaussians must be Gaussians; got {type(gaussians).__name__}")
+    g_in = gaussians.detach().to("cpu")
+    g_in = Gaussians(**{k: (v.float() if torch.is_tensor(v) and v.is_floating_point() else v)
+                        for k, v in g_in.__dict__.items()})
+    g_in.validate("fit_gaussians_to_photo: gaussians")
+    img_np = as_image_array(image)
+    H, W = img_np.shape[:2]
+    if mask is None:
+        raise InputError("fit_gaussians_to_photo needs the object mask (H, W); segment the photo first")
+    m_np = np.clip(as_mask_array(mask, (H, W)), 0.0, 1.0)
+    if int((m_np > 0.5).sum()) < MIN_MASK_PIXELS:
+        raise InputError(f"fit_gaussians_to_photo: the mask has {int((m_np > 0.5).sum())} pixels; at least "
+                         f"{MIN_MASK_PIXELS} are needed. Check the segmentation (empty or tiny mask).")
+    object_height = _check_number("object_height", object_height, lambda x: x > 0, "a positive number of metres")
+    iou_threshold = _check_number("iou_threshold", iou_threshold, lambda x: 0 <= x <= 1, "in [0, 1]")
+    ground_height = _check_number("ground_height", ground_height, lambda x: True, "a finite height in metres")
+    colour_weight = _check_number("colour_weight", colour_weight, lambda x: x >= 0, ">= 0")
+    if focal is not None:
+        focal = _check_number("focal", focal, lambda x: x > 0, "a positive focal length in pixels (or None)")
+    if principal_point is not None:
+        try:
+            cx, cy = (float(v) for v in principal_point)
+        except (TypeError, ValueError) as exc:
+            raise InputError("fit_gaussians_to_photo: principal_point must be (cx, cy) in pixels") from exc
+        if not (math.isfinite(cx) and math.isfinite(cy)):
+            raise InputError(f"fit_gaussians_to_photo: principal_point must be finite; got {principal_point}")
+    else:
+        cx, cy = W / 2.0, H / 2.0
+    if not levels or any(int(s) < 8 or int(n) < 0 for s, n in levels):
+        raise InputError("fit_gaussians_to_photo: levels must be (max side >= 8 px, steps >= 0) pairs")
+
+    img = torch.from_numpy(img_np)
+    m = torch.from_numpy(m_np.astype(np.float32))
+
+    # 1. Normalise by the robust extents of the significant centres.
+    sig = g_in.opacities >= SIGNIFICANT_OPACITY
+    pts = g_in.means[sig] if int(sig.sum()) >= 8 else g_in.means
+    lo = torch.quantile(pts.double(), 0.02, dim=0)
+    hi = torch.quantile(pts.double(), 0.98, dim=0)
+    centre = 0.5 * (lo + hi)
+    extent = float((hi - lo).max())
+    if not (extent > 0 and math.isfinite(extent)):
+        raise InputError("fit_gaussians_to_photo: the Gaussians have no extent (all centres coincide)")
+    n = len(g_in)
+    preps: dict = {}
+
+    def prep_for(lv: _Level) -> _Prep:
+        budget = min(int(max_fit_gaussians), max(MIN_LEVEL_GAUSSIANS, lv.width * lv.height // 3))
+        if budget not in preps:
+            idx, infl = _subset(n, budget, g_in.opacities, seed + budget)
+            preps[budget] = _prep(g_in, centre, extent, idx, infl)
+        return preps[budget]
+
+    levels = [(int(s), int(k)) for s, k in levels]
+    lv0 = _level(img, m, min(COARSE_SIDE, levels[0][0]))
+    prep_c = prep_for(lv0)
+    m_area = float(lv0.mask.sum())
+    ys, xs = torch.meshgrid(torch.arange(lv0.height) + 0.5, torch.arange(lv0.width) + 0.5, indexing="ij")
+    m_centroid = torch.stack([(lv0.mask * xs).sum() / m_area, (lv0.mask * ys).sum() / m_area])
+    rows = torch.nonzero(torch.from_numpy(m_np > 0.5).any(dim=1))[:, 0]
+    mask_h = float(rows[-1] - rows[0] + 1)
+    side = float(max(H, W))
+    f0 = focal if focal is not None else 0.5 * H / math.tan(math.radians(DEFAULT_FOV_Y) / 2)
+    f_lo = 0.5 * H / math.tan(math.radians(FOV_RANGE[1]) / 2)
+    f_hi = 0.5 * H / math.tan(math.radians(FOV_RANGE[0]) / 2)
+
+    rotations = canonical_rotations(yaw_steps)
+    keep = max(1, min(int(keep), rotations.shape[0]))
+    total = rotations.shape[0] + keep * int(screen_steps) + sum(k for _, k in levels[1:]) + max(0, levels[0][1] - int(screen_steps))
+    done = 0
+
+    # 2. Coarse search over the canonical frames.
+    cands = []
+    for R0 in rotations:
+        # Start: normalised object's projected height matches the mask's, centred on its centroid.
+        p_rot = prep_c.means @ R0.T
+        ph = float(torch.quantile(p_rot[:, 1], 0.98) - torch.quantile(p_rot[:, 1], 0.02))
+        sigma = mask_h / max(ph, 1e-3)
+        p = _Params(R0, math.log(sigma), (float(m_centroid[0]) / lv0.factor, float(m_centroid[1]) / lv0.factor),
+                    math.log(f0), side)
+        _align(prep_c, p, lv0, cx, cy, m_area, m_centroid)
+        with torch.no_grad():
+            loss, siou, col = _losses(_render(prep_c, p, lv0, cx, cy), lv0, colour_weight)
+        cands.append({"params": p, "loss": float(loss), "soft_iou": float(siou), "colour": float(col),
+                      "rotation": R0})
+        done += 1
+        report(progress, done, total)
+    order = sorted(range(len(cands)), key=lambda i: cands[i]["loss"])
+    timings = {"coarse": time.perf_counter() - t_start}
+
+    def refine(p: _Params, prep: _Prep, lv: _Level, steps: int, lr0: float) -> None:
+        nonlocal done
+        if steps <= 0:
+            return
+        groups = [{"params": [p.omega], "lr": lr0}, {"params": [p.log_sigma], "lr": lr0},
+                  {"params": [p.uv], "lr": lr0 * 0.25}]
+        if focal is None:
+            groups.append({"params": [p.log_f], "lr": lr0})
+        opt = torch.optim.Adam(groups, betas=(0.8, 0.95))
+        for step in range(steps):
+            decay = 0.5 * (1 + math.cos(math.pi * step / steps)) * 0.9 + 0.1
+            for gr, base in zip(opt.param_groups, [lr0, lr0, lr0 * 0.25, lr0]):
+                gr["lr"] = base * decay
+            loss, _, _ = _losses(_render(prep, p, lv, cx, cy), lv, colour_weight)
+            opt.zero_grad(set_to_none=True)
+            loss.backward()
+            opt.step()
+            with torch.no_grad():
+                p.log_f.clamp_(math.log(f_lo), math.log(f_hi))
+            done += 1
+            report(progress, done, total)
+
+    # 3. Refinement: the best few compete at the first level, the winner goes on coarse to fine.
+    lv_first = _level(img, m, levels[0][0])
+    prep_1 = prep_for(lv_first)
+    best, best_loss = None, math.inf
+    contenders = []
+    for i in order[:keep]:
+        p = cands[i]["params"]
+        refine(p, prep_1, lv_first, int(screen_steps), lr)
+        with torch.no_grad():
+            loss, siou, col = _losses(_render(prep_1, p, lv_first, cx, cy), lv_first, colour_weight)
+        contenders.append({"rotation": p.rotation().detach(), "loss": float(loss), "soft_iou": float(siou)})
+        if float(loss) < best_loss:
+            best, best_loss = p, float(loss)
+    timings["contenders"] = time.perf_counter() - t_start
+    p = best.clone()
+    refine(p, prep_1, lv_first, max(0, levels[0][1] - int(screen_steps)), lr * 0.7)
+    for k, (max_side, steps) in enumerate(levels[1:]):
+        lv = _level(img, m, max_side)
+        refine(p, prep_for(lv), lv, steps, lr * 0.5 / (k + 1))
+        timings[f"level{k + 1}"] = time.perf_counter() - t_start
+
+    # Final score with every Gaussian at the finest level.
+    lv_last = _level(img, m, levels[-1][0])
+    prep_all = _prep(g_in, centre, extent)
+    with torch.no_grad():
+        out = _render(prep_all, p, lv_last, cx, cy)
+        iou = _hard_iou(out.alpha, lv_last.hard)
+        _, _, col = _losses(out, lv_last, colour_weight)
+    color_error = float(col)
+
+    # 4. Into the world: metres, +y up, on the ground, camera level looking down -z.
+    with torch.no_grad():
+        R = p.rotation().detach().double()
+        f = float(torch.exp(p.log_f))
+        s_cam = float(torch.exp(p.log_sigma)) / f
+        u, v = float(p.uv[0]) * side, float(p.uv[1]) * side
+        t_cam = torch.tensor([(u - cx) / f, -(v - cy) / f, -1.0], dtype=torch.float64)
+        # x_cam = (s_cam/extent) R x_in + t_cam - (s_cam/extent) R centre
+        a = s_cam / extent
+        b = t_cam - a * (R @ centre)
+        x_cam = a * (g_in.means.double() @ R.T) + b
+        sel = x_cam[sig] if int(sig.sum()) >= 1 else x_cam
+        k_m = object_height / max(float(sel[:, 1].max() - sel[:, 1].min()), 1e-12)
+        x_k = k_m * x_cam
+        sel_k = k_m * sel
+        lo_k, hi_k = sel_k.min(0).values, sel_k.max(0).values
+        y_off = ground_height - (float(lo_k[1]) if on_ground else 0.5 * float(lo_k[1] + hi_k[1]))
+        offset = torch.tensor([-0.5 * float(lo_k[0] + hi_k[0]), y_off, -0.5 * float(lo_k[2] + hi_k[2])],
+                              dtype=torch.float64)
+        means_w = x_k + offset
+        scale = a * k_m
+        translation = k_m * b + offset
+        Rf = R.float()
+        q_R = rotmat_to_quat(Rf[None])[0]
+        quats = _quat_mul(q_R[None].expand(n, 4), F.normalize(g_in.quats, dim=-1))
+        covars = None if g_in.covars is None else (scale ** 2) * (Rf @ g_in.covars @ Rf.T)
+        sh = g_in.sh
+        if sh.shape[1] > 1:
+            try:
+                sh = rotate_sh(sh, Rf)
+            except InputError:
+                log.warning("fit_gaussians_to_photo: %d SH coefficients per channel is above degree 3; "
+                            "view-dependent colour left unrotated", sh.shape[1])
+        out_g = Gaussians(means=means_w.float(), quats=quats, scales=g_in.scales * scale,
+                          opacities=g_in.opacities.clone(), sh=sh.clone(), covars=covars,
+                          object_ids=None if g_in.object_ids is None else g_in.object_ids.clone())
+        dist = float(torch.linalg.vector_norm(offset - (means_w.mean(0))))
+        c2w = torch.eye(4)
+        c2w[:3, 3] = offset.float()
+        camera = Camera(W, H, f, f, cx, cy, c2w, near=max(1e-4, 0.01 * dist), far=max(100.0, 100.0 * dist))
+        overlay = fit_overlay(out_g, camera, img, m)
+
+    ok = iou >= iou_threshold
+    if ok:
+        message = f"Lined up with the photo: IoU {iou:.3f} >= {iou_threshold:.2f}."
+    else:
+        message = (f"Could not line the Gaussians up with the photo: the best fit covers the mask with IoU "
+                   f"{iou:.3f}, below the threshold {iou_threshold:.2f} (see the overlay: mask green, render "
+                   "red). Check that the Gaussians are of the object in this photo and that the mask is that "
+                   "object; give the photo's focal length if it is unusual (telephoto or fisheye); or lower "
+                   "iou_threshold to accept this fit.")
+    result = FitResult(
+        gaussians=out_g, camera=camera, iou=iou, color_error=color_error, rotation=R.float(), scale=scale,
+        translation=translation.float(), focal=f, ok=ok, iou_threshold=iou_threshold, overlay=overlay,
+        message=message, seconds=time.perf_counter() - t_start,
+        candidates=[{"rotation": cands[i]["rotation"], "loss": cands[i]["loss"], "soft_iou": cands[i]["soft_iou"]}
+                    for i in order],
+        info={"contenders": contenders, "timings": timings, "normalise_centre": centre.tolist(), "normalise_extent": extent,
+              "fit_gaussians": sorted(int(q.means.shape[0]) for q in preps.values()), "principal_point": (cx, cy), "focal_fitted": focal is None})
+    log.info("fit_gaussians_to_photo: %s", result.report().replace("\n", " "))
+    if raise_on_failure:
+        result.raise_if_failed()
+    return result
+
+
+def _quat_mul(a: torch.Tensor, b: torch.Tensor) -> torch.Tensor:
+    """Hamilton product of wxyz quaternions (…, 4)."""
+    aw, ax, ay, az = a.unbind(-1)
+    bw, bx, by, bz = b.unbind(-1)
+    return torch.stack([aw * bw - ax * bx - ay * by - az * bz, aw * bx + ax * bw + ay * bz - az * by,
+                        aw * by - ax * bz + ay * bw + az * bx, aw * bz + ax * by - ay * bx + az * bw], -1)
+
+
+def fit_overlay(gaussians: Gaussians, camera: Camera, image: torch.Tensor, mask: torch.Tensor,
+                max_side: int = 512) -> torch.Tensor:
+    """(h, 2w, 3): the render over the (dimmed) photo, beside the silhouettes (mask green, render
+    red, overlap yellow), at most ``max_side`` px high/wide per panel."""
+    from ..render.rasterize import rasterize
+
+    H, W = mask.shape
+    k = min(1.0, float(max_side) / float(max(H, W)))
+    w, h = max(2, int(round(W * k))), max(2, int(round(H * k)))
+    cam = camera.resized(w, h)
+    img = torch.as_tensor(image).float()
+    m = torch.as_tensor(mask).float()
+    if (w, h) != (W, H):
+        img = F.interpolate(img.permute(2, 0, 1)[None], size=(h, w), mode="area")[0].permute(1, 2, 0)
+        m = F.interpolate(m[None, None], size=(h, w), mode="area")[0, 0]
+    with torch.no_grad():
+        out = rasterize(gaussians.detach().to("cpu"), cam)
+    a = out.alpha.clamp(0, 1)[..., None]
+    left = out.rgb.clamp(0, 1) + (1 - a) * 0.5 * img
+    right = torch.stack([a[..., 0], m, torch.zeros_like(m)], -1) * 0.85 + 0.15 * img
+    return torch.cat([left, right], dim=1).clamp(0, 1)
+
+
+__all__ = ["FitError", "FitResult", "canonical_rotations", "fit_gaussians_to_photo", "fit_overlay",
+           "rotate_sh", "rotation_angle_deg", "axis_angle_to_matrix", "DEFAULT_IOU_THRESHOLD"]
