@@ -84,7 +84,10 @@ def worker_init(threads: int, gpu_slots=None, kernel_cache: Optional[str] = None
     set_threads(threads)
     import warp
 
-    warp.config.quiet = True  # no banner from every worker
+    # No start-up banner from every worker (Warp >= 1.10 reads log_level, older versions quiet).
+    warp.config.quiet = True
+    if hasattr(warp, "LOG_WARNING"):
+        warp.config.log_level = warp.LOG_WARNING
     import torch  # noqa: F401 - imported here, once, with the thread settings in place
 
     torch.set_num_threads(max(1, int(threads)))
@@ -134,6 +137,12 @@ def build_inputs(s: dict) -> dict:
     """The generate() arguments of a job's normalised settings (raises InputError on bad values)."""
     from ..types import Material, SimSettings
 
+    from ..errors import InputError
+
+    if not 0 <= s["crf"] <= 51:
+        raise InputError(f"crf must be in [0, 51] (H.264 quality: 18 looks lossless, 23 is x264's default); got {s['crf']}")
+    if not 1 <= s["encode_threads"] <= 64:
+        raise InputError(f"encode_threads must be in [1, 64]; got {s['encode_threads']}")
     conds, ground = _conditions(s)
     params = {k: s[k] for k in ("E", "nu", "density") if s[k] is not None}
     params.update(s["material_params"])
@@ -175,17 +184,40 @@ def _summary_stats(stats: dict) -> dict:
 
 
 def _write_video(path: Path, frames, fps: float, crf: int, threads: int) -> None:
-    """The job's mp4 with a fixed number of encoder threads: x264 splits each frame into one slice
-    per thread and writes its settings (threads included) into the stream, so the bytes of a file
-    encoded with the default (one thread per core) depend on the machine that made it."""
-    import inspect
+    """The job's H.264 mp4 (yuv420p, preset medium, crf as video.write_mp4), made reproducible:
+    the same frames give the same bytes in any process, on any machine.
 
-    from ..video import write_mp4
+    video.write_mp4 (libx264's defaults) does not: encoding the same 80x64 frames again and again in
+    one process gave 2-4 different files (PyAV 18, x264 core 165), from two causes measured here.
+    (1) x264's macroblock-tree rate control (mbtree) gave another file after other encodes had run
+    in the process (it depends on memory the process used before); with mbtree off, the same file
+    every time, at every size tried (80x64 to 640x480). (2) With the automatic thread count x264
+    cuts each frame into one slice per thread and writes the count into the stream, so the bytes
+    follow the machine's cores. So: mbtree off, ``threads`` fixed (default 1)."""
+    from fractions import Fraction
 
-    if "threads" in inspect.signature(write_mp4).parameters:
-        write_mp4(path, frames, fps=fps, crf=crf, threads=threads)
-    else:  # TEMPORARY until video.write_mp4 takes threads
-        write_mp4(path, frames, fps=fps, crf=crf)
+    import av
+    import numpy as np
+
+    from ..fsutil import atomic_output
+    from ..video import _to_uint8_frames
+
+    arr = _to_uint8_frames(frames)
+    _, h, w, _ = arr.shape
+    if h % 2 or w % 2:  # yuv420p needs even sizes: pad with the edge pixels, never crop
+        arr = np.pad(arr, ((0, 0), (0, h % 2), (0, w % 2), (0, 0)), mode="edge")
+    with atomic_output(path, suffix=".tmp.mp4") as tmp:
+        with av.open(str(tmp), mode="w", format="mp4") as container:
+            stream = container.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001))
+            stream.width, stream.height = arr.shape[2], arr.shape[1]
+            stream.pix_fmt = "yuv420p"
+            stream.options = {"crf": str(int(crf)), "preset": "medium", "x264-params": "mbtree=0"}
+            stream.codec_context.thread_count = max(1, int(threads))
+            for frame in arr:
+                for packet in stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")):
+                    container.mux(packet)
+            for packet in stream.encode():
+                container.mux(packet)
 
 
 def run_job(task: dict, out_dir: Path) -> dict:
@@ -247,7 +279,7 @@ def run_job(task: dict, out_dir: Path) -> dict:
 
         for what in ("tracks", "flow"):
             if outputs.get(what):
-                made, why = extras.write(what, res, out_dir)
+                made, why = extras.write(what, res, out_dir, points=outputs.get("tracks_points", 64))
                 files.extend(made)
                 if why:
                     skipped[what] = why

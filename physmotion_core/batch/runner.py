@@ -33,6 +33,7 @@ class BatchSummary:
     retried: int = 0
     interrupted: bool = False
     seconds: float = 0.0
+    startup_s: float = 0.0  # until the executor was ready (workers up, Warp kernels loaded)
     executor: str = ""
     failures: list = field(default_factory=list)
 
@@ -98,7 +99,7 @@ def _wants(spec: BatchSpec, record: dict) -> str:
         return "the spec now asks for the lifted Gaussians (.ply)"
     if o["ply"] == "sequence" and not any(f.startswith("ply/") for f in files):
         return "the spec now asks for a .ply sequence"
-    for what, name in (("tracks", "tracks.json"), ("flow", "flow.npz")):
+    for what, name in (("tracks", "tracks.npz"), ("flow", "flow.npz")):
         if o[what] and name not in files and (spec.comfy is None and extras.available(what)):
             return f"the spec now asks for {what}"
     return ""
@@ -291,6 +292,8 @@ def _run(spec, out, summary, t0, *, ray, comfy, workers, threads, retries, retry
         if spec.comfy is None:
             device = "cuda" if any(j.settings["device"] != "cpu" for j in runnable) else "cpu"
             w = ex.warm(device)
+        summary.startup_s = time.monotonic() - t0
+        if spec.comfy is None:
             log(f"{ex.name}: {ex.capacity} jobs at a time, {getattr(ex, 'threads', 1)} thread(s) each; Warp kernels "
                 f"ready in {w.get('seconds', 0):.2f}s (cache {w.get('kernel_cache')})")
         inflight = 0

@@ -65,7 +65,7 @@ STR_CHOICES = {"ground": ("friction", "slip", "sticky", "none"), "quality": ("dr
 FORCE_KEYS = {"vector", "at", "radius", "window"}
 # Outputs besides the mp4: they do not change the video, so they are not in the hash; a finished job
 # that lacks one the spec now asks for runs again.
-OUTPUT_DEFAULTS = {"ply": "none", "ply_every": 1, "tracks": False, "flow": False}
+OUTPUT_DEFAULTS = {"ply": "none", "ply_every": 1, "tracks": False, "tracks_points": 64, "flow": False}
 COMBINE = ("grid", "zip", "list")
 
 
@@ -372,6 +372,10 @@ def load_spec(path, *, comfy: bool = False) -> BatchSpec:
         raise SpecError(f"outputs.ply must be none, rest (the lifted Gaussians) or sequence (one per frame); "
                         f"got {outputs['ply']!r}")
     outputs["ply_every"] = _int(outputs["ply_every"], "outputs.ply_every")
+    outputs["tracks_points"] = _int(outputs["tracks_points"], "outputs.tracks_points")
+    for key in ("tracks", "flow"):
+        if not isinstance(outputs[key], bool):
+            raise SpecError(f"outputs.{key} must be true or false; got {outputs[key]!r}")
 
     images_axis = batch.get("images")
     combos = _combinations(doc, combine)
