@@ -367,6 +367,8 @@ class Material:
     softening: float = 0.0  # Pa of yield stress lost per unit equivalent plastic strain (plasticine)
     friction_angle: float = 30.0  # degrees (Drucker-Prager sand)
     cohesion: float = 0.0  # Pa of tensile mean stress the sand can carry (Drucker-Prager)
+    yield_surface: str = "triaxial"  # Drucker-Prager cone matched to Mohr-Coulomb in "triaxial" compression
+    #                                  (Klár et al. 2016, PhysGaussian) or in "plane_strain" (weaker; see docs/materials.md)
     viscosity: float = 0.0  # Pa*s (fluid: dynamic viscosity; viscoplastic: Perzyna plastic viscosity)
     bulk_modulus: float = 0.0  # Pa (fluid equation of state)
     gamma: float = 7.0  # fluid equation-of-state exponent (Tait)
@@ -419,6 +421,9 @@ class Material:
         if not (0.0 <= self.friction_angle < 90.0):
             raise InputError(f"Material '{self.name}': friction_angle must be in [0, 90) degrees; "
                              f"got {self.friction_angle}")
+        if self.yield_surface not in ("triaxial", "plane_strain"):
+            raise InputError(f"Material '{self.name}': yield_surface must be 'triaxial' or 'plane_strain'; "
+                             f"got {self.yield_surface!r}")
         if not self.yield_stress > 0:
             raise InputError(f"Material '{self.name}': yield_stress must be positive Pa; got {self.yield_stress}")
         if self.model in ("von_mises", "plasticine", "viscoplastic") and not math.isfinite(self.yield_stress):

@@ -10,8 +10,12 @@ import math
 import numpy as np
 import pytest
 import torch
+import warp as wp
 
+from physmotion_core.errors import InputError
+from physmotion_core.sim import kernels as K
 from physmotion_core.sim import simulate
+from physmotion_core.sim.materials import kernel_params, material_preset
 from physmotion_core.types import (Anchor, Conditions, Force, Gaussians, Gravity, Ground, InitialVelocity,
                                    Material, Region, SimSettings, Torque)
 
@@ -335,3 +339,50 @@ def test_a_rigid_body_spinning_in_place_is_not_at_rest():
     # ω = τ t / I ≈ 0.2 rad/s for this ~2 kg filled cube, 0.0083 rad per frame.
     assert float(np.median(turn[0])) > 0.005
     assert float(np.median(turn[1])) == pytest.approx(float(np.median(turn[0])), rel=0.02)
+
+
+@pytest.mark.parametrize("b", [0.03, 0.08])  # the SVD-free route (small stretch) and the SVD route
+def test_plane_strain_cone_meets_mohr_coulomb_in_plane_strain(b):
+    # Sand's Drucker–Prager cone with yield_surface="plane_strain": a plane-strain trial strain
+    # (Hencky strains a + b, a, a − b, so the out-of-plane deviator is zero) sheared far past yield
+    # is returned to the cone; the stress there has σ2 = (σ1 + σ3)/2 and its Mohr circle touches
+    # Mohr–Coulomb's line at the friction angle: (σ1 − σ3) / −(σ1 + σ3) = sin φ (to float32,
+    # 1e-4). The triaxial cone (the preset's default) mobilises more than φ in plane strain:
+    # sin φ_ps = 3α/√2 with its α, here 1.40× sin φ.
+    a = -0.01
+    rng = np.random.default_rng(1)
+    Q, _ = np.linalg.qr(rng.normal(size=(3, 3)))
+    Q *= np.sign(np.linalg.det(Q))
+    F = Q @ np.diag(np.exp([a + b, a, a - b])) @ Q.T
+    sin_phi = {}
+    for surface in ("plane_strain", "triaxial"):
+        mat = material_preset("sand", yield_surface=surface)
+        out = _map_one(kernel_params(mat), F)
+        s = np.linalg.eigvalsh(out.astype(np.float64))  # ascending: σ3 (most compressive) .. σ1
+        assert s[1] == pytest.approx(0.5 * (s[0] + s[2]), abs=1e-4 * abs(s).max())
+        sin_phi[surface] = (s[2] - s[0]) / -(s[2] + s[0])
+    phi = math.sin(math.radians(material_preset("sand").friction_angle))
+    assert sin_phi["plane_strain"] == pytest.approx(phi, rel=1e-4)
+    t = math.sqrt(2 / 3) * 2 * phi / (3 - phi)
+    assert sin_phi["triaxial"] == pytest.approx(3 * t / math.sqrt(2), rel=1e-4)
+    with pytest.raises(InputError, match="yield_surface must be"):
+        material_preset("sand", yield_surface="cone")
+
+
+
+@wp.kernel
+def _map_kernel(F: wp.array(dtype=wp.mat33), mat: K.MaterialParams, rot: wp.array(dtype=wp.quat),
+                plastic: wp.array(dtype=float), Fout: wp.array(dtype=wp.mat33), tau: wp.array(dtype=wp.mat33)):
+    K.update_material(mat, F[0], wp.mat33(0.0), rot[0], 0.0, 1.0e-4, 0, rot, plastic, Fout, tau)
+
+
+def _map_one(params, F):
+    """update_material on one deformation gradient (C = 0, state 0): the Kirchhoff stress."""
+    dev = "cpu"
+    Fw = wp.array(np.asarray(F, np.float32).reshape(1, 3, 3), dtype=wp.mat33, device=dev)
+    rot = wp.array(np.array([[0, 0, 0, 1]], np.float32), dtype=wp.quat, device=dev)
+    plastic = wp.zeros(1, dtype=float, device=dev)
+    Fout = wp.zeros(1, dtype=wp.mat33, device=dev)
+    tau = wp.zeros(1, dtype=wp.mat33, device=dev)
+    wp.launch(_map_kernel, dim=1, inputs=[Fw, params, rot, plastic, Fout, tau], device=dev)
+    return tau.numpy()[0]

@@ -89,7 +89,14 @@ def kernel_params(mat: Material):
     p.hardening = mat.hardening
     p.softening = mat.softening
     s = math.sin(math.radians(mat.friction_angle))
-    p.dp_alpha = math.sqrt(2.0 / 3.0) * 2.0 * s / (3.0 - s)
+    # The cone |dev τ| <= α (−tr τ). Matched to Mohr–Coulomb in triaxial compression (Klár et al. 2016):
+    # α = √(2/3) 2 sinφ / (3 − sinφ). In plane strain with the mapping's volume-preserving flow the
+    # out-of-plane deviatoric stress vanishes at yield, so √J2 = (σ1 − σ3)/2 and tr τ / 3 = (σ1 + σ3)/2,
+    # and Mohr–Coulomb's (σ1 − σ3)/2 = −(σ1 + σ3)/2 · sinφ gives α = √2 sinφ / 3 (0.71× the former at 32°).
+    if mat.yield_surface == "plane_strain":
+        p.dp_alpha = math.sqrt(2.0) * s / 3.0
+    else:
+        p.dp_alpha = math.sqrt(2.0 / 3.0) * 2.0 * s / (3.0 - s)
     p.cohesion_tr = 3.0 * mat.cohesion / (3.0 * mat.lam + 2.0 * mat.mu)
     p.viscosity = mat.viscosity
     p.bulk = mat.bulk_modulus
@@ -103,9 +110,11 @@ def kernel_params(mat: Material):
 
 
 def parse_overrides(text: str) -> dict:
-    """Parse "key=value, key=value" material overrides (e.g. "yield_stress=1e5, friction_angle=35")."""
-    out: dict[str, float] = {}
+    """Parse "key=value, key=value" material overrides (e.g. "yield_stress=1e5, friction_angle=35",
+    "yield_surface=plane_strain")."""
+    out: dict[str, object] = {}
     fields = {f.name for f in dataclasses.fields(Material)} - {"name", "model"}
+    words = {"yield_surface"}  # the one override that is a word, not a number
     for item in (text or "").replace(";", ",").replace("\n", ",").split(","):
         item = item.strip()
         if not item:
@@ -115,6 +124,9 @@ def parse_overrides(text: str) -> dict:
         key, value = (s.strip() for s in item.split("=", 1))
         if key not in fields:
             raise InputError(f"Unknown material parameter '{key}'; valid: {', '.join(sorted(fields))}")
+        if key in words:
+            out[key] = value
+            continue
         try:
             out[key] = float(value)
         except ValueError:
