@@ -6,7 +6,9 @@ The same kernels run on ``cpu`` and ``cuda``. One substep is:
   grid_update  grid velocities, gravity, anchors, ground and wall contact (sticky / slip / Coulomb)
   g2p          grid -> particles: velocity, affine C, position, F = (I + dt C) F, then the
                material's return mapping (plasticity) and the Kirchhoff stress for the next p2g
-  rigid_*      for rigid objects: project their particles' velocities onto a rigid motion
+  rigid_*      for rigid objects: the body's momenta take the grid's exchange, the forces and the
+               contacts; the body moves (exact free rotation, gravity at the half step) and places
+               its particles on its rigid motion
 
 Computing the stress at the end of g2p, right after the return mapping, means a plastic model does
 one SVD per substep (the mapping's) instead of two, and elastic models skip the mapping entirely.

@@ -422,10 +422,9 @@ class MPMSolver:
             m = mass[sel].astype(np.float64)
             c = (x[sel] * m[:, None]).sum(0) / m.sum()
             r = x[sel] - c
-            # Point-mass inertia: the body's spin is measured each substep from its particles'
-            # velocities as Σ r × m v, which is exactly I_points ω for a rigid motion, so the same
-            # I converts it back without drift. (It differs from the solid's by ~(s/L)², s the
-            # particle spacing and L the body's size.)
+            # Point-mass inertia: the angular momentum the particles show, Σ r × m v, is exactly
+            # I_points ω for a rigid motion, so the body's L and what a viewer measures agree.
+            # (It differs from the solid's by ~(s/L)², s the particle spacing and L the body's size.)
             inertia[b] = np.eye(3) * (m * (r * r).sum(1)).sum() - (r.T * m) @ r
             centres[b], masses[b] = c, m.sum()
             offsets[sel] = r
