@@ -70,3 +70,11 @@ TEMPLATE_MODEL_FILES = {
     "VAELoader.vae_name": ["flux2-vae.safetensors", "triposplat_vae.safetensors"],
     "UNETLoader.unet_name": ["triposplat.safetensors"],
 }
+# The Wan templates (README "Where weights go"): Comfy-Org/Wan_2.1_ComfyUI_repackaged's text encoder, VAE,
+# CLIP vision and VACE 14B files, and the ATI 14B model (Kijai/WanVideo_comfy, as bytedance/ATI links it).
+for _key, _files in {"UNETLoader.unet_name": ["Wan2_1-I2V-ATI-14B_fp8_e4m3fn.safetensors",
+                                              "wan2.1_vace_14B_fp16.safetensors"],
+                     "CLIPLoader.clip_name": ["umt5_xxl_fp8_e4m3fn_scaled.safetensors"],
+                     "VAELoader.vae_name": ["wan_2.1_vae.safetensors"],
+                     "CLIPVisionLoader.clip_name": ["clip_vision_h.safetensors"]}.items():
+    TEMPLATE_MODEL_FILES.setdefault(_key, []).extend(_files)

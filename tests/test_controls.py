@@ -434,3 +434,38 @@ def test_nodes_run_report_progress_and_cancel(tmp_path, monkeypatch):
     with pytest.raises(InterruptProcessingException):
         classes["PhysMotionExactFlow"]().run(**common, direction="forward", max_flow=0.0, filename_prefix="x")
     assert state.checks == state.cancel_after + 1
+
+
+# ---------------------------------------------------------------------------------------------
+# Templates
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name, control, wan", [("wan_tracks_push_a_jelly", "PhysMotionPointTracks", "WanTrackToVideo"),
+                                               ("wan_vace_torque_spin", "PhysMotionControlVideos", "WanVaceToVideo")])
+def test_wan_templates_validate_and_are_wired_to_the_model_clock(name, control, wan):
+    from comfy_harness import ROOT
+    from comfy_schemas import TEMPLATE_MODEL_FILES, all_schemas
+
+    from physmotion_core.workflow import validate_prompt_against_schemas
+
+    prompt = json.loads((ROOT / "example_workflows" / "api" / f"{name}.json").read_text())
+    assert validate_prompt_against_schemas(prompt, all_schemas(), TEMPLATE_MODEL_FILES) == []
+    ids = {n["class_type"]: nid for nid, n in prompt.items()}
+    ctl, model = prompt[ids[control]]["inputs"], prompt[ids[wan]]["inputs"]
+    outs = dict(zip(all_schemas()[control]["output_name"], range(99)))
+    for key in ("width", "height", "length"):  # the Wan node takes the size and length the controls were made at
+        assert model[key] == [ids[control], outs[key]]
+    sim = prompt[ids["PhysMotionMPMSimulate"]]["inputs"]
+    # The clip the simulation fills at 16 fps, so no frame repeats the final state.
+    assert ctl["fps"] == C.WAN_FPS and ctl["length"] == C.wan_length(sim["frames"], sim["fps"], ctl["fps"])
+    C.check_size(ctl["width"], ctl["height"])
+    if wan == "WanTrackToVideo":
+        assert model["tracks"] == [ids[control], outs["tracks"]]
+        C.wan_sample_frames(ctl["length"])  # a length the node's track resampling can take
+        assert prompt[ids["CreateVideo"]]["inputs"]["fps"] == C.WAN_FPS
+    else:
+        assert model["control_video"] == [ids[control], outs["vace_control"]]
+        assert model["control_masks"] == [ids[control], outs["mask"]]
+        trim = prompt[ids["TrimVideoLatent"]]["inputs"]
+        assert trim["trim_amount"] == [ids[wan], 3]  # VACE's reference frame is cut off before decoding
