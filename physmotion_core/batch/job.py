@@ -82,6 +82,9 @@ def worker_init(threads: int, gpu_slots=None, kernel_cache: Optional[str] = None
     if gpu_slots is not None:
         os.environ["CUDA_VISIBLE_DEVICES"] = str(gpu_slots.get())
     set_threads(threads)
+    import logging
+
+    logging.getLogger("physmotion").addHandler(logging.NullHandler())  # warnings go to the job records
     import warp
 
     # No start-up banner from every worker (Warp >= 1.10 reads log_level, older versions quiet).
@@ -232,6 +235,14 @@ def run_job(task: dict, out_dir: Path) -> dict:
     marker = out_dir / ".running"
     if task.get("threads"):
         set_threads(task["threads"])
+    # The library's warnings (a photo scaled down, a clamp) go into the job's record, not the console.
+    import logging
+
+    caught: list = []
+    catcher = logging.Handler(logging.WARNING)
+    catcher.emit = lambda rec: caught.append(f"{rec.levelname} {rec.name}: {rec.getMessage()}")
+    lib_log = logging.getLogger("physmotion")
+    lib_log.addHandler(catcher)
     try:
         out_dir.mkdir(parents=True, exist_ok=True)
         marker.write_text(f"{os.getpid()} {task['attempt']}")
@@ -264,6 +275,7 @@ def run_job(task: dict, out_dir: Path) -> dict:
         res.timings["encode_s"] = time.perf_counter() - t_enc
         files = [VIDEO]
         outputs = task.get("outputs", {})
+        t_out = time.perf_counter()
         if outputs.get("ply") == "rest":
             from ..ply import write_ply
 
@@ -283,6 +295,8 @@ def run_job(task: dict, out_dir: Path) -> dict:
                 files.extend(made)
                 if why:
                     skipped[what] = why
+        if len(files) > 1:
+            res.timings["outputs_s"] = time.perf_counter() - t_out  # .ply, tracks, flow
         result.update(status="done", files={f: {"sha256": sha256_file(out_dir / f), "bytes": (out_dir / f).stat().st_size}
                                             for f in files},
                       stats=_summary_stats(res.sim.stats), energy=res.sim.stats.get("energy"), stages=res.stages,
@@ -291,10 +305,13 @@ def run_job(task: dict, out_dir: Path) -> dict:
     except Exception as exc:  # noqa: BLE001 - a failed job is a result, not a crash
         result["error"] = error_info(exc)
     finally:
+        lib_log.removeHandler(catcher)
         try:
             marker.unlink()
         except OSError:
             pass
+    if caught:
+        result["warnings"] = caught[:50]
     result["versions"] = _versions()
     result["physics_version"] = physics_version()
     result["job_s"] = round(time.perf_counter() - t_start, 4)

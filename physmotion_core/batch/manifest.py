@@ -75,7 +75,7 @@ def manifest_row(job, record: Optional[dict], out: Path) -> dict:
     if record is None:
         return row
     row.update({k: record.get(k) for k in ("status", "error", "attempts", "physics_version", "executor", "host",
-                                           "stats", "stages", "timings", "job_s", "frames", "size", "skipped",
+                                           "stats", "stages", "timings", "job_s", "frames", "size", "skipped", "warnings",
                                            "finished_at", "versions")})
     files = record.get("files") or {}
     video = record.get("video") if record.get("status") == "done" else None
