@@ -367,6 +367,9 @@ def test_plane_strain_cone_meets_mohr_coulomb_in_plane_strain(b):
     assert sin_phi["triaxial"] == pytest.approx(3 * t / math.sqrt(2), rel=1e-4)
     with pytest.raises(InputError, match="yield_surface must be"):
         material_preset("sand", yield_surface="cone")
+    from physmotion_core.sim.materials import parse_overrides  # the node's key=value overrides
+    assert parse_overrides("yield_surface=plane_strain, friction_angle=30") == {
+        "yield_surface": "plane_strain", "friction_angle": 30.0}
 
 
 
