@@ -10,7 +10,9 @@ what it saw:
 * no template has a missing node, and the frontend's own graphToPrompt gives exactly the API twin;
 * a drag on the photo in the Force node sets u, v at the press point, region "image point" and
   (fx, fy) from the arrow; on the Torque node a drag sets the trackball axis, Shift-drag the twist;
-* the values survive saving and reloading the workflow, and are what gets queued.
+* the values survive saving and reloading the workflow, and are what gets queued;
+* the picker is wired by the frontend's events (nodeCreated, no timer): a reload releases the old
+  node's picker and gives the new node its own.
 """
 
 from __future__ import annotations
@@ -88,6 +90,8 @@ def _tolerance(r) -> float:
 
 def _persisted(r):
     assert r["reloaded"] == r["widgets"], "values changed across save/load"
+    # Reloading removed the old node: its picker let go (no timer anywhere); the new node has its own.
+    assert r["wiring"] == {"old_removed": True, "new_live": True, "timer": False}, r["wiring"]
     for name in ("u", "v", "fx", "fy", "tx", "ty", "tz", "region"):
         if name in r["widgets"]:
             assert r["prompt_inputs"][name] == r["widgets"][name], name

@@ -7,6 +7,12 @@
 //
 // The image comes from the nearest LoadImage (or any node showing an image) linked to the node,
 // following the graph in both directions (Force -> Simulate -> Lift -> LoadImage).
+//
+// Wiring: the frontend's `nodeCreated` hook gives each Force/Torque node its picker. Nothing polls:
+// the picker refreshes when one of the node's widgets changes (their callbacks, onWidgetChanged),
+// its links change (onConnectionsChange), a workflow is loaded (onConfigure, afterConfigureGraph),
+// the graph changes elsewhere (the api's `graphChanged` and `executed` events, and a cheap check on
+// each draw of the graph canvas), or its canvas resizes (ResizeObserver); all released on removal.
 
 import { app } from "../../scripts/app.js";
 import { api } from "../../scripts/api.js";
@@ -139,12 +145,20 @@ class Picker {
     this.canvas = canvas;
     this.hint = hint;
 
-    canvas.addEventListener("pointerdown", (e) => this.onDown(e));
-    canvas.addEventListener("pointermove", (e) => this.onMove(e));
-    canvas.addEventListener("pointerup", (e) => this.onUp(e));
-    canvas.addEventListener("pointercancel", () => { this.drag = null; this.draw(); });
+    // Everything this picker listens to is released at once on removal.
+    this.listeners = new AbortController();
+    const opts = { signal: this.listeners.signal };
+    canvas.addEventListener("pointerdown", (e) => this.onDown(e), opts);
+    canvas.addEventListener("pointermove", (e) => this.onMove(e), opts);
+    canvas.addEventListener("pointerup", (e) => this.onUp(e), opts);
+    canvas.addEventListener("pointercancel", () => { this.drag = null; this.draw(); }, opts);
 
-    this.timer = setInterval(() => this.poll(), 300);
+    // No timer: the picker refreshes when something it shows may have changed (see attachPicker
+    // and installSharedTriggers); a resize of its canvas is one of those things.
+    this.frame = null;
+    this.removed = false;
+    this.resizeObserver = typeof ResizeObserver === "function" ? new ResizeObserver(() => this.invalidate()) : null;
+    this.resizeObserver?.observe(canvas);
   }
 
   get scale() {
@@ -250,8 +264,17 @@ class Picker {
     node.graph?.setDirtyCanvas?.(true, true);
   }
 
-  poll() {
-    if (!this.node.graph) return;
+  /** Refresh on the next frame (many triggers in one frame give one refresh). */
+  invalidate() {
+    if (this.removed || this.frame != null) return;
+    const run = () => { this.frame = null; this.refresh(); };
+    this.frame = typeof requestAnimationFrame === "function" ? requestAnimationFrame(run) : setTimeout(run, 0);
+  }
+
+  /** Follow the graph to the photo (loading it if it changed) and redraw if anything shown changed.
+   *  Cheap when nothing changed: a walk over the few linked nodes and one string compare. */
+  refresh() {
+    if (this.removed || !this.node.graph) return;
     const url = sourceImageURL(this.node);
     if (url !== this.imageURL) {
       this.imageURL = url;
@@ -265,7 +288,7 @@ class Picker {
       }
     }
     const v = this.values();
-    const key = JSON.stringify([v, this.scale, this.canvas.clientWidth, this.canvas.clientHeight]);
+    const key = JSON.stringify([url, v, this.scale, this.canvas.clientWidth, this.canvas.clientHeight]);
     if (key !== this.stateKey) {
       this.stateKey = key;
       this.draw();
@@ -345,36 +368,99 @@ class Picker {
   }
 
   remove() {
-    clearInterval(this.timer);
+    if (this.removed) return;
+    this.removed = true;
+    if (this.frame != null) {
+      if (typeof cancelAnimationFrame === "function") cancelAnimationFrame(this.frame);
+      clearTimeout(this.frame);
+      this.frame = null;
+    }
+    this.resizeObserver?.disconnect();
+    this.listeners.abort();
+    livePickers.delete(this);
+    this.image = null;
   }
+}
+
+/** Every picker on the page; the graph-wide triggers refresh each of them. */
+const livePickers = new Set();
+
+/** obj[name] = its old value (if any) followed by `after`, same arguments and return value. */
+function chain(obj, name, after) {
+  const prev = obj[name];
+  obj[name] = function (...args) {
+    const r = prev?.apply(this, args);
+    after.apply(this, args);
+    return r;
+  };
+}
+
+let sharedTriggersInstalled = false;
+
+/** Once per page: changes made elsewhere in the graph (another node's widget, a link upstream, a
+ *  node's new preview image) refresh every picker. The frontend dispatches `graphChanged` on the api
+ *  when the serialised graph differs after a user action, and `executed` when a node shows an output;
+ *  besides, each draw of the graph canvas (it draws when something on it changed) runs the cheap
+ *  refresh check of every picker, which also covers changes that raise no event. */
+function installSharedTriggers() {
+  if (sharedTriggersInstalled) return;
+  const canvas = app.canvas;
+  if (!canvas) return; // too early: the extension's setup() installs them
+  sharedTriggersInstalled = true;
+  const invalidateAll = () => { for (const p of livePickers) p.invalidate(); };
+  api.addEventListener?.("graphChanged", invalidateAll);
+  api.addEventListener?.("executed", invalidateAll);
+  chain(canvas, "onDrawForeground", () => { for (const p of livePickers) p.refresh(); });
+}
+
+/** The ComfyUI class of a node as the frontend creates it (node.type is set only after the
+ *  constructor, where nodeCreated runs). */
+function comfyClassOf(node) {
+  return node.comfyClass ?? node.constructor?.comfyClass ?? node.constructor?.nodeData?.name ?? node.type;
+}
+
+/** Give a Force/Torque node its picker: a DOM widget, and the node's own events wired to refresh it. */
+function attachPicker(node, spec) {
+  const picker = new Picker(node, spec);
+  // The node's own inputs: each widget's callback runs when the user (or the picker) sets it.
+  for (const w of node.widgets ?? []) chain(w, "callback", () => picker.invalidate());
+  const w = node.addDOMWidget("physmotion_picker", "physmotion_picker", picker.el, {
+    serialize: false,
+    hideOnZoom: false,
+    getMinHeight: () => PICKER_HEIGHT,
+    getHeight: () => PICKER_HEIGHT,
+  });
+  w.serialize = false; // not a backend input: never part of widgets_values or the prompt
+  w.physmotionPicker = picker;
+  node.physmotionPicker = picker;
+  const invalidate = () => picker.invalidate();
+  chain(node, "onWidgetChanged", invalidate); // litegraph: a widget of this node changed on the canvas
+  chain(node, "onConnectionsChange", invalidate); // a link to or from this node made or removed
+  chain(node, "onPropertyChanged", invalidate); // the picker's scale (Properties panel)
+  chain(node, "onConfigure", invalidate); // widget values loaded from a workflow
+  chain(node, "onAdded", invalidate); // put on a graph
+  chain(node, "onRemoved", () => picker.remove());
+  chain(w, "onRemove", () => picker.remove());
+  livePickers.add(picker);
+  installSharedTriggers();
+  const size = node.computeSize?.();
+  if (size) node.setSize?.([Math.max(node.size?.[0] ?? 0, 340), Math.max(node.size?.[1] ?? 0, size[1])]);
+  return picker;
 }
 
 app.registerExtension({
   name: "PhysMotion.ForceTorquePicker",
-  async beforeRegisterNodeDef(nodeType, nodeData) {
-    const spec = PICKER_NODES[nodeData?.name];
-    if (!spec) return;
-    const onNodeCreated = nodeType.prototype.onNodeCreated;
-    nodeType.prototype.onNodeCreated = function () {
-      const r = onNodeCreated?.apply(this, arguments);
-      const picker = new Picker(this, spec);
-      const w = this.addDOMWidget("physmotion_picker", "physmotion_picker", picker.el, {
-        serialize: false,
-        hideOnZoom: false,
-        getMinHeight: () => PICKER_HEIGHT,
-        getHeight: () => PICKER_HEIGHT,
-      });
-      w.serialize = false; // not a backend input: never part of widgets_values or the prompt
-      w.physmotionPicker = picker;
-      const onRemove = w.onRemove;
-      w.onRemove = function () {
-        picker.remove();
-        return onRemove?.apply(this, arguments);
-      };
-      this.physmotionPicker = picker;
-      const size = this.computeSize?.();
-      if (size) this.setSize([Math.max(this.size[0], 340), Math.max(this.size[1], size[1])]);
-      return r;
-    };
+  setup() {
+    installSharedTriggers();
+  },
+  // Runs after the constructor of every node the frontend creates (a new node, a pasted one, or one
+  // loaded from a workflow, before its saved values are applied: onConfigure refreshes then).
+  nodeCreated(node) {
+    const spec = PICKER_NODES[comfyClassOf(node)];
+    if (spec) attachPicker(node, spec);
+  },
+  // A workflow was loaded: its nodes are configured and linked now.
+  afterConfigureGraph() {
+    for (const p of livePickers) p.invalidate();
   },
 });

@@ -132,8 +132,13 @@ try {
       await window.app.loadGraphData(saved, true, false, "reloaded", { showMissingNodesDialog: false });
       const reloaded = window.app.graph._nodes.find((x) => x.id === n.id);
       const prompt = (await window.app.graphToPrompt()).output;
+      // The picker is wired by events, not a timer: loading a workflow removes the old node, which
+      // must release its picker, and the new node gets one of its own.
+      const wiring = { old_removed: n.physmotionPicker.removed === true,
+                       new_live: !!reloaded.physmotionPicker && reloaded.physmotionPicker.removed === false,
+                       timer: "timer" in n.physmotionPicker || "timer" in (reloaded.physmotionPicker ?? {}) };
       return { widgets, saved_widgets_values: saved.nodes.find((x) => x.id === n.id).widgets_values,
-               reloaded: values(reloaded), prompt_inputs: prompt[String(n.id)].inputs };
+               reloaded: values(reloaded), prompt_inputs: prompt[String(n.id)].inputs, wiring };
     });
     return { before: geo.widgets, geometry: geo, from, to, modifiers, ...after };
   }
