@@ -9,12 +9,11 @@ from ._util import CATEGORY, first_image, first_mask, log, preview_images, previ
 def fit_levels(max_render_side: int) -> tuple:
     """The coarse-to-fine schedule ((max side px, Adam steps), ...) ending at ``max_render_side``."""
     side = int(max_render_side)
-    levels = [(min(48, side), 30)]
-    if side > 72:
-        levels.append((min(96, side), 30))
-    if side > 96:
-        levels.append((side, 20))
-    return tuple(levels)
+    if side <= 48:
+        return ((side, 40),)
+    if side <= 96:
+        return ((48, 30), (side, 30))
+    return ((48, 30), (96, 30), (side, 20))
 
 
 class PhysMotionFitGaussiansToPhoto:

@@ -248,10 +248,10 @@ def test_node_fits_with_progress_and_honours_focal_and_principal_point(lifted, m
     R = canonical_rotations(4)[7]
     moved = _similarity(lift.gaussians, R, 3.0, torch.tensor([1.0, 2.0, -3.0]))
     f = float(lift.camera.fx)
-    out = _node().run(moved, torch.from_numpy(img)[None], torch.from_numpy(m)[None], 0.3, 0.9, True, 96, 0,
+    out = _node().run(moved, torch.from_numpy(img)[None], torch.from_numpy(m)[None], 0.3, 0.9, True, 64, 0,
                       focal_px=f, principal_x=40.0, principal_y=-1.0)
     g, cam, overlay, iou, text = out["result"]
-    assert isinstance(g, Gaussians) and iou >= 0.95 and f"IoU {iou:.3f}" in text
+    assert isinstance(g, Gaussians) and iou >= 0.93 and f"IoU {iou:.3f}" in text
     assert cam.fx == pytest.approx(f) and cam.fy == pytest.approx(f) and (cam.cx, cam.cy) == (40.0, 48.0)
     assert overlay.shape == (1, 96, 160, 3)
     assert float(g.means[:, 1].min()) == pytest.approx(0.0, abs=1e-6)

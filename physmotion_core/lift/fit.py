@@ -52,8 +52,12 @@ DEFAULT_FOV_Y = 40.0  # degrees; the silhouette lift's default, between a phone'
 FOV_RANGE = (8.0, 110.0)  # the focal length is kept within these vertical fields of view (degrees)
 DEFAULT_IOU_THRESHOLD = 0.85  # see docs/lift.md, "Fitting any Gaussians to the photo"
 SIGNIFICANT_OPACITY = 0.05
-COARSE_SIDE = 40
-MIN_LEVEL_GAUSSIANS = 600  # a level renders about one Gaussian per 3 of its pixels, at least this many
+COARSE_SIDE = 32
+# A coarse level renders a seeded random subset: about 2 Gaussians per pixel of the mask there (at
+# least this many), which keeps a surface closed at that resolution. The splats are NOT widened to
+# make up for the ones left out: any widening (in 3D or on screen) fattens thin parts by a pixel or
+# so, which at a coarse level is enough to prefer a wrong orientation of a thin bar.
+MIN_LEVEL_GAUSSIANS = 600
 MIN_MASK_PIXELS = 16
 
 
@@ -231,16 +235,21 @@ class _Level:
 
     width: int
     height: int
-    factor: float  # this level's pixels per photo pixel
+    kx: float  # this level's pixels per photo pixel, across
+    ky: float  # ... and down
     mask: torch.Tensor  # (h, w) soft, area-averaged
     hard: torch.Tensor  # (h, w) bool, mask > 0.5
     target: torch.Tensor  # (h, w, 3) photo colours (premultiplied by the soft mask)
     inside: torch.Tensor  # (h, w) bool: pixels where colour is compared
 
 
-def _level(img: torch.Tensor, m: torch.Tensor, max_side: int) -> _Level:
+def _level(img: torch.Tensor, m: torch.Tensor, side: int, object_side: float) -> _Level:
+    """The photo scaled so that the object's box (geometric mean of its sides: ``object_side``
+    photo px) is about ``side`` px, never above the photo's own size. Sizing by the object, not
+    the photo, keeps a thin bar or a small object in a wide frame resolvable at the coarse levels;
+    the rasterizer only works on tiles the object touches, so the empty rest costs little."""
     H, W = m.shape
-    factor = min(1.0, float(max_side) / float(max(H, W)))
+    factor = min(1.0, float(side) / max(float(object_side), 1.0))
     w, h = max(8, int(round(W * factor))), max(8, int(round(H * factor)))
     if (w, h) == (W, H):
         ms, tg = m.clone(), img * m[..., None]
@@ -251,7 +260,7 @@ def _level(img: torch.Tensor, m: torch.Tensor, max_side: int) -> _Level:
     inside = ms > 0.99
     if int(inside.sum()) < 4:
         inside = ms > 0.5
-    return _Level(width=w, height=h, factor=w / W, mask=ms, hard=ms > 0.5, target=tg, inside=inside)
+    return _Level(width=w, height=h, kx=w / W, ky=h / H, mask=ms, hard=ms > 0.5, target=tg, inside=inside)
 
 
 @dataclass
@@ -265,26 +274,24 @@ class _Prep:
     significant: torch.Tensor  # (N,) bool
 
 
-def _prep(g: Gaussians, centre: torch.Tensor, extent: float, index: Optional[torch.Tensor] = None,
-          inflate: float = 1.0) -> _Prep:
+def _prep(g: Gaussians, centre: torch.Tensor, extent: float, index: Optional[torch.Tensor] = None) -> _Prep:
     if index is not None:
         g = g.subset(index)
     means = (g.means.double() - centre) / extent
-    cov = g.covariance().double() / (extent * extent) * (inflate * inflate)
+    cov = g.covariance().double() / (extent * extent)
     return _Prep(means=means.float(), cov=cov.float(), opacities=g.opacities.float(),
                  rgb=g.rgb.float().clamp(0.0, 1.0), significant=g.opacities >= SIGNIFICANT_OPACITY)
 
 
-def _subset(n: int, keep: int, opacities: torch.Tensor, seed: int) -> tuple[Optional[torch.Tensor], float]:
-    """A seeded random subset of at most ``keep`` (preferring significant Gaussians) and the factor
-    that widens each kept splat to cover the area of the ones left out (a surface: √(n/keep))."""
+def _subset(n: int, keep: int, opacities: torch.Tensor, seed: int) -> Optional[torch.Tensor]:
+    """A seeded random subset of at most ``keep`` Gaussians (the significant ones when there are
+    enough), sorted; None when all are kept."""
     if n <= keep:
-        return None, 1.0
+        return None
     gen = torch.Generator().manual_seed(int(seed))
     sig = torch.nonzero(opacities >= SIGNIFICANT_OPACITY)[:, 0]
     pool = sig if sig.numel() >= keep else torch.arange(n)
-    idx = pool[torch.randperm(pool.numel(), generator=gen)[:keep]]
-    return torch.sort(idx).values, math.sqrt(pool.numel() / keep)
+    return torch.sort(pool[torch.randperm(pool.numel(), generator=gen)[:keep]]).values
 
 
 class _Params:
@@ -333,9 +340,9 @@ def _render(prep: _Prep, p: _Params, lv: _Level, cx: float, cy: float, colors: b
     n = means.shape[0]
     g = Gaussians(means=means, quats=torch.zeros(n, 4).index_fill_(1, torch.tensor([0]), 1.0),
                   scales=torch.ones(n, 3), opacities=prep.opacities, sh=torch.zeros(n, 1, 3), covars=cov)
-    k = lv.factor
-    fl = float(f.detach()) * k
-    cam = Camera(lv.width, lv.height, fl, fl, cx * k, cy * k, torch.eye(4), near=1e-3, far=1e3)
+    fl = float(f.detach())
+    cam = Camera(lv.width, lv.height, fl * lv.kx, fl * lv.ky, cx * lv.kx, cy * lv.ky, torch.eye(4), near=1e-3,
+                 far=1e3)
     if f.requires_grad:
         # The rasterizer takes the focal as a number. Scaling camera-frame x and y by ρ (at fixed
         # z; covariances by diag(ρ, ρ, 1) on both sides) gives exactly the image of focal ρ·f, so
@@ -378,7 +385,7 @@ def _align(prep: _Prep, p: _Params, lv: _Level, cx: float, cy: float, m_area: fl
             p.log_sigma += 0.5 * math.log(m_area / area)
             # Centroid offset (level pixels -> photo pixels -> fraction of the longer side); the
             # centroid scales about the object's centre with the size change, close enough here.
-            p.uv += (m_centroid - c) / lv.factor / p.side
+            p.uv += (m_centroid - c) / torch.tensor([lv.kx, lv.ky]) / p.side
 
 
 # ----------------------------------------------------------------------------------------------
@@ -424,8 +431,9 @@ def fit_gaussians_to_photo(
         keep: coarse candidates refined before the best one is carried on.
         levels: (max image side in px, Adam steps) of each refinement level, coarse to fine; the
             candidates compete at the first level (``screen_steps`` steps each).
-        max_fit_gaussians: at most this many Gaussians are rendered while fitting (a seeded
-            random subset, splats widened to cover the rest); the reported IoU uses all of them.
+        max_fit_gaussians: at most this many Gaussians are rendered at the finest level (a
+            seeded random subset, coarser levels fewer); the reported
+            IoU uses all of them.
         lr: Adam learning rate (radians for the rotation, log units for size and focal).
         seed: seeds the subsets.
         raise_on_failure: raise ``FitError`` (carrying the result) instead of returning a result
@@ -480,16 +488,20 @@ def fit_gaussians_to_photo(
     n = len(g_in)
     preps: dict = {}
 
-    def prep_for(lv: _Level) -> _Prep:
-        budget = min(int(max_fit_gaussians), max(MIN_LEVEL_GAUSSIANS, lv.width * lv.height // 3))
+    def prep_for(lv: _Level, last: bool = False, per_pixel: float = 2.0) -> _Prep:
+        budget = int(max_fit_gaussians)
+        if not last:  # the finest level renders up to max_fit_gaussians, coarser ones fewer
+            budget = min(budget, max(MIN_LEVEL_GAUSSIANS, int(per_pixel * float(lv.mask.sum()))))
         if budget not in preps:
-            idx, infl = _subset(n, budget, g_in.opacities, seed + budget)
-            preps[budget] = _prep(g_in, centre, extent, idx, infl)
+            preps[budget] = _prep(g_in, centre, extent, _subset(n, budget, g_in.opacities, seed + budget))
         return preps[budget]
 
     levels = [(int(s), int(k)) for s, k in levels]
-    lv0 = _level(img, m, min(COARSE_SIDE, levels[0][0]))
-    prep_c = prep_for(lv0)
+    box_rows = torch.nonzero(m.amax(dim=1) > 0.5)[:, 0]
+    box_cols = torch.nonzero(m.amax(dim=0) > 0.5)[:, 0]
+    object_side = math.sqrt(float(box_rows[-1] - box_rows[0] + 1) * float(box_cols[-1] - box_cols[0] + 1))
+    lv0 = _level(img, m, min(COARSE_SIDE, levels[0][0]), object_side)
+    prep_c = prep_for(lv0, per_pixel=1.0)  # ranking candidates needs less than refining them
     m_area = float(lv0.mask.sum())
     ys, xs = torch.meshgrid(torch.arange(lv0.height) + 0.5, torch.arange(lv0.width) + 0.5, indexing="ij")
     m_centroid = torch.stack([(lv0.mask * xs).sum() / m_area, (lv0.mask * ys).sum() / m_area])
@@ -512,7 +524,7 @@ def fit_gaussians_to_photo(
         p_rot = prep_c.means @ R0.T
         ph = float(torch.quantile(p_rot[:, 1], 0.98) - torch.quantile(p_rot[:, 1], 0.02))
         sigma = mask_h / max(ph, 1e-3)
-        p = _Params(R0, math.log(sigma), (float(m_centroid[0]) / lv0.factor, float(m_centroid[1]) / lv0.factor),
+        p = _Params(R0, math.log(sigma), (float(m_centroid[0]) / lv0.kx, float(m_centroid[1]) / lv0.ky),
                     math.log(f0), side)
         _align(prep_c, p, lv0, cx, cy, m_area, m_centroid)
         with torch.no_grad():
@@ -547,8 +559,8 @@ def fit_gaussians_to_photo(
             report(progress, done, total)
 
     # 3. Refinement: the best few compete at the first level, the winner goes on coarse to fine.
-    lv_first = _level(img, m, levels[0][0])
-    prep_1 = prep_for(lv_first)
+    lv_first = _level(img, m, levels[0][0], object_side)
+    prep_1 = prep_for(lv_first, last=len(levels) == 1)
     best, best_loss = None, math.inf
     contenders = []
     for i in order[:keep]:
@@ -563,12 +575,12 @@ def fit_gaussians_to_photo(
     p = best.clone()
     refine(p, prep_1, lv_first, max(0, levels[0][1] - int(screen_steps)), lr * 0.7)
     for k, (max_side, steps) in enumerate(levels[1:]):
-        lv = _level(img, m, max_side)
-        refine(p, prep_for(lv), lv, steps, lr * 0.5 / (k + 1))
+        lv = _level(img, m, max_side, object_side)
+        refine(p, prep_for(lv, last=k == len(levels) - 2), lv, steps, lr * 0.5 / (k + 1))
         timings[f"level{k + 1}"] = time.perf_counter() - t_start
 
     # Final score with every Gaussian at the finest level.
-    lv_last = _level(img, m, levels[-1][0])
+    lv_last = _level(img, m, levels[-1][0], object_side)
     prep_all = _prep(g_in, centre, extent)
     with torch.no_grad():
         out = _render(prep_all, p, lv_last, cx, cy)
