@@ -241,11 +241,20 @@ def sample_even(mask: torch.Tensor, n: int, max_candidates: int = 40_000) -> tor
     return pts[chosen].float()
 
 
+def _max_filter(m: torch.Tensor, px: int) -> torch.Tensor:
+    """Square (2px+1)^2 maximum filter of (B,1,H,W) 0/1 floats (OpenCV's dilation, frame by frame: fast)."""
+    import cv2
+
+    kernel = np.ones((2 * px + 1, 2 * px + 1), np.uint8)
+    a = (m[:, 0] > 0).numpy().astype(np.uint8)
+    out = np.stack([cv2.dilate(f, kernel, borderType=cv2.BORDER_CONSTANT, borderValue=0) for f in a])
+    return torch.from_numpy(out).float()[:, None]
+
+
 def _erode(mask: torch.Tensor, px: int) -> torch.Tensor:
     if px <= 0:
         return mask
-    m = (~mask).float()[None, None]
-    grown = torch.nn.functional.max_pool2d(m, 2 * px + 1, stride=1, padding=px)[0, 0] > 0
+    grown = _max_filter((~mask).float()[None, None], px)[0, 0] > 0
     return mask & ~grown
 
 
@@ -254,7 +263,7 @@ def _dilate(mask: torch.Tensor, px: int) -> torch.Tensor:
     if px <= 0:
         return mask
     m = mask.float().reshape(-1, 1, *mask.shape[-2:])
-    return (torch.nn.functional.max_pool2d(m, 2 * px + 1, stride=1, padding=px) > 0).reshape(mask.shape)
+    return (_max_filter(m, px) > 0).reshape(mask.shape)
 
 
 def _nearest_particles(points: torch.Tensor, particles: torch.Tensor, chunk: int = 4096) -> torch.Tensor:
@@ -491,25 +500,24 @@ class Flow:
     direction: str = "forward"
 
 
-def _stacked_for_affine(sim: SimResult, h: float) -> SimResult:
-    """A copy of ``sim`` whose rest Gaussians are the originals followed by three copies shifted by h
-    along x, y and z: each Gaussian's position is affine in its rest position, so the shifted copies
-    give the linear part of its current map exactly, in the same call that poses the Gaussians."""
-    r, n = sim.rest, len(sim.rest)
-    shifts = [torch.zeros(3)] + [torch.eye(3)[i] * h for i in range(3)]
-    rep = lambda t: None if t is None else torch.cat([t] * 4)  # noqa: E731
-    rest = Gaussians(means=torch.cat([r.means + s.to(r.means.dtype) for s in shifts]), quats=rep(r.quats),
-                     scales=rep(r.scales), opacities=rep(r.opacities), sh=rep(r.sh), covars=rep(r.covars),
-                     object_ids=rep(r.object_ids))
-    return dataclasses.replace(sim, rest=rest, binding=rep(sim.binding), neighbours=rep(sim.neighbours),
-                               weights=rep(sim.weights))
+def _posed_with_linear_part(sim: SimResult, frame: int):
+    """The Gaussians at ``frame``, their centres (N,3) and the linear part L (N,3,3) of their motion: the
+    deformation gradient their splats follow (their own particle's, clamped as ``gaussians_at`` clamps
+    it, stretch only for flowing material). For rigid motion this is the rotation itself."""
+    from .types import MAX_SPLAT_STRETCH, splat_deformation
+
+    g = sim.gaussians_at(frame)
+    Fp = splat_deformation(sim.F[frame], MAX_SPLAT_STRETCH, sim.rotation_free)
+    return g, g.means.double(), Fp[sim.binding].double()
 
 
-def _posed_with_linear_part(stacked: SimResult, frame: int, n: int, h: float):
-    g = stacked.gaussians_at(frame)
-    mu = g.means[:n]
-    L = torch.stack([(g.means[(i + 1) * n:(i + 2) * n] - mu).double() / h for i in range(3)], dim=-1)  # (n,3,3)
-    return g.subset(torch.arange(n)), mu.double(), L
+def _inverse(L: torch.Tensor) -> torch.Tensor:
+    """Inverses of (N,3,3) matrices; the pseudo-inverse for the (rare) singular ones."""
+    inv, info = torch.linalg.inv_ex(L)
+    bad = (info != 0) | ~torch.isfinite(inv).all(dim=(1, 2))
+    if bool(bad.any()):
+        inv[bad] = torch.linalg.pinv(L[bad])
+    return inv
 
 
 def _pixel_grid(camera: Camera) -> torch.Tensor:
@@ -523,7 +531,7 @@ def exact_flow(sim: SimResult, camera: Camera, *, direction: str = "forward", de
     """The optical flow of the rendered clip, from the simulation itself.
 
     Every Gaussian moves from frame s to frame d by an affine map x -> A x + b (A = L_d L_s^-1, b =
-    mu_d - A mu_s, L the linear part of the Gaussian's rest-to-frame map). The 12 numbers of A and b
+    mu_d - A mu_s: mu its centre, L the deformation gradient its splat follows). The 12 numbers of A and b
     are rendered at frame s like colour (the same compositing weights as the image), so each visible
     pixel gets the blended map of the splats behind it; the pixel's surface point (the pixel centre
     unprojected at the rendered depth) is moved by it and projected: flow = project(A x + b) - p.
@@ -535,9 +543,6 @@ def exact_flow(sim: SimResult, camera: Camera, *, direction: str = "forward", de
     T = sim.num_frames
     if T < 2:
         raise InputError("Optical flow needs at least two frames; the simulation has one.")
-    ext = (sim.rest.means.max(0).values - sim.rest.means.min(0).values).max()
-    h = float(ext) * 0.25 or 0.01
-    stacked = _stacked_for_affine(sim, h)
     n = len(sim.rest)
     dev = torch.device(device) if device is not None else torch.device("cpu")
     H, W = camera.height, camera.width
@@ -550,7 +555,7 @@ def exact_flow(sim: SimResult, camera: Camera, *, direction: str = "forward", de
         if f not in posed:
             for old in [k for k in posed if abs(k - f) > 1]:
                 del posed[old]
-            posed[f] = _posed_with_linear_part(stacked, f, n, h)
+            posed[f] = _posed_with_linear_part(sim, f)
         return posed[f]
 
     with torch.no_grad():
@@ -558,7 +563,7 @@ def exact_flow(sim: SimResult, camera: Camera, *, direction: str = "forward", de
             s, d = (t, t + 1) if direction == "forward" else (t + 1, t)
             g_s, mu_s, L_s = pose(s)
             _, mu_d, L_d = pose(d)
-            A = L_d @ torch.linalg.pinv(L_s)
+            A = L_d @ _inverse(L_s)
             b = mu_d - (A @ mu_s[..., None])[..., 0]
             feats = torch.cat([A.reshape(n, 9), b], dim=1).to(g_s.means.dtype)
             out = rasterize(g_s.to(dev), camera, extra_features=feats.to(dev), backend=backend)
