@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from ._util import CATEGORY, log, progress_callback
+from ._util import CATEGORY, log, progress_callback, require_batch
 
 NONE = "(none)"
 _WEIGHT_SUFFIXES = (".safetensors", ".ckpt", ".pt", ".pth", ".bin")
@@ -198,6 +198,9 @@ class PhysMotionLoRAPersonalize:
 
         from ._util import model_folders
 
+        require_batch(object_image, "object_image")
+        if object_mask is not None:
+            require_batch(object_mask, "object_mask", "MASK")
         images, masks = [], []
         for b in range(object_image.shape[0]):
             images.append(object_image[b, ..., :3].float().cpu())
@@ -276,6 +279,8 @@ class PhysMotionDDIMInvert:
 
         from ._util import temp_directory
 
+        require_batch(frames, "frames")
+        require_batch(depth, "depth")
         _make_room(diffusion, ["unet", "vae", "text_encoder"] + [f"controlnet_{k}" for k in diffusion.controlnets])
         try:
             inv = invert_frames(diffusion, frames, depth, prompt=str(prompt), steps=int(steps),

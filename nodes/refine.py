@@ -3,7 +3,8 @@
 from __future__ import annotations
 
 from ._gaussian_io import GAUSSIANS_INPUT, GAUSSIANS_TOOLTIP_SUFFIX, as_pm_gaussians
-from ._util import CATEGORY, first_image, first_mask, log, preview_images, progress_with_previews, save_ply_output
+from ._util import (CATEGORY, first_image, first_mask, log, preview_images, progress_with_previews, require_batch,
+                    save_ply_output)
 
 
 class PhysMotionDepthLoader:
@@ -61,6 +62,9 @@ class PhysMotionDepth:
 
         from ._memory import models_on_device
 
+        require_batch(image, "image")
+        if mask is not None:
+            require_batch(mask, "mask", "MASK")
         out = []
         with models_on_device(depth_model, what="Monocular Depth"):
             for b in range(image.shape[0]):

@@ -515,6 +515,11 @@ def test_nodes_refuse_empty_batches_and_nul_bytes_clearly():
         lambda: nodes["PhysMotionForce"]().run(1.0, 0.0, 0.0, "mask", 0, 0, 5.0, -1, 0.0, 0.2,
                                                region_mask=empty_mask),
         lambda: nodes["PhysMotionAnchor"]().run("mask", 0, 0, 5.0, -1, region_mask=torch.zeros(1, 0, 0)),
+        # the batch is checked before the model is touched, so no model is needed here
+        lambda: nodes["PhysMotionDepth"]().run(None, empty_img),
+        lambda: nodes["PhysMotionDepth"]().run(None, img, mask=empty_mask),
+        lambda: nodes["PhysMotionLoRAPersonalize"]().run(None, empty_img, "a sks cup", 10, 1e-4, 4, 64, 0, 1.0),
+        lambda: nodes["PhysMotionDDIMInvert"]().run(None, empty_img, img, "a cup", 10, 64, 0, 100, 200, 1.0, 1.0, 4),
     ]
     for i, call in enumerate(calls):
         with pytest.raises(InputError, match="empty|0 pixels|pixels"):
