@@ -1,21 +1,21 @@
-"""Run a workflow on a ComfyUI server over its HTTP API (headless), with the standard library only.
+"""Run a workflow on a ComfyUI server over its HTTP API (headless): the standard library for HTTP(S),
+websocket-client for the progress socket (ws://, or wss:// over TLS for an https:// server).
 
     physmotion comfy-run example_workflows/api/push_a_jelly.json --server http://127.0.0.1:8188 \\
         --image photo.png --set 5.force_x=40 -o out/
 
 Steps: upload the image (POST /upload/image) and point the workflow's LoadImage node at it, apply
 ``--set NODE.INPUT=VALUE`` edits, queue the prompt (POST /prompt), follow its progress on the
-server's websocket (/ws: "progress" and "executing" messages; polling /history if the websocket
-cannot be opened), then download every file its output nodes list (GET /view) into the output folder.
+server's websocket (/ws: "progress" and "executing" messages; if it cannot be opened the log says
+why, once, and /history is polled instead), then download every file its output nodes list (GET /view) into the output folder.
 """
 
 from __future__ import annotations
 
-import base64
 import json
-import os
+import logging
 import socket
-import struct
+import ssl
 import time
 import urllib.error
 import urllib.parse
@@ -24,8 +24,12 @@ import uuid
 from pathlib import Path
 from typing import Callable, Optional
 
+import websocket  # websocket-client
+
 from .errors import InputError, PhysMotionError
 from .fsutil import atomic_output
+
+log = logging.getLogger("physmotion")
 
 
 class ComfyError(PhysMotionError):
@@ -84,69 +88,22 @@ def _multipart(field: str, filename: str, data: bytes, extra: dict) -> tuple[byt
     return b"".join(parts), f"multipart/form-data; boundary={boundary}"
 
 
-class _WebSocket:
-    """The few parts of RFC 6455 a progress listener needs: handshake, unmasked server text frames,
-    ping/pong and close. Binary frames (ComfyUI's preview images) are skipped."""
+def _recv_text(ws: websocket.WebSocket) -> Optional[str]:
+    """The next text message on the progress socket; None once the server closes it. Binary frames
+    (ComfyUI's preview images) are skipped; websocket-client answers pings itself."""
+    while True:
+        opcode, data = ws.recv_data()
+        if opcode == websocket.ABNF.OPCODE_CLOSE:
+            return None
+        if opcode == websocket.ABNF.OPCODE_TEXT:
+            return data.decode("utf-8", "replace") if isinstance(data, bytes) else data
 
-    def __init__(self, url: str, timeout: float = 5.0):
-        u = urllib.parse.urlparse(url)
-        self.sock = socket.create_connection((u.hostname, u.port or 80), timeout=timeout)
-        key = base64.b64encode(os.urandom(16)).decode()
-        path = u.path + ("?" + u.query if u.query else "")
-        self.sock.sendall((f"GET {path} HTTP/1.1\r\nHost: {u.hostname}:{u.port or 80}\r\nUpgrade: websocket\r\n"
-                           f"Connection: Upgrade\r\nSec-WebSocket-Key: {key}\r\nSec-WebSocket-Version: 13\r\n\r\n")
-                          .encode())
-        head = b""
-        while b"\r\n\r\n" not in head:
-            chunk = self.sock.recv(1024)
-            if not chunk:
-                raise OSError("websocket handshake: connection closed")
-            head += chunk
-        status, _, rest = head.partition(b"\r\n\r\n")
-        if b" 101 " not in status.split(b"\r\n")[0]:
-            raise OSError(f"websocket handshake refused: {status.splitlines()[0]!r}")
-        self.buf = rest
 
-    def _read(self, n: int) -> bytes:
-        while len(self.buf) < n:
-            chunk = self.sock.recv(65536)
-            if not chunk:
-                raise OSError("websocket closed")
-            self.buf += chunk
-        out, self.buf = self.buf[:n], self.buf[n:]
-        return out
-
-    def _send(self, opcode: int, payload: bytes) -> None:
-        mask = os.urandom(4)
-        masked = bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
-        self.sock.sendall(bytes([0x80 | opcode, 0x80 | len(payload)]) + mask + masked)
-
-    def recv_text(self) -> Optional[str]:
-        """The next text message; None when the server closes."""
-        while True:
-            b0, b1 = self._read(2)
-            opcode, n = b0 & 0x0F, b1 & 0x7F
-            if n == 126:
-                n = struct.unpack(">H", self._read(2))[0]
-            elif n == 127:
-                n = struct.unpack(">Q", self._read(8))[0]
-            mask = self._read(4) if b1 & 0x80 else None
-            payload = self._read(n)
-            if mask:
-                payload = bytes(b ^ mask[i % 4] for i, b in enumerate(payload))
-            if opcode == 8:
-                return None
-            if opcode == 9:
-                self._send(10, payload[:125])
-            elif opcode == 1:
-                return payload.decode("utf-8", "replace")
-
-    def close(self) -> None:
-        try:
-            self._send(8, b"")
-        except OSError:
-            pass
-        self.sock.close()
+def _close_socket(ws: websocket.WebSocket) -> None:
+    try:
+        ws.close(timeout=0.25)  # send the close frame; wait briefly for the server's reply
+    except (OSError, websocket.WebSocketException):
+        pass
 
 
 class ComfyClient:
@@ -156,15 +113,34 @@ class ComfyClient:
         self.server = server.rstrip("/")
         self.timeout = timeout
         self.client_id = uuid.uuid4().hex
-        self._ws: Optional[_WebSocket] = None
+        # https:// servers: one TLS context (the system's CAs, or SSL_CERT_FILE / SSL_CERT_DIR) for the
+        # HTTP requests and the wss:// progress socket alike.
+        self._tls = ssl.create_default_context() if self.server.startswith("https://") else None
+        self._ws: Optional[websocket.WebSocket] = None
+        self._ws_failed = False
 
-    def _open_socket(self, poll: float = 0.5) -> Optional[_WebSocket]:
+    @property
+    def ws_url(self) -> str:
+        """The progress socket: ws:// for an http:// server, wss:// (TLS) for an https:// one."""
+        scheme, rest = self.server.split("://", 1)
+        return f"{'wss' if scheme == 'https' else 'ws'}://{rest}/ws?clientId={self.client_id}"
+
+    def _open_socket(self, poll: float = 0.5) -> Optional[websocket.WebSocket]:
+        """The progress socket, or None (said once in the log) when it cannot be opened: then the run
+        is followed by polling /history, without progress messages."""
+        if self._ws_failed:
+            return None
+        url = self.ws_url
         try:
-            ws = _WebSocket(self.server.replace("http", "ws", 1) + f"/ws?clientId={self.client_id}")
-            ws.sock.settimeout(poll)
-            return ws
-        except OSError:
-            return None  # no websocket: progress is not shown and /history is polled
+            ws = websocket.create_connection(url, timeout=5.0,
+                                             sslopt={"context": self._tls} if self._tls is not None else {})
+        except (OSError, websocket.WebSocketException) as exc:
+            self._ws_failed = True
+            log.warning("Cannot open ComfyUI's progress socket %s (%s: %s); following the run by polling "
+                        "%s/history instead, without progress", url, type(exc).__name__, exc, self.server)
+            return None
+        ws.settimeout(poll)
+        return ws
 
     def connect(self) -> None:
         """Open the progress socket before queueing, so that no message of the run is missed."""
@@ -175,7 +151,7 @@ class ComfyClient:
         req = urllib.request.Request(self.server + path, data=data,
                                      headers={"Content-Type": content_type} if data is not None else {})
         try:
-            with urllib.request.urlopen(req, timeout=self.timeout) as resp:
+            with urllib.request.urlopen(req, timeout=self.timeout, context=self._tls) as resp:
                 return resp.read()
         except urllib.error.HTTPError as exc:
             body = exc.read().decode("utf-8", "replace")
@@ -241,8 +217,8 @@ class ComfyClient:
                         return entry
                     continue
                 try:
-                    text = ws.recv_text()
-                except socket.timeout:
+                    text = _recv_text(ws)
+                except (websocket.WebSocketTimeoutException, socket.timeout):
                     # Messages sent before the socket opened are lost: look at /history now and then.
                     if time.monotonic() - last_check > 2.0:
                         last_check = time.monotonic()
@@ -250,10 +226,11 @@ class ComfyClient:
                         if entry is not None:
                             return entry
                     continue
-                except OSError:
+                except (OSError, websocket.WebSocketException):
                     text = None
                 if text is None:  # the server closed the socket: go on by polling
-                    ws.close()
+                    log.info("ComfyUI closed the progress socket; polling %s/history", self.server)
+                    _close_socket(ws)
                     ws = None
                     continue
                 msg = json.loads(text)
@@ -275,7 +252,7 @@ class ComfyClient:
             raise ComfyError(f"Timed out after {timeout:.0f}s waiting for prompt {prompt_id}")
         finally:
             if ws is not None:
-                ws.close()
+                _close_socket(ws)
 
     def interrupt(self) -> None:
         """Cancel the running prompt (the server checks between substeps/frames/iterations)."""
@@ -333,6 +310,6 @@ def run_workflow(workflow: Path, server: str, out_dir: Path, *, image: Optional[
         entry = client.wait(prompt_id, on_event, timeout=timeout)
     finally:
         if client._ws is not None:
-            client._ws.close()
+            _close_socket(client._ws)
             client._ws = None
     return client.download_outputs(entry, out_dir, ("output", "temp") if previews else ("output",))

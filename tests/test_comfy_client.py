@@ -1,4 +1,4 @@
-"""`physmotion comfy-run` against a stand-in ComfyUI server (HTTP + websocket, standard library).
+"""`physmotion comfy-run` against a stand-in ComfyUI server (HTTP(S) + websocket, standard library).
 
 The stand-in speaks the parts of ComfyUI's API the client uses: /upload/image (multipart),
 /prompt, /history/<id>, /view and the /ws progress socket. (Against a real ComfyUI, see README:
@@ -10,7 +10,11 @@ from __future__ import annotations
 import base64
 import hashlib
 import json
+import logging
+import shutil
+import ssl
 import struct
+import subprocess
 import threading
 import time
 import urllib.parse
@@ -18,7 +22,9 @@ from http.server import BaseHTTPRequestHandler, ThreadingHTTPServer
 from pathlib import Path
 
 import pytest
+import websocket
 
+from physmotion_core import comfy_client
 from physmotion_core.cli import main
 from physmotion_core.comfy_client import ComfyError, apply_sets, run_workflow
 from physmotion_core.errors import InputError
@@ -28,8 +34,10 @@ WORKFLOW = ROOT / "example_workflows" / "api" / "push_a_jelly.json"
 
 
 class FakeComfy:
-    def __init__(self, websocket=True, fail_node=None, reject=False):
+    def __init__(self, websocket=True, fail_node=None, reject=False, tls=None):
+        """``tls``: (certfile, keyfile) to serve HTTPS and wss:// instead of HTTP and ws://."""
         self.websocket = websocket
+        self.ws_requests = []  # (headers, over TLS?) of each /ws upgrade request
         self.fail_node = fail_node
         self.reject = reject
         self.uploads = {}
@@ -83,6 +91,8 @@ class FakeComfy:
                     self.send_header("Content-Length", str(len(body)))
                     self.end_headers()
                     return self.wfile.write(body)
+                if url.path == "/ws":
+                    fake.ws_requests.append((dict(self.headers), isinstance(self.connection, ssl.SSLSocket)))
                 if url.path == "/ws" and fake.websocket:
                     key = self.headers["Sec-WebSocket-Key"]
                     accept = base64.b64encode(hashlib.sha1((key + "258EAFA5-E914-47DA-95CA-C5AB0DC85B11")
@@ -102,7 +112,12 @@ class FakeComfy:
                 self._json({}, 404)
 
         self.server = ThreadingHTTPServer(("127.0.0.1", 0), Handler)
-        self.url = f"http://127.0.0.1:{self.server.server_address[1]}"
+        if tls is not None:
+            ctx = ssl.SSLContext(ssl.PROTOCOL_TLS_SERVER)
+            ctx.load_cert_chain(*tls)
+            self.server.socket = ctx.wrap_socket(self.server.socket, server_side=True)
+        scheme = "https" if tls is not None else "http"
+        self.url = f"{scheme}://127.0.0.1:{self.server.server_address[1]}"
         threading.Thread(target=self.server.serve_forever, daemon=True).start()
 
     def execute(self, pid):
@@ -206,3 +221,103 @@ def test_cli_prints_the_saved_files(tmp_path, photo, capsys):
     out = capsys.readouterr()
     assert out.out.strip().endswith("push_a_jelly_00001.mp4")
     assert "node 7: 3/47" in out.err
+
+
+def test_progress_comes_through_websocket_client_on_ws(tmp_path, photo, monkeypatch):
+    """The progress socket is websocket-client's: its handshake reaches the server and the messages
+    the server sends arrive as events."""
+    opened = []
+    real = websocket.create_connection
+
+    def recording(url, *a, **kw):
+        ws = real(url, *a, **kw)
+        opened.append((url, ws))
+        return ws
+
+    monkeypatch.setattr(comfy_client.websocket, "create_connection", recording)
+    fake = FakeComfy()
+    events = []
+    try:
+        run_workflow(WORKFLOW, fake.url, tmp_path / "out", on_event=lambda k, d: events.append((k, d)), timeout=20)
+    finally:
+        fake.close()
+    assert len(opened) == 1
+    url, ws = opened[0]
+    assert url.startswith(fake.url.replace("http://", "ws://") + "/ws?clientId=")
+    assert isinstance(ws, websocket.WebSocket) and not ws.connected  # closed after the run
+    (headers, over_tls), = fake.ws_requests
+    assert not over_tls and headers["Upgrade"].lower() == "websocket" and headers["Sec-WebSocket-Version"] == "13"
+    assert [k for k, _ in events] == ["executing", "progress", "executing"]
+    assert events[1][1] == {"value": 3, "max": 47, "node": "7", "prompt_id": "p0"}
+
+
+@pytest.fixture
+def self_signed(tmp_path):
+    """A certificate for 127.0.0.1 (made with the openssl command line tool) and its key."""
+    openssl = shutil.which("openssl")
+    if openssl is None:
+        pytest.skip("the openssl command is not installed")
+    cert, key = tmp_path / "cert.pem", tmp_path / "key.pem"
+    subprocess.run([openssl, "req", "-x509", "-newkey", "ec", "-pkeyopt", "ec_paramgen_curve:prime256v1", "-nodes",
+                    "-keyout", str(key), "-out", str(cert), "-days", "2", "-subj", "/CN=127.0.0.1",
+                    "-addext", "subjectAltName=IP:127.0.0.1"], check=True, capture_output=True, timeout=60)
+    return cert, key
+
+
+def test_an_https_server_is_followed_over_wss_with_tls(tmp_path, photo, self_signed, monkeypatch):
+    """An https:// server gets its progress socket as wss:// over TLS (verified against the trusted
+    certificate), not plain TCP: the upgrade request arrives on a TLS connection and the progress
+    messages come through (a plain-TCP attempt would fail the handshake and fall back to polling)."""
+    cert, key = self_signed
+    monkeypatch.setenv("SSL_CERT_FILE", str(cert))  # trust the test's certificate (and only it)
+    monkeypatch.delenv("SSL_CERT_DIR", raising=False)
+    fake = FakeComfy(tls=(cert, key))
+    events = []
+    try:
+        assert fake.url.startswith("https://")
+        saved = run_workflow(WORKFLOW, fake.url, tmp_path / "out", image=photo, on_event=lambda k, d: events.append(k),
+                             timeout=20)
+    finally:
+        fake.close()
+    assert [over_tls for _, over_tls in fake.ws_requests] == [True]
+    assert events == ["executing", "progress", "executing"]
+    assert saved[0].read_bytes() == b"PhysMotion/push_a_jelly_00001.mp4"  # HTTPS downloads too
+
+
+def test_an_untrusted_certificate_is_refused_not_ignored(tmp_path, self_signed, monkeypatch):
+    """TLS is verified: with the certificate not trusted, the wss:// socket is not opened (and says why
+    in the log) and the HTTPS requests fail clearly."""
+    cert, key = self_signed
+    other = tmp_path / "other"
+    other.mkdir()
+    monkeypatch.setenv("SSL_CERT_FILE", str(other / "none.pem"))
+    monkeypatch.setenv("SSL_CERT_DIR", str(other))
+    fake = FakeComfy(tls=(cert, key))
+    try:
+        client = comfy_client.ComfyClient(fake.url)
+        with pytest.raises(ComfyError, match="Cannot reach ComfyUI at https://127.0.0.1"):
+            client.history("p0")
+        assert client._open_socket() is None
+    finally:
+        fake.close()
+    assert fake.ws_requests == []  # the TLS handshake failed before any upgrade request
+
+
+def test_no_websocket_is_said_once_in_the_log_then_history_is_polled(tmp_path, caplog):
+    fake = FakeComfy(websocket=False)
+    events = []
+    try:
+        with caplog.at_level(logging.INFO, logger="physmotion"):
+            saved = run_workflow(WORKFLOW, fake.url, tmp_path / "out", on_event=lambda k, d: events.append(k),
+                                 timeout=20)
+    finally:
+        fake.close()
+    assert [p.name for p in saved] == ["push_a_jelly_00001.mp4"]
+    assert events == []
+    said = [r for r in caplog.records if "progress socket" in r.getMessage()]
+    assert len(said) == 1, [r.getMessage() for r in said]
+    msg = said[0].getMessage()
+    assert said[0].levelno == logging.WARNING
+    assert fake.url.replace("http://", "ws://") + "/ws?clientId=" in msg and "404" in msg
+    assert f"polling {fake.url}/history" in msg
+    assert len(fake.ws_requests) == 1  # tried once, not again for the wait
