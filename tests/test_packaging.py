@@ -2,6 +2,7 @@
 
 import re
 import sys
+from pathlib import Path
 
 import pytest
 
@@ -42,7 +43,8 @@ def test_requirements_never_pin_torch_gsplat_or_upper_bounds():
     with_comfyui = {"torch", "torchvision", "comfy", "comfy_api", "folder_paths", "server", "gsplat"}
     import_names = {"numpy": "numpy", "warp": "warp-lang", "cv2": "opencv-python-headless", "av": "av",
                     "safetensors": "safetensors", "diffusers": "diffusers", "transformers": "transformers",
-                    "peft": "peft", "segment_anything": "segment-anything", "PIL": "pillow"}
+                    "peft": "peft", "segment_anything": "segment-anything", "PIL": "pillow",
+                    "websocket": "websocket-client"}
     stdlib = set(sys.stdlib_module_names)
     found = set()
     for path in [ROOT / "__init__.py", *(ROOT / "nodes").glob("*.py"), *(ROOT / "physmotion_core").rglob("*.py")]:
@@ -53,6 +55,50 @@ def test_requirements_never_pin_torch_gsplat_or_upper_bounds():
     assert not unknown, f"imported but not in requirements.txt: {unknown}"
     for mod in third_party:
         assert import_names[mod] in names, f"{mod} needs {import_names[mod]} in requirements.txt"
+
+
+def _file_requirements(name):
+    return [line.split("#", 1)[0].strip() for line in (ROOT / name).read_text().splitlines()
+            if line.split("#", 1)[0].strip()]
+
+
+def test_one_dependency_list_read_by_pyproject_with_torch_for_pip_installs():
+    """pyproject.toml lists no dependencies of its own: setuptools reads requirements.txt (ComfyUI-Manager's
+    list, no torch) and requirements-torch.txt, so a pip install gets exactly those, torch included."""
+    from setuptools.config.pyprojecttoml import read_configuration
+
+    raw = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    assert "dependencies" not in raw["project"] and "dependencies" in raw["project"]["dynamic"]
+    assert raw["tool"]["setuptools"]["dynamic"]["dependencies"]["file"] == ["requirements.txt",
+                                                                            "requirements-torch.txt"]
+    expanded = read_configuration(ROOT / "pyproject.toml")["project"]["dependencies"]
+    torch_reqs = _file_requirements("requirements-torch.txt")
+    assert expanded == _requirements() + torch_reqs
+    names = {re.split(r"[<>=!~\[ ;]", r, 1)[0].lower() for r in torch_reqs}
+    assert names == {"torch", "torchvision"}, names
+    # torchvision is there for segment-anything, whose package imports it (the pack itself does not).
+    sam = __import__("importlib.util").util.find_spec("segment_anything")
+    if sam is not None:
+        src = " ".join(p.read_text() for p in Path(sam.origin).parent.rglob("*.py"))
+        assert "from torchvision" in src
+
+
+def test_registry_urls_and_classifiers():
+    """[project.urls] has the registry's Homepage/Repository/Issues (valid URLs: setuptools refuses empty
+    ones); the OS and accelerator classifiers are among the ones the Comfy registry accepts (it drops all
+    of a kind when one is not)."""
+    from urllib.parse import urlparse
+
+    project = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]
+    for key in ("Homepage", "Repository", "Issues"):
+        u = urlparse(project["urls"][key])
+        assert u.scheme == "https" and u.netloc, (key, project["urls"][key])
+    classifiers = project["classifiers"]
+    os_values = [c.split(" :: ", 1)[1] for c in classifiers if c.startswith("Operating System :: ")]
+    env_values = [c.split(" :: ", 1)[1] for c in classifiers if c.startswith("Environment :: ")]
+    assert os_values and all(v.startswith(("Microsoft", "POSIX", "MacOS", "OS Independent")) for v in os_values)
+    assert env_values and set(env_values) <= {"GPU :: NVIDIA CUDA", "GPU :: AMD ROCm", "GPU :: Intel Arc",
+                                              "NPU :: Huawei Ascend", "GPU :: Apple Metal"}
 
 
 def test_only_example_workflows_can_be_taken_for_a_template_folder():
