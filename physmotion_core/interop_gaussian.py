@@ -15,7 +15,7 @@ comfyanonymous/ComfyUI ``comfy_api/latest/_util/geometry_types.py`` (class ``GAU
     sh        (B, N, K, 3) SH coefficients, K = (degree + 1)², DC = sh[..., 0, :] (rgb = 0.5 + C0 * DC)
     counts    (B,) int    real length of each item (rows beyond it are zero padding), or None
 
-Activations, quaternion order and SH layout are ours already (DESIGN.md), so those fields are copied
+Activations, quaternion order and SH layout are ours already (README.md, "Conventions"), so those fields are copied
 bit for bit. Only the axes differ: upstream's renderer (``_render_gaussian``) projects with the camera
 looking down +z and image rows growing with +y (the OpenCV / 3DGS frame: y down, z away from the
 viewer), while our world is +y up with the camera looking down -z. ``axes="y_down"`` (the default)

@@ -265,7 +265,7 @@ def pick_device(device=None):
 
 
 def default_dtype(device) -> "torch.dtype":
-    """fp16 on CUDA, fp32 on CPU (DESIGN.md)."""
+    """fp16 on CUDA, fp32 on CPU (docs/lift.md, docs/enhance.md "Weights")."""
     import torch
 
     return torch.float16 if torch.device(device).type == "cuda" else torch.float32

@@ -3,8 +3,8 @@ half-done in module state, models or files). And cache files are trusted only af
 digest is verified: a damaged cache is recomputed and replaced, never used.
 
 Cancel is what ComfyUI does through the progress callback (it raises); the latency bound is 1 s
-(DESIGN.md: "Cancel works within a second"), measured from the moment cancel is requested to the
-moment the exception reaches the caller.
+(docs/reliability.md, "Interruption"; README.md: "stop within a second on Cancel"), measured from the
+moment cancel is requested to the moment the exception reaches the caller.
 """
 
 from __future__ import annotations

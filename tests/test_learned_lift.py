@@ -102,7 +102,7 @@ def test_input_camera_sees_the_photo_as_lgm_sees_the_canvas():
     uv_photo, z_photo = cam.project(pts * s + shift)
     torch.testing.assert_close(uv_photo, rmap.to_photo(uv_canvas), atol=2e-3, rtol=0)
     torch.testing.assert_close(z_photo, z_canvas * s, atol=1e-5, rtol=1e-5)
-    # the camera follows DESIGN.md: on +z, level, looking down -z
+    # the camera follows docs/lift.md ("Frames and conventions"): on +z, level, looking down -z
     torch.testing.assert_close(cam.c2w[:3, :3], torch.eye(3))
     assert float(cam.c2w[0, 3]) == 0.0 and float(cam.c2w[2, 3]) == pytest.approx(1.5 * s)
     assert (cam.width, cam.height) == (W, H)

@@ -1,6 +1,6 @@
 """Load SD 2.1 + the depth and canny ControlNets (+ an optional LoRA) from the model folders, offline.
 
-Sources (DESIGN.md "Weights"):
+Sources (docs/enhance.md, "Weights"; README.md, "Where weights go"):
 
 * SD 2.1 as a diffusers folder ``models/diffusers/<dir>`` (unet/, vae/, text_encoder/, tokenizer/,
   scheduler/), or as one original-layout file in ``models/checkpoints/`` (e.g.

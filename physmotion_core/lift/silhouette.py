@@ -1,6 +1,6 @@
 """The silhouette lift: a closed 3D Gaussian solid from one image and its object mask, no weights.
 
-This is the stand-in for LGM when its weights are absent (DESIGN.md: "No LGM weights →
+This is the stand-in for LGM when its weights are absent (README.md, "Where weights go": "no LGM →
 silhouette lift"). The object is modelled as a solid symmetric about its mid-plane z = 0, inflated
 from the silhouette the way sketch-based modelling tools inflate a drawn outline:
 

@@ -1,7 +1,8 @@
 """Losses of the refinement: colour (L1 + λ·D-SSIM) and DNGaussian's patch-normalised depth.
 
-Depth normalisation (DNGaussian, REFERENCES.md): the map is cut into non-overlapping p×p patches
-(p drawn from 5..17 each step). Each patch is normalised as (x − mean_patch) / (s + ε) with
+Depth normalisation (DNGaussian, Li et al., CVPR 2024: its global-local depth normalisation; the
+refinement is measured in docs/accuracy.md, "Refinement"): the map is cut into non-overlapping
+p×p patches (p drawn from 5..17 each step). Each patch is normalised as (x − mean_patch) / (s + ε) with
 
 * local term:  s = the patch's own standard deviation;
 * global term: s = the standard deviation of the whole map (detached), so relative depth *between*

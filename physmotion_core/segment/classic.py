@@ -1,9 +1,9 @@
 """Model-free segmentation: alpha channel, a given mask, or GrabCut seeded by an automatic box.
 
-This is the path that needs no weights (DESIGN.md: "Alpha channel present → no segmentation
-model"). It produces what every later stage consumes: the object mask, the foreground, and the
-background with the object's region inpainted, so the simulated object can be composited back
-over an empty scene.
+This is the path that needs no weights (README.md, "Where weights go": with an alpha channel or a
+mask no segmentation model is used; without SAM, GrabCut). It produces what every later stage
+consumes: the object mask, the foreground, and the background with the object's region inpainted,
+so the simulated object can be composited back over an empty scene.
 
 Everything here is OpenCV main-module code (no contrib) on numpy arrays; tensors go in and out.
 """
