@@ -126,3 +126,18 @@ def test_composite_formula():
     assert torch.allclose(out, torch.tensor([[[[0.4, 0.2, 0.5]]]]))
     with pytest.raises(InputError):
         composite(rgb, alpha, torch.zeros(2, 2, 3))
+
+
+def test_mp4_with_a_fixed_thread_count_is_reproducible(tmp_path):
+    """threads=N makes the bytes a function of the frames alone (mbtree off, fixed slicing), also
+    after other, different encodes ran in the same process (what changed libx264's default output)."""
+    rng = np.random.default_rng(3)
+    frames = rng.random((6, 64, 80, 3)).astype(np.float32)
+    other = rng.random((9, 96, 128, 3)).astype(np.float32)
+    first = write_mp4(tmp_path / "a.mp4", frames, fps=12, threads=1).read_bytes()
+    for i in range(3):
+        write_mp4(tmp_path / f"other{i}.mp4", other[i:], fps=24)
+        again = write_mp4(tmp_path / f"b{i}.mp4", frames, fps=12, threads=1).read_bytes()
+        assert again == first
+    decoded, fps = read_video(tmp_path / "a.mp4")
+    assert decoded.shape == (6, 64, 80, 3) and fps == pytest.approx(12)

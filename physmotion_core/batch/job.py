@@ -186,43 +186,6 @@ def _summary_stats(stats: dict) -> dict:
     return out
 
 
-def _write_video(path: Path, frames, fps: float, crf: int, threads: int) -> None:
-    """The job's H.264 mp4 (yuv420p, preset medium, crf as video.write_mp4), made reproducible:
-    the same frames give the same bytes in any process, on any machine.
-
-    video.write_mp4 (libx264's defaults) does not: encoding the same 80x64 frames again and again in
-    one process gave 2-4 different files (PyAV 18, x264 core 165), from two causes measured here.
-    (1) x264's macroblock-tree rate control (mbtree) gave another file after other encodes had run
-    in the process (it depends on memory the process used before); with mbtree off, the same file
-    every time, at every size tried (80x64 to 640x480). (2) With the automatic thread count x264
-    cuts each frame into one slice per thread and writes the count into the stream, so the bytes
-    follow the machine's cores. So: mbtree off, ``threads`` fixed (default 1)."""
-    from fractions import Fraction
-
-    import av
-    import numpy as np
-
-    from ..fsutil import atomic_output
-    from ..video import _to_uint8_frames
-
-    arr = _to_uint8_frames(frames)
-    _, h, w, _ = arr.shape
-    if h % 2 or w % 2:  # yuv420p needs even sizes: pad with the edge pixels, never crop
-        arr = np.pad(arr, ((0, 0), (0, h % 2), (0, w % 2), (0, 0)), mode="edge")
-    with atomic_output(path, suffix=".tmp.mp4") as tmp:
-        with av.open(str(tmp), mode="w", format="mp4") as container:
-            stream = container.add_stream("libx264", rate=Fraction(fps).limit_denominator(1001))
-            stream.width, stream.height = arr.shape[2], arr.shape[1]
-            stream.pix_fmt = "yuv420p"
-            stream.options = {"crf": str(int(crf)), "preset": "medium", "x264-params": "mbtree=0"}
-            stream.codec_context.thread_count = max(1, int(threads))
-            for frame in arr:
-                for packet in stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")):
-                    container.mux(packet)
-            for packet in stream.encode():
-                container.mux(packet)
-
-
 def run_job(task: dict, out_dir: Path) -> dict:
     """Make one job's outputs in ``out_dir`` (its own folder), each file written atomically. Returns
     the result record (without the driver's fields); never raises for a failed job."""
@@ -271,7 +234,10 @@ def run_job(task: dict, out_dir: Path) -> dict:
 
         res = generate(task["image_path"], mask=mask, output=None, progress=stage, **kwargs)
         t_enc = time.perf_counter()
-        _write_video(out_dir / VIDEO, res.frames, res.fps, s["crf"], s["encode_threads"])
+        # a fixed encoder thread count makes the mp4 reproducible (video.write_video: mbtree off too)
+        from ..video import write_mp4
+
+        write_mp4(out_dir / VIDEO, res.frames, fps=res.fps, crf=s["crf"], threads=max(1, int(s["encode_threads"])))
         res.timings["encode_s"] = time.perf_counter() - t_enc
         files = [VIDEO]
         outputs = task.get("outputs", {})
