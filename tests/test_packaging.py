@@ -45,11 +45,23 @@ def test_requirements_never_pin_torch_gsplat_or_upper_bounds():
                     "safetensors": "safetensors", "diffusers": "diffusers", "transformers": "transformers",
                     "peft": "peft", "segment_anything": "segment-anything", "PIL": "pillow",
                     "websocket": "websocket-client"}
+    # Optional packages: imported lazily (inside a function, never at module level) by the parts that use
+    # them, and listed in the pyproject extra named here (None: used when present, never required).
+    optional = {"ray": "batch", "yaml": "batch", "pyarrow": "batch", "tomli": "batch", "tqdm": None}
+    extras = tomllib.loads((ROOT / "pyproject.toml").read_text())["project"]["optional-dependencies"]
     stdlib = set(sys.stdlib_module_names)
     found = set()
     for path in [ROOT / "__init__.py", *(ROOT / "nodes").glob("*.py"), *(ROOT / "physmotion_core").rglob("*.py")]:
-        for m in re.finditer(r"^\s*(?:import\s+(\w+)|from\s+(\w+)[\w.]*\s+import\b)", path.read_text(), re.M):
-            found.add(m.group(1) or m.group(2))
+        for m in re.finditer(r"^(\s*)(?:import\s+(\w+)|from\s+(\w+)[\w.]*\s+import\b)", path.read_text(), re.M):
+            mod = m.group(2) or m.group(3)
+            if mod in optional:
+                assert m.group(1), f"{path.name} imports the optional {mod} at module level: import it where it is used"
+                extra = optional[mod]
+                if extra is not None:
+                    listed = [re.split(r"[<>=!~\[ ;]", r, 1)[0].lower() for r in extras[extra]]
+                    assert {"yaml": "pyyaml"}.get(mod, mod) in listed, f"{mod} is not in the '{extra}' extra"
+                continue
+            found.add(mod)
     third_party = found - stdlib - with_comfyui - {"physmotion_core", "nodes", "__future__"}
     unknown = sorted(third_party - set(import_names))
     assert not unknown, f"imported but not in requirements.txt: {unknown}"
