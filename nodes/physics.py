@@ -75,7 +75,9 @@ class PhysMotionMaterial:
                                      "tooltip": "Any other parameter as key=value, comma-separated: yield_stress, "
                                                 "hardening, softening, friction_angle, cohesion, viscosity, "
                                                 "bulk_modulus, gamma, crit_compression, crit_stretch, "
-                                                "hardening_xi, fracture_stretch, damping."}),
+                                                "hardening_xi, fracture_stretch, damping; sand's yield_surface=triaxial "
+                                                "(default) or plane_strain (the cone matched to Mohr-Coulomb in "
+                                                "plane strain, docs/materials.md)."}),
         }}
 
     RETURN_TYPES = ("PM_MATERIAL",)

@@ -1,6 +1,6 @@
 """Core data types shared by every stage.
 
-Conventions (see DESIGN.md): right-handed world in metres/seconds/kilograms, +y up, gravity -y.
+Conventions (README.md, "Conventions"): right-handed world in metres/seconds/kilograms, +y up, gravity -y.
 Cameras follow OpenGL: a camera looks down its local -z axis, +y up in the image. Gaussians store
 scales in metres (not log), quaternions as wxyz, opacities in [0, 1] and SH coefficients (N, K, 3)
 with the usual 3DGS DC convention rgb = 0.5 + C0 * sh[:, 0].
