@@ -89,7 +89,7 @@ def test_recovers_a_random_canonical_frame_rotation_scale_and_offset(lifted, see
     t = torch.randn(3, generator=gen) * 3.0
     moved = _similarity(lift.gaussians, R_applied, s, t)
 
-    res = fit_gaussians_to_photo(moved, img, m, object_height=0.45, levels=LEVELS, yaw_steps=4, seed=seed)
+    res = fit_gaussians_to_photo(moved, img, m, object_height=0.45, levels=LEVELS, yaw_steps=4, keep=2, seed=seed)
     assert res.ok and res.iou >= 0.95, res.report()
     # The world frame of the lift is the camera's (level, looking down -z), so the fit must undo R.
     err = rotation_angle_deg(res.rotation @ R_applied)

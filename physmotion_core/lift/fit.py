@@ -12,9 +12,11 @@ through which the rendered silhouette and colours match the photo's masked objec
 2. **Coarse search** over the canonical frames: the 24 axis-aligned rotations (any input axis up,
    the input view along any of the 4 remaining axes), plus, with ``yaw_steps = 8``, the 24 in-between
    45° turns about the up axis. For each, the object is placed in front of the camera, rendered at
-   low resolution (``COARSE_SIDE`` px) and its size and position corrected twice from the render
-   (area ratio and centroid of alpha vs the mask), then scored with the loss below.
-3. **Refinement** of the ``keep`` best candidates (a short run each, the best survives), then
+   low resolution (``COARSE_SIDE`` px, sized by the object's box) and its size and position
+   corrected from that render (area ratio and centroid of alpha vs the mask), then scored with the
+   loss below.
+3. **Refinement** of the ``keep`` best candidates (a short run each; the best two finish the first
+   level and the better one survives), then
    coarse-to-fine (``levels``): Adam on a rotation increment (axis-angle), the log of the object's
    on-screen size, its on-screen position and the log focal length (unless given), against
    ``(1 - soft IoU(alpha, mask)) + colour_weight · L1(colour, photo over the mask)``.
@@ -59,6 +61,7 @@ COARSE_SIDE = 32
 # so, which at a coarse level is enough to prefer a wrong orientation of a thin bar.
 MIN_LEVEL_GAUSSIANS = 600
 MIN_MASK_PIXELS = 16
+FINALISTS = 2  # contenders that finish the first level before one goes on
 
 
 class FitError(InputError):
@@ -514,7 +517,8 @@ def fit_gaussians_to_photo(
 
     rotations = canonical_rotations(yaw_steps)
     keep = max(1, min(int(keep), rotations.shape[0]))
-    total = rotations.shape[0] + keep * int(screen_steps) + sum(k for _, k in levels[1:]) + max(0, levels[0][1] - int(screen_steps))
+    total = (rotations.shape[0] + keep * int(screen_steps) + sum(k for _, k in levels[1:])
+             + min(keep, FINALISTS) * max(0, levels[0][1] - int(screen_steps)))
     done = 0
 
     # 2. Coarse search over the canonical frames.
@@ -558,22 +562,33 @@ def fit_gaussians_to_photo(
             done += 1
             report(progress, done, total)
 
-    # 3. Refinement: the best few compete at the first level, the winner goes on coarse to fine.
+    # 3. Refinement: the best few compete at the first level (a short run each), the best two of
+    # those finish that level, and the better of them goes on coarse to fine. (After the short run
+    # a candidate that is still turning towards the right orientation can trail a wrong one that
+    # has already settled: a thin bar seen along a wrong axis.)
     lv_first = _level(img, m, levels[0][0], object_side)
     prep_1 = prep_for(lv_first, last=len(levels) == 1)
-    best, best_loss = None, math.inf
+
+    def score(p: _Params) -> tuple[float, float]:
+        with torch.no_grad():
+            loss, siou, _ = _losses(_render(prep_1, p, lv_first, cx, cy), lv_first, colour_weight)
+        return float(loss), float(siou)
+
     contenders = []
     for i in order[:keep]:
-        p = cands[i]["params"]
+        p = cands[i]["params"].clone()
         refine(p, prep_1, lv_first, int(screen_steps), lr)
-        with torch.no_grad():
-            loss, siou, col = _losses(_render(prep_1, p, lv_first, cx, cy), lv_first, colour_weight)
-        contenders.append({"rotation": p.rotation().detach(), "loss": float(loss), "soft_iou": float(siou)})
-        if float(loss) < best_loss:
-            best, best_loss = p, float(loss)
+        loss, siou = score(p)
+        contenders.append({"params": p, "rotation": p.rotation().detach(), "loss": loss, "soft_iou": siou})
     timings["contenders"] = time.perf_counter() - t_start
-    p = best.clone()
-    refine(p, prep_1, lv_first, max(0, levels[0][1] - int(screen_steps)), lr * 0.7)
+    finalists = sorted(contenders, key=lambda c: c["loss"])[:FINALISTS]
+    for c in finalists:
+        refine(c["params"], prep_1, lv_first, max(0, levels[0][1] - int(screen_steps)), lr * 0.7)
+        c["final_loss"], c["final_soft_iou"] = score(c["params"])
+        c["final_rotation"] = c["params"].rotation().detach()
+    p = min(finalists, key=lambda c: c["final_loss"])["params"]
+    for c in contenders:
+        c.pop("params")
     for k, (max_side, steps) in enumerate(levels[1:]):
         lv = _level(img, m, max_side, object_side)
         refine(p, prep_for(lv, last=k == len(levels) - 2), lv, steps, lr * 0.5 / (k + 1))
