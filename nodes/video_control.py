@@ -42,11 +42,27 @@ def _at_model_clock(simulation, camera, width, height, fps, length):
     return sim, C.fit_camera(camera, W, H)
 
 
-def _render(sim, cam):
+#: The last clip rendered here: (weak reference to the simulation it came from, settings, frames). Tracks
+#: and control videos of the same simulation at the same clock and size then share one render.
+_last_render: list = []
+
+
+def _render(sim, cam, source=None, settings=()):
+    import weakref
+
     from physmotion_core.render.frames import render_frames
 
+    key = (tuple(settings), repr(cam.to_dict()))
+    if source is not None and _last_render:
+        ref, k, frames = _last_render[0]
+        if ref() is source and k == key:
+            return frames
     dev = torch_device()
-    return render_frames(sim, cam, device=dev if dev.type == "cuda" else "cpu", progress=progress_callback())
+    frames = render_frames(sim, cam, device=dev if dev.type == "cuda" else "cpu", progress=progress_callback())
+    _last_render.clear()
+    if source is not None:
+        _last_render.append((weakref.ref(source), key, frames))
+    return frames
 
 
 def _fit_background(background, width, height, frames):
@@ -105,7 +121,7 @@ class PhysMotionPointTracks:
         from physmotion_core.blend import composite
 
         sim, cam = _at_model_clock(simulation, camera, width, height, fps, length)
-        frames = _render(sim, cam)
+        frames = _render(sim, cam, simulation, (fps, length))
         tracks = C.point_tracks(sim, frames, cam, int(num_points), background_points=int(background_points))
         text = C.wan_tracks_json(tracks, occlusion="end" if occlusion == "end track" else "keep")
         bg = _fit_background(background, cam.width, cam.height, sim.num_frames)
@@ -150,7 +166,7 @@ class PhysMotionControlVideos:
         from physmotion_core import controls as C
 
         sim, cam = _at_model_clock(simulation, camera, width, height, fps, length)
-        frames = _render(sim, cam)
+        frames = _render(sim, cam, simulation, (fps, length))
         v = C.control_videos(frames, _fit_background(background, cam.width, cam.height, sim.num_frames),
                              grow_mask=int(grow_mask))
         return {"ui": preview_video(v.vace, float(fps), "PhysMotion_controls"),

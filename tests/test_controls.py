@@ -419,9 +419,13 @@ def test_nodes_run_report_progress_and_cancel(tmp_path, monkeypatch):
     assert 10 <= len(data) <= 18 and all(set(p) == {"x", "y"} for p in data[0])
     assert all(0 <= p["x"] < 160 and 0 <= p["y"] < 96 for p in data[0])
     assert state.updates and state.updates[-1] == (9, 9)  # the render's progress bar
+    rendered = len(state.updates)
     out = classes["PhysMotionControlVideos"]().run(**common, grow_mask=2)
     depth, render, mask, blended, vace, w, h, n = out["result"]
     assert depth.shape == (9, 96, 160, 3) and mask.shape == (9, 96, 160) and (w, h, n) == (160, 96, 9)
+    assert len(state.updates) == rendered  # the same simulation, clock and size: the tracks' render is reused
+    classes["PhysMotionControlVideos"]().run(**{**common, "width": 176}, grow_mask=2)
+    assert len(state.updates) > rendered  # another size renders again
     out = classes["PhysMotionExactFlow"]().run(**common, direction="forward", max_flow=0.0,
                                               filename_prefix="flows/cube")
     flow, preview, path = out["result"]
