@@ -473,3 +473,48 @@ def test_wan_templates_validate_and_are_wired_to_the_model_clock(name, control, 
         assert model["control_masks"] == [ids[control], outs["mask"]]
         trim = prompt[ids["TrimVideoLatent"]]["inputs"]
         assert trim["trim_amount"] == [ids[wan], 3]  # VACE's reference frame is cut off before decoding
+
+
+_UPSTREAM_SCRIPT = r"""
+import json, sys
+import numpy as np
+sys.path.insert(0, sys.argv[1])
+import comfy.options
+comfy.options.enable_args_parsing()
+sys.argv = [sys.argv[0], "--cpu"]
+from comfy_extras import nodes_wan as W
+d = json.load(sys.stdin)
+tracks = W.parse_json_tracks(d["tracks"])
+arrs = np.stack([W.pad_pts(t) for t in tracks], 0)
+out = W.process_tracks(arrs, (d["width"], d["height"]), d["length"] - 1).numpy()
+xy = out[..., 1:3] * (min(d["width"], d["height"]) / 2) + np.array([d["width"], d["height"]]) / 2
+json.dump({"xy": xy.tolist(), "visible": (out[..., 3] > 0).tolist()}, sys.stdout)
+"""
+
+
+@pytest.mark.skipif(not __import__("os").environ.get("COMFYUI_DIR"), reason="set COMFYUI_DIR to a ComfyUI checkout")
+def test_real_comfyui_reads_the_tracks_as_the_particles_move(clip):
+    """ComfyUI's own parse_json_tracks / pad_pts / process_tracks (in a subprocess, with its Python) read
+    the JSON back to the analytic positions, and see each point exactly while it is visible."""
+    import os
+    import subprocess
+
+    _, rs, cam, _, tracks = clip
+    text = C.wan_tracks_json(tracks, occlusion="end")
+    py = os.environ.get("COMFYUI_PYTHON", "python")
+    res = subprocess.run([py, "-c", _UPSTREAM_SCRIPT, os.environ["COMFYUI_DIR"]], cwd=os.environ["COMFYUI_DIR"],
+                         input=json.dumps({"tracks": text, "width": cam.width, "height": cam.height, "length": 33}),
+                         capture_output=True, text=True, timeout=300)
+    assert res.returncode == 0, res.stderr[-2000:]
+    got = json.loads(res.stdout.strip().splitlines()[-1])
+    xy, vis = np.array(got["xy"]), np.array(got["visible"])
+    kept = [n for n in range(tracks.num_points) if bool(tracks.visible[0, n])]
+    X = rs.rest_particles[tracks.particle[kept].clamp_min(0)]
+    obj = (tracks.particle[kept] >= 0).numpy()
+    for j in range(33):
+        uv, _ = cam.project(analytic(X, j / 16, V, OMEGA))
+        seen = vis[j] & obj
+        assert np.abs(xy[j][seen] - uv.numpy()[seen]).max() < 0.5, j
+    first_hidden = [next((j for j in range(33) if not bool(tracks.visible[j, n])), 33) for n in kept]
+    for i, fh in enumerate(first_hidden):
+        assert vis[:fh, i].all() and not vis[fh:, i].any(), (i, fh)
