@@ -24,7 +24,7 @@ class PhysMotionFitGaussiansToPhoto:
                    "gradient refinement of rotation, scale, position and focal length against the mask's silhouette "
                    "and the photo's colours. The result stands on the ground at the object's real height, with the "
                    "camera that reproduces the photo. Below the IoU threshold the node stops with an error and shows "
-                   "the overlay (mask green, render red) instead of simulating a misaligned object.")
+                   "the overlay (mask green, render red) instead of simulating a misaligned object; likewise when the outline matches but the colours do not.")
 
     @classmethod
     def INPUT_TYPES(cls):
@@ -42,6 +42,11 @@ class PhysMotionFitGaussiansToPhoto:
                                             "tooltip": "The fit must cover the mask with at least this IoU, or the "
                                                        "node stops with an error and the overlay. Lower it to "
                                                        "accept a rough fit; 0 accepts anything."}),
+                "max_color_error": ("FLOAT", {"default": 0.15, "min": 0.0, "max": 1.0, "step": 0.01,
+                                              "tooltip": "... and the mean colour difference over the mask "
+                                                         "(0..1) must be at most this: a matching outline with "
+                                                         "wrong colours means the object is turned the wrong way "
+                                                         "or is another object. 0 = not checked."}),
                 "on_ground": ("BOOLEAN", {"default": True,
                                           "tooltip": "Put the object's lowest Gaussian on the ground plane y = 0 "
                                                      "(off: centre it on y = 0)."}),
@@ -72,8 +77,8 @@ class PhysMotionFitGaussiansToPhoto:
     FUNCTION = "run"
     CATEGORY = f"{CATEGORY}/lift"
 
-    def run(self, gaussians, image, mask, object_height, iou_threshold, on_ground, max_render_side, seed,
-            focal_px=0.0, principal_x=-1.0, principal_y=-1.0):
+    def run(self, gaussians, image, mask, object_height, iou_threshold, max_color_error, on_ground, max_render_side,
+            seed, focal_px=0.0, principal_x=-1.0, principal_y=-1.0):
         from physmotion_core.lift.fit import FitError, fit_gaussians_to_photo
 
         img = first_image(image)
@@ -87,7 +92,7 @@ class PhysMotionFitGaussiansToPhoto:
         res = fit_gaussians_to_photo(
             as_pm_gaussians(gaussians), img, m, object_height=float(object_height),
             focal=float(focal_px) if float(focal_px) > 0 else None, principal_point=pp,
-            iou_threshold=float(iou_threshold), on_ground=bool(on_ground), levels=fit_levels(max_render_side),
+            iou_threshold=float(iou_threshold), max_color_error=float(max_color_error), on_ground=bool(on_ground), levels=fit_levels(max_render_side),
             seed=int(seed), progress=cb)
         overlay = res.overlay[None]
         ui = preview_images(overlay, "PhysMotion_fit")

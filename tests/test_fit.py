@@ -41,7 +41,7 @@ def one_thread():
 
 
 # The photo is 80x96: the finest level is the photo itself, the first the coarse 48 px one.
-LEVELS = ((48, 30), (96, 40))
+LEVELS = ((48, 24), (96, 30))
 
 
 def _photo(H=96, W=80):
@@ -89,7 +89,8 @@ def test_recovers_a_random_canonical_frame_rotation_scale_and_offset(lifted, see
     t = torch.randn(3, generator=gen) * 3.0
     moved = _similarity(lift.gaussians, R_applied, s, t)
 
-    res = fit_gaussians_to_photo(moved, img, m, object_height=0.45, levels=LEVELS, yaw_steps=4, keep=2, seed=seed)
+    res = fit_gaussians_to_photo(moved, img, m, object_height=0.45, levels=LEVELS, yaw_steps=4, keep=2,
+                                 screen_steps=10, seed=seed)
     assert res.ok and res.iou >= 0.95, res.report()
     # The world frame of the lift is the camera's (level, looking down -z), so the fit must undo R.
     err = rotation_angle_deg(res.rotation @ R_applied)
@@ -131,6 +132,20 @@ def test_shape_that_cannot_match_is_reported_not_passed_on():
     with pytest.raises(FitError) as info:
         fit_gaussians_to_photo(g, img, bar, levels=((48, 15),), yaw_steps=1, keep=1, raise_on_failure=True)
     assert info.value.result.iou == pytest.approx(res.iou) and isinstance(info.value, InputError)
+
+
+def test_matching_outline_with_wrong_colours_is_reported():
+    # The right shape, the wrong object: a ball coloured by height, photographed green.
+    g = _sphere_shell(radius=1.0, n=600)
+    cam = Camera.look_at((5.0, -2.0, 7.0), (5.0, -2.0, 1.0), width=48, height=48, fov_y_deg=40)
+    with torch.no_grad():
+        mask = (rasterize(g, cam).alpha > 0.5).float()
+    photo = mask[..., None] * torch.tensor([0.1, 0.9, 0.1])
+    kw = dict(levels=((48, 15),), yaw_steps=1, keep=1)
+    res = fit_gaussians_to_photo(g, photo, mask, **kw)
+    assert res.iou >= 0.9 and res.color_error > 0.3 and not res.ok
+    assert "the colours do not" in res.message
+    assert fit_gaussians_to_photo(g, photo, mask, max_color_error=0, **kw).ok  # 0 = not checked
 
 
 def _sphere_shell(radius: float, n: int, centre=(5.0, -2.0, 1.0)) -> Gaussians:
@@ -248,7 +263,7 @@ def test_node_fits_with_progress_and_honours_focal_and_principal_point(lifted, m
     R = canonical_rotations(4)[7]
     moved = _similarity(lift.gaussians, R, 3.0, torch.tensor([1.0, 2.0, -3.0]))
     f = float(lift.camera.fx)
-    out = _node().run(moved, torch.from_numpy(img)[None], torch.from_numpy(m)[None], 0.3, 0.9, True, 64, 0,
+    out = _node().run(moved, torch.from_numpy(img)[None], torch.from_numpy(m)[None], 0.3, 0.9, 0.15, True, 64, 0,
                       focal_px=f, principal_x=40.0, principal_y=-1.0)
     g, cam, overlay, iou, text = out["result"]
     assert isinstance(g, Gaussians) and iou >= 0.93 and f"IoU {iou:.3f}" in text
@@ -270,7 +285,7 @@ def test_node_stops_with_the_overlay_when_the_fit_is_poor(monkeypatch, tmp_path)
     bar = torch.zeros(1, 48, 48)
     bar[:, 20:28, 4:44] = 1.0
     with pytest.raises(FitError, match="Could not line the Gaussians up") as info:
-        _node().run(g, torch.full((1, 48, 48, 3), 0.5), bar, 0.3, 0.85, True, 32, 0)
+        _node().run(g, torch.full((1, 48, 48, 3), 0.5), bar, 0.3, 0.85, 0.15, True, 32, 0)
     # The overlay went to the node (the progress bar's preview) and to a temp file the message names.
     name = str(info.value).split("temp file ")[1].split(")")[0]
     assert (tmp_path / name).exists()
@@ -283,4 +298,4 @@ def test_node_cancel_stops_the_fit(lifted, monkeypatch):
     install_fake_comfy(monkeypatch, cancel_after_checks=5)
     img, m, lift = lifted
     with pytest.raises(InterruptProcessingException):
-        _node().run(lift.gaussians, torch.from_numpy(img)[None], torch.from_numpy(m)[None], 0.3, 0.85, True, 96, 0)
+        _node().run(lift.gaussians, torch.from_numpy(img)[None], torch.from_numpy(m)[None], 0.3, 0.85, 0.15, True, 96, 0)

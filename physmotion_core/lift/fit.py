@@ -53,6 +53,7 @@ log = logging.getLogger(__name__)
 DEFAULT_FOV_Y = 40.0  # degrees; the silhouette lift's default, between a phone's main camera and a portrait lens
 FOV_RANGE = (8.0, 110.0)  # the focal length is kept within these vertical fields of view (degrees)
 DEFAULT_IOU_THRESHOLD = 0.85  # see docs/lift.md, "Fitting any Gaussians to the photo"
+DEFAULT_MAX_COLOR_ERROR = 0.15  # ditto
 SIGNIFICANT_OPACITY = 0.05
 COARSE_SIDE = 32
 # A coarse level renders a seeded random subset: about 2 Gaussians per pixel of the mask there (at
@@ -84,7 +85,8 @@ class FitResult:
     (``x_world = scale · rotation @ x_in + translation``); ``iou`` is the final hard IoU of the
     rendered silhouette with the mask, ``color_error`` the mean absolute colour difference (0..1)
     over the mask; ``overlay`` (H', W', 3) is the render over the photo beside the two silhouettes
-    (mask green, render red, overlap yellow). ``ok`` is ``iou >= iou_threshold``.
+    (mask green, render red, overlap yellow). ``ok`` is ``iou >= iou_threshold`` and, unless
+    ``max_color_error`` is None or 0, ``color_error <= max_color_error``.
     """
 
     gaussians: Gaussians
@@ -97,6 +99,7 @@ class FitResult:
     focal: float
     ok: bool
     iou_threshold: float
+    max_color_error: Optional[float]
     overlay: torch.Tensor
     message: str
     seconds: float
@@ -410,7 +413,8 @@ def _check_number(name, value, ok, what) -> float:
 def fit_gaussians_to_photo(
     gaussians: Gaussians, image, mask, *, object_height: float = 0.3, focal: Optional[float] = None,
     principal_point: Optional[Sequence[float]] = None, iou_threshold: float = DEFAULT_IOU_THRESHOLD,
-    on_ground: bool = True, ground_height: float = 0.0, colour_weight: float = 0.5, yaw_steps: int = 8,
+    max_color_error: Optional[float] = DEFAULT_MAX_COLOR_ERROR, on_ground: bool = True,
+    ground_height: float = 0.0, colour_weight: float = 0.5, yaw_steps: int = 8,
     keep: int = 3, levels: Sequence[tuple[int, int]] = ((48, 30), (96, 30), (160, 20)),
     screen_steps: int = 12, max_fit_gaussians: int = 20000, lr: float = 0.02, seed: int = 0,
     raise_on_failure: bool = False, progress: Optional[ProgressFn] = None,
@@ -426,6 +430,9 @@ def fit_gaussians_to_photo(
             40° vertical field of view.
         principal_point: (cx, cy) in pixels; None = the image centre.
         iou_threshold: the fit counts as lined up when the final IoU reaches this (default 0.85).
+        max_color_error: ... and the mean colour error over the mask (0..1) is at most this
+            (default 0.15; None or 0 = not checked): an outline can match with the object turned
+            the wrong way (a bar seen along another axis) or be another object's.
         on_ground: put the lowest significant Gaussian centre on ``ground_height`` (else centre
             the object on it).
         colour_weight: weight of the masked colour L1 against (1 - soft IoU).
@@ -460,6 +467,9 @@ def fit_gaussians_to_photo(
                          f"{MIN_MASK_PIXELS} are needed. Check the segmentation (empty or tiny mask).")
     object_height = _check_number("object_height", object_height, lambda x: x > 0, "a positive number of metres")
     iou_threshold = _check_number("iou_threshold", iou_threshold, lambda x: 0 <= x <= 1, "in [0, 1]")
+    if max_color_error is not None:
+        max_color_error = _check_number("max_color_error", max_color_error, lambda x: 0 <= x <= 1,
+                                        "in [0, 1] (0 or None = not checked)")
     ground_height = _check_number("ground_height", ground_height, lambda x: True, "a finite height in metres")
     colour_weight = _check_number("colour_weight", colour_weight, lambda x: x >= 0, ">= 0")
     if focal is not None:
@@ -645,9 +655,16 @@ def fit_gaussians_to_photo(
         camera = Camera(W, H, f, f, cx, cy, c2w, near=max(1e-4, 0.01 * dist), far=max(100.0, 100.0 * dist))
         overlay = fit_overlay(out_g, camera, img, m)
 
-    ok = iou >= iou_threshold
+    colour_ok = max_color_error is None or max_color_error <= 0 or color_error <= max_color_error
+    ok = iou >= iou_threshold and colour_ok
     if ok:
         message = f"Lined up with the photo: IoU {iou:.3f} >= {iou_threshold:.2f}."
+    elif iou >= iou_threshold:
+        message = (f"Could not line the Gaussians up with the photo: the outline matches (IoU {iou:.3f}) but the "
+                   f"colours do not (mean error {color_error:.3f} > {max_color_error:.2f}), so the object is "
+                   "probably turned the wrong way or is another object with a similar outline (see the overlay). "
+                   "Check that the Gaussians are of the object in this photo; or raise max_color_error (0 = off) "
+                   "to accept this fit.")
     else:
         message = (f"Could not line the Gaussians up with the photo: the best fit covers the mask with IoU "
                    f"{iou:.3f}, below the threshold {iou_threshold:.2f} (see the overlay: mask green, render "
@@ -656,7 +673,8 @@ def fit_gaussians_to_photo(
                    "iou_threshold to accept this fit.")
     result = FitResult(
         gaussians=out_g, camera=camera, iou=iou, color_error=color_error, rotation=R.float(), scale=scale,
-        translation=translation.float(), focal=f, ok=ok, iou_threshold=iou_threshold, overlay=overlay,
+        translation=translation.float(), focal=f, ok=ok, iou_threshold=iou_threshold,
+        max_color_error=max_color_error, overlay=overlay,
         message=message, seconds=time.perf_counter() - t_start,
         candidates=[{"rotation": cands[i]["rotation"], "loss": cands[i]["loss"], "soft_iou": cands[i]["soft_iou"]}
                     for i in order],
@@ -700,4 +718,5 @@ def fit_overlay(gaussians: Gaussians, camera: Camera, image: torch.Tensor, mask:
 
 
 __all__ = ["FitError", "FitResult", "canonical_rotations", "fit_gaussians_to_photo", "fit_overlay",
-           "rotate_sh", "rotation_angle_deg", "axis_angle_to_matrix", "DEFAULT_IOU_THRESHOLD"]
+           "rotate_sh", "rotation_angle_deg", "axis_angle_to_matrix", "DEFAULT_IOU_THRESHOLD",
+           "DEFAULT_MAX_COLOR_ERROR"]
