@@ -1,0 +1,147 @@
+"""Fit Gaussians to Photo: time and IoU on the CPU, and where the IoU threshold should sit.
+
+Cases (all with the library defaults unless said):
+* recovery: our silhouette lift of a photo put through a random similarity (one of the 24 canonical
+  frames, up to 20° more, scale 0.2-5x, an offset), fitted back to the photo's mask. The synthetic
+  asymmetric photo of tests/test_fit.py also gets the rotation error (the example photos are
+  symmetric objects, for which a rotation error is not defined);
+* imperfect lift: the lift of a coarsened mask (a morphological opening and closing removing detail
+  of about 4 % of the object's size, standing in for a reconstruction that is close but not exact),
+  fitted to the true mask;
+* wrong object: the lift of one photo fitted to another photo's mask.
+
+Writes docs/benchmarks.md section "fit". Usage:  .venv/bin/python -m benchmarks.bench_fit [--threads 1]
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import math
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from physmotion_core.lift import silhouette_lift
+from physmotion_core.lift.fit import DEFAULT_IOU_THRESHOLD, DEFAULT_MAX_COLOR_ERROR, axis_angle_to_matrix, canonical_rotations, \
+    fit_gaussians_to_photo, rotation_angle_deg, _quat_mul
+from physmotion_core.report import machine_description, update_section
+from physmotion_core.types import Gaussians, rotmat_to_quat
+
+ROOT = Path(__file__).resolve().parent.parent
+PHOTOS = ROOT / "photos" if (ROOT / "photos").is_dir() else ROOT / "examples"
+
+
+def load(name: str):
+    im = cv2.imread(str(PHOTOS / f"{name}.png"), cv2.IMREAD_UNCHANGED)
+    rgb = cv2.cvtColor(im[..., :3], cv2.COLOR_BGR2RGB).astype(np.float32) / 255
+    return rgb, (im[..., 3] > 127).astype(np.float32)
+
+
+def synthetic(H=96, W=80):
+    yy, xx = np.mgrid[:H, :W] + 0.5
+    m = (xx - 36) ** 2 / 22 ** 2 + (yy - 52) ** 2 / 30 ** 2 < 1
+    m |= (np.abs(xx - 62) < 7) & (yy > 22) & (yy < 50)
+    m |= (np.abs(yy - 80) < 5) & (xx > 10) & (xx < 36)
+    img = np.zeros((H, W, 3), np.float32)
+    img[..., 0] = 0.2 + 0.7 * xx / W
+    img[..., 1] = 0.9 - 0.7 * yy / H
+    img[..., 2] = np.where(xx + yy < 90, 0.8, 0.2)
+    return img, m.astype(np.float32)
+
+
+def random_similarity(g: Gaussians, seed: int):
+    gen = torch.Generator().manual_seed(100 + seed)
+    R = canonical_rotations(4)[int(torch.randint(0, 24, (1,), generator=gen))]
+    axis = torch.nn.functional.normalize(torch.randn(3, generator=gen), dim=0)
+    R = axis_angle_to_matrix(axis * math.radians(20.0) * float(torch.rand(1, generator=gen))) @ R
+    s = math.exp(float(torch.empty(1).uniform_(math.log(0.2), math.log(5.0), generator=gen)))
+    t = torch.randn(3, generator=gen) * 3.0
+    q = rotmat_to_quat(R[None])[0]
+    moved = Gaussians(means=s * g.means @ R.T + t, quats=_quat_mul(q[None].expand(len(g), 4), g.quats),
+                      scales=g.scales * s, opacities=g.opacities, sh=g.sh)
+    return moved, R
+
+
+def coarsened(mask: np.ndarray, fraction: float = 0.04) -> np.ndarray:
+    ys, xs = np.nonzero(mask > 0.5)
+    k = max(3, int(round(fraction * max(np.ptp(ys), np.ptp(xs)))) | 1)
+    ker = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (k, k))
+    m = cv2.morphologyEx((mask > 0.5).astype(np.uint8), cv2.MORPH_OPEN, ker)
+    return cv2.morphologyEx(m, cv2.MORPH_CLOSE, ker).astype(np.float32)
+
+
+def lift(img, mask, n=20000):
+    return silhouette_lift(img, mask, on_ground=False, max_gaussians=n)
+
+
+def main() -> None:
+    ap = argparse.ArgumentParser()
+    ap.add_argument("--threads", type=int, default=1)
+    args = ap.parse_args()
+    torch.set_num_threads(args.threads)
+    rows = []
+
+    def run(kind, name, g, img, mask, R_applied=None, seed=0):
+        t0 = time.perf_counter()
+        res = fit_gaussians_to_photo(g, img, mask, seed=seed)
+        dt = time.perf_counter() - t0
+        err = "" if R_applied is None else f"{rotation_angle_deg(res.rotation @ R_applied):.2f}"
+        rows.append((kind, name, len(g), f"{mask.shape[1]}x{mask.shape[0]}", f"{res.iou:.3f}",
+                     f"{res.color_error:.3f}", err, f"{dt:.1f}"))
+        print(rows[-1], flush=True)
+        return res
+
+    img, m = synthetic()
+    base = lift(img, m, 3000).gaussians
+    for seed in range(3):
+        moved, R = random_similarity(base, seed)
+        run("recovery", f"synthetic asymmetric (seed {seed})", moved, img, m, R, seed)
+    photos = ["bread", "clay", "metal_bar", "snow_block"]
+    lifts = {}
+    for name in photos:
+        img, m = load(name)
+        lifts[name] = lift(img, m).gaussians
+        moved, _ = random_similarity(lifts[name], 0)
+        run("recovery", name, moved, img, m)
+    for name in photos:
+        img, m = load(name)
+        g = lift(img, coarsened(m)).gaussians
+        run("imperfect lift", name, random_similarity(g, 1)[0], img, m)
+    for a, b in (("metal_bar", "bread"), ("bread", "metal_bar"), ("clay", "metal_bar"), ("snow_block", "clay")):
+        img, m = load(b)
+        run("wrong object", f"lift of {a} vs {b}'s mask", random_similarity(lifts[a], 2)[0], img, m)
+
+    head = ("| case | object | Gaussians | photo | IoU | colour L1 | rotation error (°) | time (s) |\n"
+            "|---|---|---|---|---|---|---|---|\n")
+    table = head + "\n".join("| " + " | ".join(str(c) for c in r) + " |" for r in rows)
+    good = [float(r[4]) for r in rows if r[0] != "wrong object"]
+    bad = [float(r[4]) for r in rows if r[0] == "wrong object"]
+    md = f"""## Fit Gaussians to Photo
+
+`benchmarks/bench_fit.py`, {datetime.date.today().isoformat()}, {machine_description()}, torch threads = {args.threads},
+library defaults (48 candidate frames ranked at 32 px, the best 3 refined for 12 steps each, the best 2 of
+those to 30 steps at 48 px, the better one then 30 at 96 px and 20 at 160 px, sizes being the geometric mean of the object's box, never
+above the photo's own size; the IoU is measured at the finest level with every Gaussian). Rotation error
+only for the asymmetric synthetic photo: the example photos are symmetric objects.
+The machine was shared with other jobs while this ran, so times are upper bounds.
+
+{table}
+
+Correct object (exact or imperfect lift): IoU {min(good):.3f}-{max(good):.3f}; wrong object: {min(bad):.3f}-{max(bad):.3f}.
+The default `iou_threshold` ({DEFAULT_IOU_THRESHOLD}) is below every correct fit measured here and above the
+wrong objects that differ clearly in shape. An outline alone can match the wrong way round: the imperfect
+lift of `metal_bar` (a nearly round rod) ends turned about 100° from the truth with IoU 0.89 but colour
+error 0.12, and the lift of `snow_block` fits `clay`'s outline with IoU 0.91 but colour error 0.33; the
+correct fits have colour errors of at most 0.02. `max_color_error` (default {DEFAULT_MAX_COLOR_ERROR}) refuses the
+second; the first passes both checks (not solved: see docs/lift.md).
+"""
+    update_section(ROOT / "docs" / "benchmarks.md", "fit", md)
+    print(md)
+
+
+if __name__ == "__main__":
+    main()
