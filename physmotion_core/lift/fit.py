@@ -12,9 +12,9 @@ through which the rendered silhouette and colours match the photo's masked objec
 2. **Coarse search** over the canonical frames: the 24 axis-aligned rotations (any input axis up,
    the input view along any of the 4 remaining axes), plus, with ``yaw_steps = 8``, the 24 in-between
    45° turns about the up axis. For each, the object is placed in front of the camera, rendered at
-   low resolution (``COARSE_SIDE`` px, sized by the object's box) and its size and position
-   corrected from that render (area ratio and centroid of alpha vs the mask), then scored with the
-   loss below.
+   low resolution (``COARSE_SIDE`` px, sized by the object's box) and its size, position and (for
+   an elongated outline) turn about the viewing axis corrected from that render (area ratio,
+   centroid and major axis of alpha vs the mask), then scored with the loss below.
 3. **Refinement** of the ``keep`` best candidates (a short run each; the best two finish the first
    level and the better one survives), then
    coarse-to-fine (``levels``): Adam on a rotation increment (axis-angle), the log of the object's
@@ -375,23 +375,46 @@ def _hard_iou(alpha: torch.Tensor, hard: torch.Tensor) -> float:
     return float(int((r & hard).sum()) / union) if union else 0.0
 
 
+def _moments(w: torch.Tensor, xs: torch.Tensor, ys: torch.Tensor) -> tuple[torch.Tensor, float, float]:
+    """Centroid (2,), orientation of the major axis (radians, image axes: x right, y down) and the
+    ratio of the principal second moments (>= 1) of a weight image."""
+    a = float(w.sum())
+    c = torch.stack([(w * xs).sum() / a, (w * ys).sum() / a])
+    dx, dy = xs - c[0], ys - c[1]
+    mxx, myy, mxy = float((w * dx * dx).sum()) / a, float((w * dy * dy).sum()) / a, float((w * dx * dy).sum()) / a
+    angle = 0.5 * math.atan2(2 * mxy, mxx - myy)
+    tr, det = mxx + myy, mxx * myy - mxy * mxy
+    disc = math.sqrt(max(tr * tr / 4 - det, 0.0))
+    lo = max(tr / 2 - disc, 1e-12)
+    return c, angle, (tr / 2 + disc) / lo
+
+
+ROLL_MIN_ELONGATION = 1.5  # both silhouettes must be at least this elongated (moment ratio) to align their axes
+
+
 def _align(prep: _Prep, p: _Params, lv: _Level, cx: float, cy: float, m_area: float,
-           m_centroid: torch.Tensor, passes: int = 1) -> None:
-    """Correct size (area ratio) and position (centroid) of a candidate from its own render."""
+           m_centroid: torch.Tensor, m_angle: float, m_elong: float) -> None:
+    """Correct a candidate from its own render: size (area ratio), position (centroid) and, for an
+    elongated outline, the turn about the viewing axis that lines its major axis up with the
+    mask's (a thin bar tilted in the picture plane otherwise scores badly in every frame)."""
     with torch.no_grad():
-        for _ in range(passes):
-            out = _render(prep, p, lv, cx, cy, colors=False)
-            a = out.alpha.clamp(0, 1)
-            area = float(a.sum())
-            if area < 1e-3:
-                p.log_sigma += math.log(2.0)
-                continue
-            ys, xs = torch.meshgrid(torch.arange(lv.height) + 0.5, torch.arange(lv.width) + 0.5, indexing="ij")
-            c = torch.stack([(a * xs).sum() / area, (a * ys).sum() / area])
-            p.log_sigma += 0.5 * math.log(m_area / area)
-            # Centroid offset (level pixels -> photo pixels -> fraction of the longer side); the
-            # centroid scales about the object's centre with the size change, close enough here.
-            p.uv += (m_centroid - c) / torch.tensor([lv.kx, lv.ky]) / p.side
+        out = _render(prep, p, lv, cx, cy, colors=False)
+        a = out.alpha.clamp(0, 1)
+        area = float(a.sum())
+        if area < 1e-3:
+            p.log_sigma += math.log(2.0)
+            return
+        ys, xs = torch.meshgrid(torch.arange(lv.height) + 0.5, torch.arange(lv.width) + 0.5, indexing="ij")
+        c, angle, elong = _moments(a, xs, ys)
+        p.log_sigma += 0.5 * math.log(m_area / area)
+        # Centroid offset (level pixels -> photo pixels -> fraction of the longer side).
+        p.uv += (m_centroid - c) / torch.tensor([lv.kx, lv.ky]) / p.side
+        if elong >= ROLL_MIN_ELONGATION and m_elong >= ROLL_MIN_ELONGATION:
+            turn = (m_angle - angle + math.pi / 2) % math.pi - math.pi / 2  # the smaller of the two turns
+            # An image turn by +turn (y down) is a turn by -turn about the camera's z axis (y up).
+            cz, sz = math.cos(-turn), math.sin(-turn)
+            Rz = torch.tensor([[cz, -sz, 0.0], [sz, cz, 0.0], [0.0, 0.0, 1.0]])
+            p.R0 = Rz @ p.R0
 
 
 # ----------------------------------------------------------------------------------------------
@@ -517,7 +540,7 @@ def fit_gaussians_to_photo(
     prep_c = prep_for(lv0, per_pixel=1.0)  # ranking candidates needs less than refining them
     m_area = float(lv0.mask.sum())
     ys, xs = torch.meshgrid(torch.arange(lv0.height) + 0.5, torch.arange(lv0.width) + 0.5, indexing="ij")
-    m_centroid = torch.stack([(lv0.mask * xs).sum() / m_area, (lv0.mask * ys).sum() / m_area])
+    m_centroid, m_angle, m_elong = _moments(lv0.mask, xs, ys)
     rows = torch.nonzero(torch.from_numpy(m_np > 0.5).any(dim=1))[:, 0]
     mask_h = float(rows[-1] - rows[0] + 1)
     side = float(max(H, W))
@@ -540,11 +563,11 @@ def fit_gaussians_to_photo(
         sigma = mask_h / max(ph, 1e-3)
         p = _Params(R0, math.log(sigma), (float(m_centroid[0]) / lv0.kx, float(m_centroid[1]) / lv0.ky),
                     math.log(f0), side)
-        _align(prep_c, p, lv0, cx, cy, m_area, m_centroid)
+        _align(prep_c, p, lv0, cx, cy, m_area, m_centroid, m_angle, m_elong)
         with torch.no_grad():
             loss, siou, col = _losses(_render(prep_c, p, lv0, cx, cy), lv0, colour_weight)
         cands.append({"params": p, "loss": float(loss), "soft_iou": float(siou), "colour": float(col),
-                      "rotation": R0})
+                      "rotation": p.R0.clone()})
         done += 1
         report(progress, done, total)
     order = sorted(range(len(cands)), key=lambda i: cands[i]["loss"])
