@@ -20,7 +20,7 @@ from physmotion_core.report import machine_description, update_section
 ROOT = Path(__file__).resolve().parent.parent
 sys.path.insert(0, str(ROOT / "tests"))
 
-from comfy_harness import node_classes, run_prompt  # noqa: E402
+from comfy_harness import node_classes, prepare_template_inputs, run_prompt  # noqa: E402
 
 
 def main(names: list[str]) -> int:
@@ -38,6 +38,7 @@ def main(names: list[str]) -> int:
             continue
         with tempfile.TemporaryDirectory() as tmp:
             os.environ["PHYSMOTION_OUTPUT_DIR"] = tmp
+            prepare_template_inputs(prompt, Path(tmp))  # the stand-in .ply of "your own splat"
             t0 = time.perf_counter()
             out = run_prompt(prompt)
             wall = time.perf_counter() - t0

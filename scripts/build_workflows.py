@@ -20,6 +20,7 @@ from physmotion_core.workflow import api_to_ui  # noqa: E402
 
 TITLES = {  # friendlier titles for the core nodes in the templates
     "LoadImage": "Load the photo",
+    "PhysMotionLoadGaussians": "Load your splat (.ply in output/, or an absolute path)",
 }
 # Nodes with the force/torque picker (web/force_picker.js) are taller: their widgets plus the photo.
 SIZES = {"PhysMotionForce": [360, 600], "PhysMotionTorque": [360, 600]}

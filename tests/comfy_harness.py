@@ -216,3 +216,44 @@ def load_workflow(path: Path) -> dict:
 
 def to_numpy_frames(images: torch.Tensor) -> np.ndarray:
     return (images.clamp(0, 1).numpy() * 255).astype(np.uint8)
+
+
+#: Where a template's PhysMotion Load Gaussians node may point at a .ply that the test, thumbnail and
+#: benchmark runs write first (see write_standin_splat).
+def write_standin_splat(path: Path, photo: str = "coffee.png", max_gaussians: int = 20000) -> Path:
+    """A .ply as another 3DGS tool might write one for the photo's object: the pack's silhouette
+    lift of ``photos/<photo>``, turned into a z-up frame whose input view looks along +x (rotations
+    of 90° about x, then 90° about z), in centimetres, off-centre. Lining it up again is the Fit's job."""
+    import math
+
+    from physmotion_core.image_io import load_image
+    from physmotion_core.lift import silhouette_lift
+    from physmotion_core.ply import write_ply
+    from physmotion_core.segment import segment
+    from physmotion_core.types import Gaussians, quat_to_rotmat, rotmat_to_quat
+
+    rgb, alpha = load_image(ROOT / "photos" / photo)
+    seg = segment(rgb, alpha=alpha)
+    g = silhouette_lift(rgb, seg.mask, max_gaussians=max_gaussians).gaussians.with_covariance_as_rotscale()
+    if g.sh.shape[1] != 1:
+        raise ValueError("the stand-in turns only SH degree 0 colours")
+    c, s = math.cos(math.pi / 2), math.sin(math.pi / 2)
+    rx = torch.tensor([[1.0, 0, 0], [0, c, -s], [0, s, c]])
+    rz = torch.tensor([[c, -s, 0], [s, c, 0], [0, 0, 1.0]])
+    R, scale, offset = rz @ rx, 100.0, torch.tensor([12.0, -40.0, 7.5])
+    turned = Gaussians(means=scale * g.means @ R.T + offset, quats=rotmat_to_quat(R @ quat_to_rotmat(g.quats)),
+                       scales=scale * g.scales, opacities=g.opacities, sh=g.sh)
+    Path(path).parent.mkdir(parents=True, exist_ok=True)
+    return write_ply(path, turned)
+
+
+def prepare_template_inputs(prompt: dict, output_dir: Path, max_gaussians: int = 20000) -> list[Path]:
+    """Write the stand-in .ply for every PhysMotion Load Gaussians node whose file (relative to the
+    output folder) is not there yet, so templates that start from "your own splat" run as shipped."""
+    written = []
+    for node in prompt.values():
+        if node["class_type"] == "PhysMotionLoadGaussians":
+            target = Path(output_dir) / node["inputs"]["ply_path"]
+            if not Path(node["inputs"]["ply_path"]).is_absolute() and not target.exists():
+                written.append(write_standin_splat(target, max_gaussians=max_gaussians))
+    return written

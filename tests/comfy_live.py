@@ -110,7 +110,8 @@ def comfy_server(tmp_path_factory):
 
 # Every workflow whose nodes need no weights runs on a CPU. Shrunk so the live suite stays quick.
 TINY_SETS = {"PhysMotionSilhouetteLift": {"max_gaussians": 4000},
-             "PhysMotionMPMSimulate": {"frames": 6, "grid_res": 8}}
+             "PhysMotionMPMSimulate": {"frames": 6, "grid_res": 8},
+             "PhysMotionFitGaussiansToPhoto": {"max_render_side": 96}}
 
 
 def cpu_capable(prompt: dict) -> bool:

@@ -64,11 +64,11 @@ TEMPLATE_MODEL_FILES = {
     "PhysMotionDiffusionLoader.model": ["stable-diffusion-2-1"],
     "PhysMotionDiffusionLoader.controlnet_depth": ["controlnet-sd21-depth-diffusers"],
     "PhysMotionDiffusionLoader.controlnet_canny": ["controlnet-sd21-canny-diffusers"],
-    # TripoSplat (docs/comfyui.md "TripoSplat -> physics"): the DINOv3 encoder, the Flux2 VAE, the
-    # TripoSplat VAE decoder and the TripoSplat diffusion model.
+    # TripoSplat (docs/comfyui.md "TripoSplat -> physics"): the DINOv3 ViT-H encoder, the Flux2 VAE, the
+    # TripoSplat VAE decoder and the TripoSplat diffusion model, as the native nodes' users name them.
     "CLIPVisionLoader.clip_name": ["dino_v3_vit_h.safetensors"],
-    "VAELoader.vae_name": ["flux2-vae.safetensors", "triposplat_vae.safetensors"],
-    "UNETLoader.unet_name": ["triposplat.safetensors"],
+    "VAELoader.vae_name": ["flux2-vae.safetensors", "triposplat_vae_decoder_fp16.safetensors"],
+    "UNETLoader.unet_name": ["triposplat_fp16.safetensors"],
 }
 # The Wan templates (README "Where weights go"): Comfy-Org/Wan_2.1_ComfyUI_repackaged's text encoder, VAE,
 # CLIP vision and VACE 14B files, and the ATI 14B model (Kijai/WanVideo_comfy, as bytedance/ATI links it).

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from comfy_harness import ROOT, load_pack
+from comfy_harness import ROOT, load_pack, prepare_template_inputs
 from comfy_live import comfy_server, cpu_capable, requires_comfyui, shrink  # noqa: F401 - fixture
 
 from physmotion_core.comfy_client import ComfyClient, ComfyError, run_workflow
@@ -83,6 +83,7 @@ def _video_moves(path, frames: int) -> None:
 @pytest.mark.parametrize("path", [p for p in API if cpu_capable(json.loads(p.read_text()))], ids=lambda p: p.stem)
 def test_api_workflow_runs_on_comfyui_and_its_video_moves(comfy_server, path, tmp_path):
     prompt = shrink(json.loads(path.read_text()), path.stem)
+    prepare_template_inputs(prompt, comfy_server.base / "output", max_gaussians=4000)  # "your own splat"
     wf = tmp_path / path.name
     wf.write_text(json.dumps(prompt))
     events = []

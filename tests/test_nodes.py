@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from comfy_harness import ROOT, input_spec, is_widget, load_pack, node_classes, run_prompt
+from comfy_harness import ROOT, input_spec, is_widget, load_pack, node_classes, prepare_template_inputs, run_prompt
 
 from physmotion_core.video import read_video
 from physmotion_core.workflow import api_to_ui, node_schemas, ui_to_api, validate_prompt_against_schemas
@@ -127,7 +127,9 @@ TINY = {"PhysMotionSilhouetteLift.max_gaussians": 4000, "PhysMotionMPMSimulate.f
         "PhysMotionHardDepthRefine.max_render_side": 128,
         # the enhancement on tiny random-weight SD 2.1 + ControlNets (physmotion_core/enhance/tiny.py)
         "PhysMotionLoRAPersonalize.steps": 2, "PhysMotionLoRAPersonalize.resolution": 64,
-        "PhysMotionDDIMInvert.steps": 2, "PhysMotionDDIMInvert.resolution": 64, "PhysMotionDDIMInvert.refine_iterations": 0}
+        "PhysMotionDDIMInvert.steps": 2, "PhysMotionDDIMInvert.resolution": 64, "PhysMotionDDIMInvert.refine_iterations": 0,
+        # Fit Gaussians to Photo (the "your own splat" template) at its coarse levels only
+        "PhysMotionFitGaussiansToPhoto.max_render_side": 96}
 LEARNED_LOADERS = {"PhysMotionSAMLoader", "PhysMotionImageDreamLoader", "PhysMotionLGMLoader",
                    "PhysMotionDiffusionLoader"}
 
@@ -157,6 +159,7 @@ def _learned_models(request, monkeypatch):
 def test_every_api_workflow_runs_in_process_at_a_small_size(path, tmp_path, monkeypatch):
     monkeypatch.setenv("PHYSMOTION_OUTPUT_DIR", str(tmp_path))
     prompt = json.loads(path.read_text())
+    prepare_template_inputs(prompt, tmp_path, max_gaussians=4000)  # "your own splat": a stand-in .ply
     out = run_prompt(prompt, class_overrides=TINY)
     # The templates save through ComfyUI's CreateVideo -> SaveVideo (the harness's stand-ins).
     savers = [nid for nid, n in prompt.items() if n["class_type"] == "SaveVideo"]
