@@ -48,7 +48,7 @@ import torch
 
 from .errors import InputError
 from .progress import ProgressFn, report
-from .types import Camera, FrameSet, Gaussians, SimResult
+from .types import Camera, FrameSet, SimResult
 
 log = logging.getLogger(__name__)
 
