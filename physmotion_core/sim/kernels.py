@@ -157,6 +157,26 @@ def corotated_stress(F: wp.mat33, R: wp.mat33, mu: float, lam: float) -> wp.mat3
 
 
 @wp.func
+def barrier_corotated_stress(F: wp.mat33, R: wp.mat33, mu: float, lam: float) -> wp.mat33:
+    """Fixed-corotated stress with a volumetric term that resists collapse (MODEL_FIXED_COROTATED).
+
+    The plain energy μ Σ(σᵢ − 1)² + λ/2 (J − 1)² stays finite as J → 0 and its Kirchhoff stress
+    2μ(F − R)Fᵀ + λ(J − 1)J I vanishes there: a body crushed flat by a hard impact feels no force
+    pushing it back and stays a sheet. Under compression (J < 1) the volumetric energy is instead
+    λ/2 (log J)², whose Kirchhoff pressure λ log J grows without bound as J → 0 (it matches the
+    former term to second order at J = 1: same small-strain stiffness, C² join). Below J = 0.05
+    the pressure stops growing (as for neo-Hookean) so the step stays bounded; an inverted F
+    (J ≤ 0) gets that full pressure and is pushed back.
+    """
+    J = wp.determinant(F)
+    T = 2.0 * mu * (F - R) * wp.transpose(F)
+    p = lam * (J - 1.0) * J
+    if J < 1.0:
+        p = lam * wp.log(wp.max(J, NEO_HOOKEAN_MIN_J))
+    return 0.5 * (T + wp.transpose(T)) + p * wp.identity(n=3, dtype=float)
+
+
+@wp.func
 def hencky_stress(U: wp.mat33, eps: wp.vec3, mu: float, lam: float) -> wp.mat33:
     """StVK-Hencky Kirchhoff stress U diag(2μ ε + λ tr(ε)) Uᵀ from the log principal stretches ε."""
     tr = eps[0] + eps[1] + eps[2]
@@ -632,9 +652,19 @@ def update_material(
             q_pred = wp.normalize(wp.quat_from_axis_angle(spin / turn, turn) * q_in)
         q = extract_rotation(F, q_pred)
         rot[p] = q
-        Fout[p] = F
-        tau[p] = corotated_stress(F, wp.quat_to_matrix(q), mat.mu, mat.lam)
-        return wave_speed_sq(mat.mu, mat.lam, mat.density, wp.determinant(F))
+        R = wp.quat_to_matrix(q)
+        Fe = F
+        Jc = wp.determinant(F)
+        if Jc < NEO_HOOKEAN_MIN_J:
+            # Crushed past 5 % of its volume (or inverted) by a hit no mesh resolves: the particle
+            # keeps its rotation and 5 % of its volume, isotropically (energy can only be lost),
+            # and the barrier's pressure pushes it back out (docs/materials.md).
+            Jc = NEO_HOOKEAN_MIN_J
+            Fe = wp.pow(NEO_HOOKEAN_MIN_J, 1.0 / 3.0) * R
+        Fout[p] = Fe
+        tau[p] = barrier_corotated_stress(Fe, R, mat.mu, mat.lam)
+        # Under compression the bulk stiffness J dτ/dJ = λ grows relative to the density ρ₀/J.
+        return wave_speed_sq(mat.mu, mat.lam, mat.density, Jc) * wp.max(1.0, 1.0 / Jc)
     if model == MODEL_NEO_HOOKEAN:
         # The stress (and wave speed, ~1/J) grows without bound as J → 0; below J = 0.05 (a body
         # crushed to 5 % of its volume, far past any rubber's validity) it stops growing, so a
