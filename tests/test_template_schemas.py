@@ -137,3 +137,43 @@ def test_link_type_rules_follow_comfyui():
     assert types_compatible("STRING,INT", "INT,FLOAT")  # non-strict: one shared type is enough
     assert not types_compatible("SPLAT", "PM_GAUSSIANS,GAUSSIAN")
     assert types_compatible("COMBO", ["a", "b"]) and not types_compatible("STRING", ["a", "b"])
+
+
+def _chain(prompt, start_cls, end_cls):
+    """Class names along a path of links from the node of ``start_cls`` to the node of ``end_cls``."""
+    def path(nid):
+        if prompt[nid]["class_type"] == start_cls:
+            return [start_cls]
+        for v in prompt[nid]["inputs"].values():
+            if isinstance(v, list):
+                found = path(v[0])
+                if found:
+                    return found + [prompt[nid]["class_type"]]
+        return None
+
+    return path(_find(prompt, end_cls))
+
+
+def test_native_3d_templates_go_native_3d_to_physics_to_native_video():
+    api = ROOT / "example_workflows" / "api"
+    tp = json.loads((api / "triposplat_to_physics.json").read_text())
+    assert _chain(tp, "VAEDecodeTripoSplat", "SaveVideo") == [
+        "VAEDecodeTripoSplat", "PhysMotionFitGaussiansToPhoto", "PhysMotionMPMSimulate", "PhysMotionRender",
+        "PhysMotionBlend", "CreateVideo", "SaveVideo"]
+    assert _chain(tp, "LoadImage", "VAEDecodeTripoSplat") == [
+        "LoadImage", "TripoSplatPreprocessImage", "TripoSplatConditioning", "KSampler", "VAEDecodeTripoSplat"]
+    fit = tp[_find(tp, "PhysMotionFitGaussiansToPhoto")]["inputs"]
+    # The photo and the object's mask the fit lines the splat up with are the ones the scene uses.
+    assert fit["image"] == ["1", 0] and tp[fit["mask"][0]]["class_type"] == "PhysMotionSegment"
+    sim = tp[_find(tp, "PhysMotionMPMSimulate")]["inputs"]
+    assert sim["camera"] == [_find(tp, "PhysMotionFitGaussiansToPhoto"), 1]
+
+    own = json.loads((api / "own_splat_to_physics.json").read_text())
+    assert _chain(own, "PhysMotionLoadGaussians", "SaveVideo") == [
+        "PhysMotionLoadGaussians", "PhysMotionFitGaussiansToPhoto", "PhysMotionMPMSimulate", "PhysMotionRender",
+        "PhysMotionBlend", "CreateVideo", "SaveVideo"]
+    # The schemas say the TripoSplat decode's GAUSSIAN may feed the Fit: the link type check is real.
+    bad = copy.deepcopy(tp)
+    bad[_find(tp, "PhysMotionFitGaussiansToPhoto")]["inputs"]["gaussians"] = [_find(tp, "KSampler"), 0]
+    errs = validate_prompt_against_schemas(bad, all_schemas(), TEMPLATE_MODEL_FILES)
+    assert len(errs) == 1 and "received_type(LATENT)" in errs[0]
