@@ -77,10 +77,7 @@ def _runs_in_process(path) -> bool:
     return all(n["class_type"] in classes for n in json.loads(Path(path).read_text()).values())
 
 
-#: Templates the harness has every node of but that cannot run here yet, with why.
-NOT_YET = {"own_splat_to_physics": "Fit Gaussians to Photo (f1c5b05) refuses the stand-in .ply: outline IoU 0.97 "
-                                   "but colour error 0.21 > 0.15 (a yaw-flipped pose); it ran, lined up, before the "
-                                   "colour check (IoU 0.95, colour error 0.08)"}
+from comfy_harness import TEMPLATES_NOT_YET as NOT_YET  # noqa: E402 - templates that cannot run yet, and why
 IN_PROCESS = [p for p in API_WORKFLOWS if _runs_in_process(p)]
 IN_PROCESS_RUNS = [pytest.param(p, marks=pytest.mark.skip(reason=NOT_YET[p.stem])) if p.stem in NOT_YET else p
                    for p in IN_PROCESS]
