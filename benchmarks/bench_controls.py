@@ -23,6 +23,7 @@ from pathlib import Path
 import torch
 
 from physmotion_core import controls as C
+from physmotion_core.errors import InputError
 from physmotion_core.render.frames import render_frames
 from physmotion_core.report import machine_description, update_section
 
@@ -60,7 +61,11 @@ def main(names: list[str]) -> int:
             part = upstream(prompt, sim_id)
             if bg_src:
                 part.update(upstream(prompt, bg_src[0]))
-            out = run_prompt(part)
+            try:
+                out = run_prompt(part)
+            except InputError as exc:  # e.g. "your own splat" needs the user's .ply
+                print(f"{path.stem}: skipped ({exc})", flush=True)
+                continue
             sim = out["results"][sim_id][0]
             camera = out["results"][cam_src[0]][cam_src[1]]
             background = out["results"][bg_src[0]][bg_src[1]] if bg_src else None
