@@ -875,7 +875,12 @@ def g2p(
         return
     mat = materials[mat_id[p]]
     if mat.damping > 0.0:
-        new_v = new_v * wp.exp(-mat.damping * dt)
+        # Mass-proportional damping scales the whole local velocity field, so its gradient too: F
+        # (updated from C) and the positions (from v) then describe the same strain, and a damped
+        # static load settles at the undamped answer.
+        decay = wp.exp(-mat.damping * dt)
+        new_v = new_v * decay
+        new_C = new_C * decay
     fp = f_ext[p]
     if fp[0] != 0.0 or fp[1] != 0.0 or fp[2] != 0.0:
         wp.atomic_add(stats, 10, dt * wp.dot(fp, new_v))  # work done by the external forces
