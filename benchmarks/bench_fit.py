@@ -18,6 +18,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import math
+import sys
 import time
 from pathlib import Path
 
@@ -31,6 +32,9 @@ from physmotion_core.lift.fit import DEFAULT_IOU_THRESHOLD, DEFAULT_MAX_COLOR_ER
 from physmotion_core.report import machine_description, update_section
 from physmotion_core.types import Gaussians, rotmat_to_quat
 
+sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
+from test_fit import _photo as synthetic  # noqa: E402 - the asymmetric photo the tests fit
+
 ROOT = Path(__file__).resolve().parent.parent
 PHOTOS = ROOT / "photos" if (ROOT / "photos").is_dir() else ROOT / "examples"
 
@@ -39,18 +43,6 @@ def load(name: str):
     im = cv2.imread(str(PHOTOS / f"{name}.png"), cv2.IMREAD_UNCHANGED)
     rgb = cv2.cvtColor(im[..., :3], cv2.COLOR_BGR2RGB).astype(np.float32) / 255
     return rgb, (im[..., 3] > 127).astype(np.float32)
-
-
-def synthetic(H=96, W=80):
-    yy, xx = np.mgrid[:H, :W] + 0.5
-    m = (xx - 36) ** 2 / 22 ** 2 + (yy - 52) ** 2 / 30 ** 2 < 1
-    m |= (np.abs(xx - 62) < 7) & (yy > 22) & (yy < 50)
-    m |= (np.abs(yy - 80) < 5) & (xx > 10) & (xx < 36)
-    img = np.zeros((H, W, 3), np.float32)
-    img[..., 0] = 0.2 + 0.7 * xx / W
-    img[..., 1] = 0.9 - 0.7 * yy / H
-    img[..., 2] = np.where(xx + yy < 90, 0.8, 0.2)
-    return img, m.astype(np.float32)
 
 
 def random_similarity(g: Gaussians, seed: int):

@@ -269,6 +269,17 @@ def _umask() -> int:
     return umask
 
 
+def file_sha256(path: str | os.PathLike) -> str:
+    """SHA-256 of a file's bytes, read in 1 MiB blocks (inputs' identities, outputs' checks)."""
+    import hashlib
+
+    h = hashlib.sha256()
+    with open(path, "rb") as fh:
+        for chunk in iter(lambda: fh.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
 def tensors_digest(tensors: dict) -> str:
     """SHA-256 over a dict of tensors (names, dtypes, shapes and bytes, in name order): stored in a
     cache file's metadata when it is written and recomputed when it is read, so a cache file that

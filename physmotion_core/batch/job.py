@@ -8,7 +8,6 @@ the runner retries.
 
 from __future__ import annotations
 
-import hashlib
 import os
 import platform
 import shutil
@@ -19,6 +18,8 @@ import time
 import traceback
 from pathlib import Path
 from typing import Optional
+
+from ..fsutil import file_sha256
 
 VIDEO = "video.mp4"
 
@@ -52,12 +53,7 @@ def error_info(exc: BaseException, kind: Optional[str] = None) -> dict:
     return info
 
 
-def sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
+sha256_file = file_sha256  # the name the executors and the manifest use
 
 
 def set_threads(threads: int) -> None:

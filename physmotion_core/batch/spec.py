@@ -37,6 +37,7 @@ from pathlib import Path
 from typing import Any, Optional
 
 from ..errors import InputError
+from ..fsutil import file_sha256
 
 SCHEMA = 1  # bump when the meaning of a normalised setting changes
 
@@ -135,12 +136,6 @@ def _read_document(path: Path) -> dict:
     raise SpecError(f"Batch spec {path} must be a .toml, .yaml or .yml file")
 
 
-def _sha256_file(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as fh:
-        for chunk in iter(lambda: fh.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def _resolve_images(patterns, base: Path) -> list[Path]:
@@ -361,7 +356,7 @@ def load_spec(path, *, comfy: bool = False) -> BatchSpec:
         bad = [k for k in mapping if k not in DEFAULTS]
         if bad:
             raise SpecError(f"comfy.map: unknown setting(s) {bad}; map settings of: {', '.join(DEFAULTS)}")
-        comfy_cfg = {"workflow": wf, "map": mapping, "workflow_sha256": _sha256_file(wf)}
+        comfy_cfg = {"workflow": wf, "map": mapping, "workflow_sha256": file_sha256(wf)}
     if comfy and comfy_cfg is None:
         raise SpecError(f"--comfy needs a [comfy] section in {path} naming the workflow (workflow = '...json')")
     outputs = {**OUTPUT_DEFAULTS, **(doc.get("outputs", {}) or {})}
@@ -407,7 +402,7 @@ def load_spec(path, *, comfy: bool = False) -> BatchSpec:
     jobs = []
     seen: dict[str, int] = {}
     for i, (img, raw) in enumerate(expanded):
-        sha = image_sha.get(img) or image_sha.setdefault(img, _sha256_file(img))
+        sha = image_sha.get(img) or image_sha.setdefault(img, file_sha256(img))
         sets = [f"{k}={json.dumps(v)}" for k, v in sorted(raw.items()) if "." in k]
         plain = {k: v for k, v in raw.items() if "." not in k}
         error, mask_sha = None, None
@@ -419,7 +414,7 @@ def load_spec(path, *, comfy: bool = False) -> BatchSpec:
                 if not mpath.is_file():
                     raise InputError(f"mask: no file at {mpath}")
                 settings["mask"] = str(mpath)
-                mask_sha = _sha256_file(mpath)
+                mask_sha = file_sha256(mpath)
         except InputError as exc:
             settings, error = {k: plain.get(k) for k in plain}, str(exc)
         extra: dict = {}
@@ -441,4 +436,4 @@ def load_spec(path, *, comfy: bool = False) -> BatchSpec:
         name = f"{img.stem}-{len(jobs):04d}"
         jobs.append(Job(id=jid, name=name, index=len(jobs), image=img, image_sha256=sha, settings=settings,
                         sets=sets, error=error, mask_sha256=mask_sha))
-    return BatchSpec(path=path, sha256=_sha256_file(path), jobs=jobs, outputs=outputs, comfy=comfy_cfg)
+    return BatchSpec(path=path, sha256=file_sha256(path), jobs=jobs, outputs=outputs, comfy=comfy_cfg)
