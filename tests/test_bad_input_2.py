@@ -540,10 +540,19 @@ def test_nodes_refuse_empty_batches_and_nul_bytes_clearly():
 # ----------------------------------------------------------------------------------------------
 
 
+def _sigint_as_a_terminal_gives_it():
+    # A shell without job control starts background commands with SIGINT ignored, and children
+    # inherit that (Python then installs no KeyboardInterrupt handler): give the child the default
+    # disposition a user's terminal gives, whatever started the test run.
+    import signal
+
+    signal.signal(signal.SIGINT, signal.SIG_DFL)
+
+
 def _child(code: str, tmp_path: Path, timeout: float = 180) -> subprocess.CompletedProcess:
     env = {**os.environ, "PYTHONPATH": f"{ROOT}{os.pathsep}{os.environ.get('PYTHONPATH', '')}"}
     return subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, cwd=tmp_path, env=env,
-                          timeout=timeout)
+                          timeout=timeout, preexec_fn=_sigint_as_a_terminal_gives_it)
 
 
 def test_ctrl_c_during_start_up_exits_130_without_a_traceback(tmp_path):

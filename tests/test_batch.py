@@ -215,7 +215,10 @@ def test_ctrl_c_stops_cleanly_and_a_rerun_finishes_the_rest(sweep, tmp_path):
     cmd = [sys.executable, "-m", "physmotion_core.cli", "batch", str(sweep.dir / "sweep.toml"), "-o", str(out),
            "--workers", "1", "-q"]
     env = {k: v for k, v in os.environ.items() if k != KILL_ENV}
-    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
+    # SIGINT as a terminal gives it: a shell without job control starts background commands (and so
+    # this test's children) with SIGINT ignored.
+    proc = subprocess.Popen(cmd, cwd=ROOT, env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True,
+                            preexec_fn=lambda: signal.signal(signal.SIGINT, signal.SIG_DFL))
     deadline = time.monotonic() + 120
     first = None
     while time.monotonic() < deadline and first is None and proc.poll() is None:
