@@ -27,7 +27,8 @@ import numpy as np
 from physmotion_core.report import DOCS, machine_description, update_section
 from physmotion_core.sim.materials import material_preset
 from physmotion_core.sim.simulate import simulate
-from physmotion_core.types import Conditions, Force, Ground, SimSettings
+from physmotion_core.types.conditions import Conditions, Force, Ground
+from physmotion_core.types.settings import SimSettings
 from physmotion_core.validate import cases as C
 from physmotion_core.validate.stress import gaussian_box
 
@@ -103,7 +104,7 @@ def plot(points, front, path: Path) -> None:
 
 def presets_section() -> None:
     """The quality presets' cost and error on the bar (the object's largest extent = the bar)."""
-    from physmotion_core.types import AUTO_GRID_RES, QUALITY
+    from physmotion_core.types.settings import AUTO_GRID_RES, QUALITY
 
     lines = [f"Measured {datetime.date.today()} on {machine_description()}.", "",
              "`quality` scales the automatic grid (grid_res = 0: "

@@ -136,7 +136,7 @@ def consistency(args) -> str:
         frames, depth = coarse_clip(args.frames, args.quick)
     tmp = None
     if args.model is None:
-        from physmotion_core.enhance.tiny import TINY_NAMES, build_tiny_models_root
+        from tiny_sd21 import TINY_NAMES, build_tiny_models_root
 
         tmp = tempfile.TemporaryDirectory()
         build_tiny_models_root(tmp.name)

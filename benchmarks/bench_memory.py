@@ -31,7 +31,8 @@ import json, sys, time
 import cv2, numpy as np
 side, frames, grid, path, out = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4], sys.argv[5]
 from physmotion_core.pipeline import generate
-from physmotion_core.types import Conditions, Force, SimSettings
+from physmotion_core.types.conditions import Conditions, Force
+from physmotion_core.types.settings import SimSettings
 import physmotion_core.lift, physmotion_core.render.frames, physmotion_core.segment, physmotion_core.sim
 def status(key):
     for line in open("/proc/self/status"):

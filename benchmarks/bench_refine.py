@@ -24,7 +24,8 @@ import torch
 from physmotion_core.refine import RefineSettings, RefineView, refine_gaussians
 from physmotion_core.render.rasterize import rasterize
 from physmotion_core.report import machine_description, update_section
-from physmotion_core.types import Camera, Gaussians
+from physmotion_core.types.camera import Camera
+from physmotion_core.types.gaussians import Gaussians
 
 ROOT = Path(__file__).resolve().parent.parent
 CENTRE = torch.tensor([0.0, 0.15, 0.0])

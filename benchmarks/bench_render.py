@@ -21,7 +21,8 @@ import time
 import torch
 
 from physmotion_core.render import gsplat_available, rasterize
-from physmotion_core.types import Camera, Gaussians, SH_C0
+from physmotion_core.types.camera import Camera
+from physmotion_core.types.gaussians import Gaussians, SH_C0
 
 
 def make_scene(n: int, width: int, height: int, seed: int = 0, device: str = "cpu",

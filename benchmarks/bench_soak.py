@@ -43,7 +43,8 @@ def open_fds() -> int:
 
 def soak(runs: int, frames: int, grid_res: int) -> list[dict]:
     from physmotion_core.pipeline import generate
-    from physmotion_core.types import Conditions, Force, Region, SimSettings
+    from physmotion_core.types.conditions import Conditions, Force, Region
+    from physmotion_core.types.settings import SimSettings
 
     rows = []
     with tempfile.TemporaryDirectory() as tmp:

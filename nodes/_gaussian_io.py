@@ -58,7 +58,7 @@ GAUSSIANS_TOOLTIP_SUFFIX = (" Also takes ComfyUI's native GAUSSIAN (TripoSplat, 
 def as_pm_gaussians(value: Any, name: str = "gaussians"):
     """Our Gaussians from a PM_GAUSSIANS or a native GAUSSIAN value (clear error otherwise)."""
     from physmotion_core.interop_gaussian import from_native_scene, is_native_gaussian
-    from physmotion_core.types import Gaussians
+    from physmotion_core.types.gaussians import Gaussians
 
     if isinstance(value, Gaussians):
         return value

@@ -9,7 +9,7 @@ _VEC = {"default": 0.0, "min": -1e7, "max": 1e7, "step": 0.1}
 
 
 def _chain(conditions):
-    from physmotion_core.types import Conditions
+    from physmotion_core.types.conditions import Conditions
 
     return conditions if conditions is not None else Conditions()
 
@@ -87,7 +87,7 @@ class PhysMotionMaterial:
 
     def run(self, preset, youngs_modulus, poissons_ratio, density, overrides=""):
         from physmotion_core.sim.materials import parse_overrides
-        from physmotion_core.types import Material
+        from physmotion_core.types.material import Material
 
         over = parse_overrides(overrides)
         if youngs_modulus > 0:
@@ -122,7 +122,7 @@ class PhysMotionForce:
 
     def run(self, fx, fy, fz, region, u, v, radius_px, object_index, t_start, t_end, conditions=None,
             region_mask=None):
-        from physmotion_core.types import Force
+        from physmotion_core.types.conditions import Force
 
         r = _region(region, u, v, radius_px, object_index, region_mask)
         return (_chain(conditions) + Force((fx, fy, fz), r, float(t_start), float(t_end)),)
@@ -153,7 +153,7 @@ class PhysMotionTorque:
 
     def run(self, tx, ty, tz, region, u, v, radius_px, object_index, t_start, t_end, conditions=None,
             region_mask=None):
-        from physmotion_core.types import Torque
+        from physmotion_core.types.conditions import Torque
 
         r = _region(region, u, v, radius_px, object_index, region_mask)
         return (_chain(conditions) + Torque((tx, ty, tz), r, float(t_start), float(t_end)),)
@@ -185,7 +185,7 @@ class PhysMotionInitialVelocity:
 
     def run(self, vx, vy, vz, wx, wy, wz, region, u, v, radius_px, object_index, conditions=None,
             region_mask=None):
-        from physmotion_core.types import InitialVelocity
+        from physmotion_core.types.conditions import InitialVelocity
 
         r = _region(region, u, v, radius_px, object_index, region_mask)
         return (_chain(conditions) + InitialVelocity((vx, vy, vz), (wx, wy, wz), r),)
@@ -217,7 +217,7 @@ class PhysMotionAnchor:
 
     def run(self, region, u, v, radius_px, object_index, vx=0.0, vy=0.0, vz=0.0, t_start=0.0, t_end=1e4,
             conditions=None, region_mask=None):
-        from physmotion_core.types import Anchor
+        from physmotion_core.types.conditions import Anchor
 
         r = _region(region, u, v, radius_px, object_index, region_mask)
         return (_chain(conditions) + Anchor(r, (vx, vy, vz), float(t_start), float(t_end)),)
@@ -256,7 +256,7 @@ class PhysMotionGround:
     CATEGORY = f"{CATEGORY}/physics"
 
     def run(self, contact, friction, height, wall_contact="slip", wall_friction=0.0, conditions=None):
-        from physmotion_core.types import Ground, Walls
+        from physmotion_core.types.conditions import Ground, Walls
 
         out = _chain(conditions) + Ground(float(height), contact, float(friction))
         return (out + Walls(wall_contact, float(wall_friction)),)
@@ -283,7 +283,7 @@ class PhysMotionGravity:
     CATEGORY = f"{CATEGORY}/physics"
 
     def run(self, gx, gy, gz, conditions=None):
-        from physmotion_core.types import Gravity
+        from physmotion_core.types.conditions import Gravity
 
         return (_chain(conditions) + Gravity((gx, gy, gz)),)
 
@@ -328,7 +328,7 @@ class PhysMotionMPMSimulate:
 
     @classmethod
     def INPUT_TYPES(cls):
-        from physmotion_core.types import QUALITY
+        from physmotion_core.types.settings import QUALITY
 
         return {
             "required": {
@@ -370,7 +370,7 @@ class PhysMotionMPMSimulate:
     def run(self, gaussians, material, frames, fps, quality, grid_res, particles_per_cell, cfl, domain_margin,
             device, seed, conditions=None, camera=None):
         from physmotion_core.sim import simulate
-        from physmotion_core.types import SimSettings
+        from physmotion_core.types.settings import SimSettings
 
         from ._memory import make_room
 

@@ -80,7 +80,8 @@ def _build_parser() -> argparse.ArgumentParser:
 def _generate(args) -> int:
     from .pipeline import generate
     from .progress import TextBar
-    from .types import Conditions, Force, Ground, Region, SimSettings
+    from .types.conditions import Conditions, Force, Ground, Region
+    from .types.settings import SimSettings
 
     from .fsutil import atomic_write_text, check_outputs, protect_inputs
     from .video import video_format
@@ -236,7 +237,7 @@ def _stress(args) -> int:
 
 
 def _comfy_run(args) -> int:
-    from .comfy_client import run_workflow
+    from .comfy.client import run_workflow
 
     def on_event(kind: str, data: dict) -> None:
         if args.quiet:

@@ -39,7 +39,8 @@ import torch
 
 from .errors import InputError
 from .memory import fmt_bytes, host_available_bytes
-from .types import Gaussians, SimResult
+from .types.gaussians import Gaussians
+from .types.results import SimResult
 
 AXES = ("y_down", "as_is")
 NATIVE_FIELDS = ("positions", "scales", "rotations", "opacities", "sh")

@@ -18,7 +18,12 @@ import torch
 from .blend import composite
 from .errors import InputError
 from .progress import ProgressFn
-from .types import Conditions, FrameSet, Gaussians, Ground, Material, SimResult, SimSettings, Camera
+from .types.camera import Camera
+from .types.conditions import Conditions, Ground
+from .types.gaussians import Gaussians
+from .types.material import Material
+from .types.results import FrameSet, SimResult
+from .types.settings import SimSettings
 
 log = logging.getLogger("physmotion")
 
@@ -75,7 +80,7 @@ def _scale_image_regions(conditions: Conditions, scale: float, size_hw: tuple[in
     the scaled one."""
     import dataclasses
 
-    from .types import Region
+    from .types.conditions import Region
 
     out = []
     for c in conditions:

@@ -16,7 +16,7 @@ import torch
 
 from .errors import InputError
 from .fsutil import atomic_output
-from .types import Gaussians
+from .types.gaussians import Gaussians
 
 _PLY_TYPES = {
     "float": "f4", "float32": "f4", "double": "f8", "float64": "f8",

@@ -8,7 +8,8 @@ from typing import Sequence, Union
 import torch
 
 from .errors import InputError
-from .types import Gaussians, Material
+from .types.gaussians import Gaussians
+from .types.material import Material
 
 MaterialSpec = Union[Material, Sequence[Material]]
 

@@ -16,7 +16,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from comfy_schemas import all_schemas  # noqa: E402
 
-from physmotion_core.workflow import api_to_ui  # noqa: E402
+from physmotion_core.comfy.workflow import api_to_ui  # noqa: E402
 
 TITLES = {  # friendlier titles for the core nodes in the templates
     "LoadImage": "Load the photo",

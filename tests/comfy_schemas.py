@@ -13,7 +13,7 @@ from functools import lru_cache
 
 from comfy_harness import ROOT, load_pack
 
-from physmotion_core.workflow import node_schemas
+from physmotion_core.comfy.workflow import node_schemas
 
 DATA = ROOT / "tests" / "data"
 OBJECT_INFO = DATA / "object_info-0.3.64.json"

@@ -24,9 +24,9 @@ from pathlib import Path
 import pytest
 import websocket
 
-from physmotion_core import comfy_client
+from physmotion_core.comfy import client as comfy_client
 from physmotion_core.cli import main
-from physmotion_core.comfy_client import ComfyError, apply_sets, run_workflow
+from physmotion_core.comfy.client import ComfyError, apply_sets, run_workflow
 from physmotion_core.errors import InputError
 
 ROOT = Path(__file__).resolve().parent.parent

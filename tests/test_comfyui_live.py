@@ -21,7 +21,7 @@ import pytest
 from comfy_harness import ROOT, TEMPLATES_NOT_YET, load_pack, prepare_template_inputs
 from comfy_live import comfy_server, cpu_capable, requires_comfyui, shrink  # noqa: F401 - fixture
 
-from physmotion_core.comfy_client import ComfyClient, ComfyError, run_workflow
+from physmotion_core.comfy.client import ComfyClient, ComfyError, run_workflow
 from physmotion_core.video import read_video
 
 pytestmark = requires_comfyui

@@ -1,6 +1,6 @@
 """Generative enhancement (issue 7) on tiny random-weight SD 2.1 / ControlNet / VAE / CLIP models.
 
-The models are the shipped SD 2.1 configs with shrunk sizes (physmotion_core/enhance/tiny.py),
+The models are the shipped SD 2.1 configs with shrunk sizes (tests/tiny_sd21.py),
 saved as a diffusers folder, diffusers ControlNet folders and original-layout single files, and
 loaded through the real loader. Everything runs on the CPU at 64x64 pixels (8x8 latents) with a
 few DDIM steps.
@@ -22,7 +22,7 @@ from physmotion_core.enhance import (LoraSettings, SampleSettings, invert_frames
 from physmotion_core.enhance.attention import (FEATURE_LAYER, SharedAttention, nearest_neighbours, shared_attention,
                                                self_attention_layers)
 from physmotion_core.enhance.schedule import DDIMSchedule, step_coefficients
-from physmotion_core.enhance.tiny import TINY_NAMES, build_tiny_models_root
+from tiny_sd21 import TINY_NAMES, build_tiny_models_root
 from physmotion_core.errors import InputError, Interrupted, MissingModelError
 
 

@@ -94,7 +94,7 @@ def test_cancelled_refinement_leaves_the_input_and_the_next_run_unchanged():
 @pytest.fixture(scope="module")
 def tiny_sd(tmp_path_factory):
     from physmotion_core.enhance import load_diffusion
-    from physmotion_core.enhance.tiny import TINY_NAMES, build_tiny_models_root
+    from tiny_sd21 import TINY_NAMES, build_tiny_models_root
 
     n = torch.get_num_threads()
     torch.set_num_threads(1)

@@ -10,7 +10,7 @@ import torch
 from comfy_harness import ROOT, input_spec, is_widget, load_pack, node_classes, prepare_template_inputs, run_prompt
 
 from physmotion_core.video import read_video
-from physmotion_core.workflow import api_to_ui, node_schemas, ui_to_api, validate_prompt_against_schemas
+from physmotion_core.comfy.workflow import api_to_ui, node_schemas, ui_to_api, validate_prompt_against_schemas
 
 API_DIR = ROOT / "example_workflows" / "api"
 API_WORKFLOWS = sorted(API_DIR.glob("*.json"))
@@ -128,7 +128,7 @@ TINY = {"PhysMotionSilhouetteLift.max_gaussians": 4000, "PhysMotionMPMSimulate.f
         "PhysMotionLGMLoader.input_size": 64, "PhysMotionLGMLift.steps": 2, "PhysMotionLGMLift.max_gaussians": 300,
         "PhysMotionMultiViewGenerate.steps": 2, "PhysMotionHardDepthRefine.iterations": 2,
         "PhysMotionHardDepthRefine.max_render_side": 128,
-        # the enhancement on tiny random-weight SD 2.1 + ControlNets (physmotion_core/enhance/tiny.py)
+        # the enhancement on tiny random-weight SD 2.1 + ControlNets (tests/tiny_sd21.py)
         "PhysMotionLoRAPersonalize.steps": 2, "PhysMotionLoRAPersonalize.resolution": 64,
         "PhysMotionDDIMInvert.steps": 2, "PhysMotionDDIMInvert.resolution": 64, "PhysMotionDDIMInvert.refine_iterations": 0,
         # Fit Gaussians to Photo (the "your own splat" template) at its coarse levels only
@@ -141,7 +141,7 @@ LEARNED_LOADERS = {"PhysMotionSAMLoader", "PhysMotionImageDreamLoader", "PhysMot
 def tiny_models_root(tmp_path_factory):
     from tiny_models import write_tiny_models_root
 
-    from physmotion_core.enhance.tiny import build_tiny_models_root
+    from tiny_sd21 import build_tiny_models_root
 
     root = write_tiny_models_root(tmp_path_factory.mktemp("models"))
     build_tiny_models_root(root)  # SD 2.1 + depth/canny ControlNets under the template's names

@@ -12,7 +12,7 @@ import pytest
 from comfy_harness import ROOT
 from comfy_schemas import OBJECT_INFO, TEMPLATE_MODEL_FILES, UPSTREAM, all_schemas, native_schemas
 
-from physmotion_core.workflow import types_compatible, validate_prompt_against_schemas
+from physmotion_core.comfy.workflow import types_compatible, validate_prompt_against_schemas
 
 API = sorted((ROOT / "example_workflows" / "api").glob("*.json"))
 

@@ -259,7 +259,7 @@ def comfy_task(task: dict, server: str, workflow: str, out_dir: str) -> dict:
     import json
     import platform
 
-    from ..comfy_client import ComfyError, run_workflow
+    from ..comfy.client import ComfyError, run_workflow
 
     t0 = time.perf_counter()
     base = Path(out_dir)

@@ -110,7 +110,7 @@ def warm_kernels(device: str = "cpu") -> dict:
 
 
 def _conditions(s: dict):
-    from ..types import Conditions, Force, Ground, InitialVelocity, Region, Torque
+    from ..types.conditions import Conditions, Force, Ground, InitialVelocity, Region, Torque
 
     def region(at, radius):
         return Region() if at is None else Region.at_pixel(at[0], at[1], radius)
@@ -134,7 +134,8 @@ def _conditions(s: dict):
 
 def build_inputs(s: dict) -> dict:
     """The generate() arguments of a job's normalised settings (raises InputError on bad values)."""
-    from ..types import Material, SimSettings
+    from ..types.material import Material
+    from ..types.settings import SimSettings
 
     from ..errors import InputError
 

@@ -250,7 +250,7 @@ def canonical_json(obj) -> str:
 
 # Modules whose source does not shape a job's video: the rest of the package is the "physics" the id
 # names (a new module counts until it is listed here).
-_NOT_PHYSICS = ("cli.py", "comfy_client.py", "workflow.py", "report.py", "progress.py", "batch/", "validate/",
+_NOT_PHYSICS = ("cli.py", "comfy/", "report.py", "progress.py", "batch/", "validate/",
                 "interop_gaussian.py")
 
 

@@ -55,7 +55,8 @@ from ..errors import InputError
 from ..progress import ProgressFn, report, scaled
 from ..refine.refine import RefineView
 from ..segment.classic import as_image_array, as_mask_array, clean_mask
-from ..types import Camera, Gaussians, rotmat_to_quat
+from ..types.camera import Camera
+from ..types.gaussians import Gaussians, rotmat_to_quat
 from .lgm import (IMAGENET_MEAN, IMAGENET_STD, LGM_AZIMUTHS, NUM_VIEWS, LGMNet, default_rays, orbit_pose,
                   raw_rotation_matrix)
 from .silhouette import MIN_MASK_PIXELS, LiftResult

@@ -62,7 +62,8 @@ import torch
 from ..errors import InputError
 from ..progress import ProgressFn, report
 from ..segment.classic import as_image_array, as_mask_array
-from ..types import SH_C0, Camera, Gaussians, rotmat_to_quat
+from ..types.camera import Camera
+from ..types.gaussians import SH_C0, Gaussians, rotmat_to_quat
 
 log = logging.getLogger(__name__)
 

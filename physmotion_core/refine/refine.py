@@ -33,7 +33,8 @@ import torch
 from ..errors import InputError
 from ..progress import ProgressFn, report
 from ..render.rasterize import rasterize
-from ..types import Camera, Gaussians
+from ..types.camera import Camera
+from ..types.gaussians import Gaussians
 from .losses import ERROR_TOLERANCE, PATCH_RANGE, colour_loss, hard_depth_loss
 
 log = logging.getLogger(__name__)

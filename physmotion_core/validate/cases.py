@@ -14,7 +14,8 @@ import numpy as np
 
 from ..sim.materials import material_preset
 from ..sim.mpm import MPMSolver
-from ..types import Ground, Material
+from ..types.conditions import Ground
+from ..types.material import Material
 from .harness import CaseResult, ball, box_domain, lattice, momentum, run_sampled, timed
 
 G = 9.81

@@ -14,7 +14,7 @@ from typing import Callable, Optional, Sequence
 import numpy as np
 
 from ..sim.mpm import PAD, Domain, MPMSolver
-from ..types import Ground
+from ..types.conditions import Ground
 
 
 @dataclass

@@ -30,8 +30,10 @@ import torch
 from ..errors import InputError, PhysMotionError
 from ..sim.materials import material_preset
 from ..sim.simulate import simulate
-from ..types import (Conditions, Force, Gaussians, Gravity, Ground, InitialVelocity, Material, SimSettings, Torque,
-                     Walls)
+from ..types.conditions import Conditions, Force, Gravity, Ground, InitialVelocity, Torque, Walls
+from ..types.gaussians import Gaussians
+from ..types.material import Material
+from ..types.settings import SimSettings
 
 ENERGY_SLACK = 0.05
 MAX_VOLUME_CHANGE = 2.0  # the elastic volume ratio det F, averaged at the end, must stay within [1/2, 2]

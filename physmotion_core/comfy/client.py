@@ -26,8 +26,8 @@ from typing import Callable, Optional
 
 import websocket  # websocket-client
 
-from .errors import InputError, PhysMotionError
-from .fsutil import atomic_output
+from ..errors import InputError, PhysMotionError
+from ..fsutil import atomic_output
 
 log = logging.getLogger("physmotion")
 

@@ -21,7 +21,7 @@ from typing import Optional
 
 import torch
 
-from .configs import SD21_CONFIG_DIR, read_config
+from physmotion_core.enhance.configs import SD21_CONFIG_DIR, read_config
 
 TINY_UNET = {
     "block_out_channels": [16, 16, 32, 32],
