@@ -218,23 +218,21 @@ def to_numpy_frames(images: torch.Tensor) -> np.ndarray:
     return (images.clamp(0, 1).numpy() * 255).astype(np.uint8)
 
 
-#: Where a template's PhysMotion Load Gaussians node may point at a .ply that the test, thumbnail and
-#: benchmark runs write first (see write_standin_splat).
-def write_standin_splat(path: Path, photo: str = "coffee.png", max_gaussians: int = 20000) -> Path:
-    """A .ply as another 3DGS tool might write one for the photo's object: the pack's silhouette
-    lift of ``photos/<photo>``, turned into a z-up frame whose input view looks along +x (rotations
-    of 90° about x, then 90° about z), in centimetres, off-centre. Lining it up again is the Fit's job."""
+def standin_splat(photo: str = "coffee.png", max_gaussians: int = 20000):
+    """The Gaussians of the stand-in .ply (see write_standin_splat), the silhouette lift they were
+    made from (its camera, with the principal point on the object's base line, reproduces the
+    photo) and the similarity applied, ``(R, scale, offset)``: x_standin = scale · R x_lift + offset."""
     import math
 
     from physmotion_core.image_io import load_image
     from physmotion_core.lift import silhouette_lift
-    from physmotion_core.ply import write_ply
     from physmotion_core.segment import segment
     from physmotion_core.types import Gaussians, quat_to_rotmat, rotmat_to_quat
 
     rgb, alpha = load_image(ROOT / "photos" / photo)
     seg = segment(rgb, alpha=alpha)
-    g = silhouette_lift(rgb, seg.mask, max_gaussians=max_gaussians).gaussians.with_covariance_as_rotscale()
+    lift = silhouette_lift(rgb, seg.mask, max_gaussians=max_gaussians)
+    g = lift.gaussians.with_covariance_as_rotscale()
     if g.sh.shape[1] != 1:
         raise ValueError("the stand-in turns only SH degree 0 colours")
     c, s = math.cos(math.pi / 2), math.sin(math.pi / 2)
@@ -243,8 +241,20 @@ def write_standin_splat(path: Path, photo: str = "coffee.png", max_gaussians: in
     R, scale, offset = rz @ rx, 100.0, torch.tensor([12.0, -40.0, 7.5])
     turned = Gaussians(means=scale * g.means @ R.T + offset, quats=rotmat_to_quat(R @ quat_to_rotmat(g.quats)),
                        scales=scale * g.scales, opacities=g.opacities, sh=g.sh)
+    return turned, lift, (R, scale, offset)
+
+
+#: Where a template's PhysMotion Load Gaussians node may point at a .ply that the test, thumbnail and
+#: benchmark runs write first (see write_standin_splat).
+def write_standin_splat(path: Path, photo: str = "coffee.png", max_gaussians: int = 20000) -> Path:
+    """A .ply as another 3DGS tool might write one for the photo's object: the pack's silhouette
+    lift of ``photos/<photo>``, turned into a z-up frame whose input view looks along +x (rotations
+    of 90° about x, then 90° about z), in centimetres, off-centre. Lining it up again is the Fit's job
+    (``tests/test_fit.py`` checks that it does, against the transform ``standin_splat`` returns)."""
+    from physmotion_core.ply import write_ply
+
     Path(path).parent.mkdir(parents=True, exist_ok=True)
-    return write_ply(path, turned)
+    return write_ply(path, standin_splat(photo, max_gaussians)[0])
 
 
 def prepare_template_inputs(prompt: dict, output_dir: Path, max_gaussians: int = 20000) -> list[Path]:
@@ -261,8 +271,4 @@ def prepare_template_inputs(prompt: dict, output_dir: Path, max_gaussians: int =
 
 #: Templates the harness has every node of but that cannot run here yet, with why (skipped by the
 #: in-process and the live runs).
-TEMPLATES_NOT_YET = {
-    "own_splat_to_physics": "Fit Gaussians to Photo (f1c5b05) refuses the stand-in .ply: outline IoU 0.97 but colour "
-                            "error 0.21 > 0.15 (a yaw-flipped pose); it ran, lined up, before the colour check "
-                            "(IoU 0.95, colour error 0.08)",
-}
+TEMPLATES_NOT_YET: dict[str, str] = {}

@@ -299,3 +299,86 @@ def test_node_cancel_stops_the_fit(lifted, monkeypatch):
     img, m, lift = lifted
     with pytest.raises(InterruptProcessingException):
         _node().run(lift.gaussians, torch.from_numpy(img)[None], torch.from_numpy(m)[None], 0.3, 0.85, 0.15, True, 96, 0)
+
+
+# ----------------------------------------------------------------------------------------------
+# The own_splat_to_physics template's stand-in .ply (tests/comfy_harness.py: write_standin_splat)
+# ----------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def standin(tmp_path_factory):
+    """The stand-in .ply exactly as the template runs write it (20 000 splats of photos/coffee.png's
+    silhouette lift, z-up, centimetres, off-centre), read back, with the photo, its mask and the
+    lift's camera and transform."""
+    from comfy_harness import ROOT, standin_splat
+    from physmotion_core.image_io import load_image
+    from physmotion_core.ply import read_ply, write_ply
+    from physmotion_core.segment import segment
+
+    turned, lift, (R, scale, offset) = standin_splat()
+    g = read_ply(write_ply(tmp_path_factory.mktemp("standin") / "my_splat.ply", turned))
+    rgb, alpha = load_image(ROOT / "photos" / "coffee.png")
+    return g, rgb, segment(rgb, alpha=alpha).mask, lift.camera, R
+
+
+def _frame_errors(E: torch.Tensor) -> dict:
+    """How far the error rotation E = R_fit · R_applied (identity for a perfect fit) turns each
+    world axis (degrees): x across the photo, y up, z towards the camera."""
+    out = {}
+    for k, name in enumerate("xyz"):
+        e = torch.zeros(3)
+        e[k] = 1.0
+        out[name] = math.degrees(math.acos(max(-1.0, min(1.0, float((E @ e)[k])))))
+    return out
+
+
+def test_the_templates_standin_ply_fits_the_right_way_round(standin):
+    """As the own_splat_to_physics template runs it (library defaults = the node's at max_render_side
+    160; principal point at the image centre). The stand-in's outline is nearly its own mirror
+    image, so the pose turned 180° about the up axis (seen from behind) matches the outline too (IoU
+    0.94-0.97) and only the colours tell them apart; before the coarse subsets were made to cover
+    the object, that pose won (colour error 0.21-0.35) and the fit was refused.
+
+    The lift's camera has its principal point on the object's base line (row 400 of 400; a
+    shift-lens camera, as the silhouette lift makes on the ground), the fit assumes the image
+    centre: a shifted principal point is about a camera pitch, so the fit pitches the object (about
+    the x axis, ~12° measured) and the rotation is checked per axis: x stays put, y and z within
+    20° (the flipped pose would turn z and x by 180°)."""
+    from physmotion_core.lift.fit import DEFAULT_MAX_COLOR_ERROR
+
+    g, rgb, mask, cam, R_applied = standin
+    res = fit_gaussians_to_photo(g, rgb, mask, object_height=0.3)
+    assert res.ok and res.iou >= 0.95 and res.color_error <= DEFAULT_MAX_COLOR_ERROR, res.report()
+    err = _frame_errors(res.rotation @ R_applied)
+    assert err["x"] <= 3.0 and err["y"] <= 20.0 and err["z"] <= 20.0, (err, res.report())
+    assert not any(c["round"] == "_retry" for c in res.info["contenders"])  # the first round found it
+
+
+def test_the_standin_with_its_cameras_principal_point_recovers_the_rotation(standin):
+    """Given the principal point the stand-in was lifted with, the exact similarity comes back."""
+    g, rgb, mask, cam, R_applied = standin
+    res = fit_gaussians_to_photo(g, rgb, mask, object_height=0.3, principal_point=(cam.cx, cam.cy),
+                                 levels=((48, 30), (96, 30)))
+    assert res.ok and res.iou >= 0.97 and res.color_error <= 0.05, res.report()
+    assert rotation_angle_deg(res.rotation @ R_applied) <= 3.0, res.report()
+
+
+def test_a_refused_first_round_retries_the_pose_turned_round(lifted, monkeypatch):
+    """The second round: with the coarse search offered only the pose seen from behind (the
+    synthetic photo's outline is not its own mirror image), the first round is refused; the retry
+    turns its finalists 180° about the up axis and lines up. Without the retry the fit is refused."""
+    import physmotion_core.lift.fit as fit_module
+
+    img, m, lift = lifted
+    R_applied = canonical_rotations(4)[13]
+    moved = _similarity(lift.gaussians, R_applied, 2.0, torch.tensor([0.5, -1.0, 2.0]))
+    flipped = fit_module._rot_y(math.pi) @ R_applied.T
+    monkeypatch.setattr(fit_module, "canonical_rotations", lambda yaw_steps=8: flipped[None])
+    kw = dict(object_height=0.45, levels=LEVELS, keep=1, screen_steps=10)
+    res = fit_gaussians_to_photo(moved, img, m, retry=False, **kw)
+    assert not res.ok and rotation_angle_deg(res.rotation @ R_applied) > 150.0, res.report()
+    res = fit_gaussians_to_photo(moved, img, m, **kw)
+    assert res.ok and res.iou >= 0.95, res.report()
+    assert rotation_angle_deg(res.rotation @ R_applied) <= 3.0, res.report()
+    assert [c["round"] for c in res.info["contenders"]] == ["", "_retry"]
