@@ -4,8 +4,10 @@ Each CPU template of example_workflows/api/ (no learned weights, not a Wan templ
 to its simulation (tests/comfy_harness.py: the node classes ComfyUI calls), at the template's own
 settings. Then the three video-control nodes run on that simulation as the Wan templates use them:
 832x480, 16 fps, the 4k+1 frame count the simulated duration fills (48 frames at 24 fps -> 33),
-64 tracked points + 8 background anchors, an 8 px grown mask, forward flow. Each node renders the
-resampled clip itself; the render alone is timed too. Written to docs/benchmarks.md, section
+64 tracked points + 8 background anchors, an 8 px grown mask, forward flow, in that order (tracks,
+controls, flow), as a workflow using all three runs them: the first renders the resampled clip once
+(colour, depth and the forward flow's channels) and the other two reuse it. A plain render of the clip
+(render_frames, what the coarse video costs) is timed too. Written to docs/benchmarks.md, section
 "controls". Usage:
     .venv/bin/python -m benchmarks.bench_controls [name ...]   (names: a subset, said so in the section)
 """
@@ -45,6 +47,7 @@ def _timed(fn):
 
 def main(names: list[str]) -> int:
     classes = node_classes()
+    loads = []  # 1-minute load averages while the nodes ran: how busy the shared machine was
     rows, totals = [], {"sim": 0.0, "render": 0.0, "tracks": 0.0, "controls": 0.0, "flow": 0.0}
     for path in sorted((ROOT / "example_workflows" / "api").glob("*.json")):
         if names and path.stem not in names:
@@ -72,6 +75,7 @@ def main(names: list[str]) -> int:
             length = C.wan_length(sim.num_frames, C.sim_fps(sim), FPS)
             common = dict(simulation=sim, camera=camera, width=WIDTH, height=HEIGHT, fps=FPS, length=length)
             rs = C.resample_simulation(sim, FPS, length)
+            loads.append(os.getloadavg()[0])
             _, t_render = _timed(lambda: render_frames(rs, C.fit_camera(camera, WIDTH, HEIGHT)))
             _, t_tracks = _timed(lambda: classes["PhysMotionPointTracks"]().run(
                 **common, num_points=64, background_points=8, occlusion="end track", background=background))
@@ -79,6 +83,7 @@ def main(names: list[str]) -> int:
                 **common, grow_mask=8, background=background))
             _, t_flow = _timed(lambda: classes["PhysMotionExactFlow"]().run(
                 **common, direction="forward", max_flow=0.0, filename_prefix="bench/flow"))
+            loads.append(os.getloadavg()[0])
         t_sim = float(sim.stats["wall_time_s"])
         share = (t_tracks + t_controls + t_flow) / t_sim
         for k, v in zip(totals, (t_sim, t_render, t_tracks, t_controls, t_flow)):
@@ -94,13 +99,17 @@ def main(names: list[str]) -> int:
 The three video-control nodes (`PhysMotionPointTracks`, `PhysMotionControlVideos`, `PhysMotionExactFlow`)
 on the simulation of each CPU template, as the Wan templates use them: {WIDTH}x{HEIGHT}, {FPS:g} fps, the
 4k+1 frame count the simulated duration fills, 64 tracked points + 8 background anchors, forward flow.
-The tracks node resamples and renders the clip (the render alone is the "render" column) and adds
-sampling, projection, visibility, the JSON and the drawn preview; the controls node, run next on the same
-simulation, clock and size, reuses that render and adds the depth/mask/blend videos; the flow node
-renders 12 extra channels per frame pair and writes the .npz. On the CPU the rendering is most of it. Simulation: the template's
-own settings, Warp kernels already compiled. Templates: {"a representative subset (" + ", ".join(names) + ")"
-                                                     if names else "every CPU template"}. Machine: {machine_description()}, shared with other jobs
-while measuring; torch ran with {torch.get_num_threads()} thread(s). Measured
+The tracks node resamples the simulation and renders the clip once for all three nodes (colour, depth
+and 9 flow channels per frame: `render_clip`), then samples, projects, tests visibility at the points,
+writes the JSON and draws the preview; the controls node, run next on the same simulation, clock and size,
+reuses that render and adds the depth/mask/blend/VACE videos; the flow node reuses it too and adds the
+colour-wheel preview and the .npz. The "render" column is a plain render of the same clip (`render_frames`,
+colour and depth only) for comparison. Posing the Gaussians each frame (`SimResult.gaussians_at`) and
+rasterizing are most of it. Simulation: the template's own settings, Warp kernels already compiled. Templates: {"a representative subset (" + ", ".join(names) + ")"
+                                                     if names else "every CPU template"}. Machine: {machine_description()}; 1-minute load
+average while the nodes ran {min(loads, default=0):.1f}-{max(loads, default=0):.1f} on {os.cpu_count()} cores (above the core
+count: shared with other jobs, and every time here is longer than on an idle machine); torch ran with
+{torch.get_num_threads()} thread(s). Measured
 {datetime.date.today().isoformat()}. Re-run: `python -m benchmarks.bench_controls`.
 
 | template | Gaussians | frames (sim -> Wan) | simulation s | render s | tracks node s | controls node s | flow node s | all three / simulation |

@@ -42,27 +42,33 @@ def _at_model_clock(simulation, camera, width, height, fps, length):
     return sim, C.fit_camera(camera, W, H)
 
 
-#: The last clip rendered here: (weak reference to the simulation it came from, settings, frames). Tracks
-#: and control videos of the same simulation at the same clock and size then share one render.
+#: The last clip rendered here: (weak reference to the simulation it came from, settings, frames, flows by
+#: direction). The three nodes on the same simulation at the same clock and size share one render.
 _last_render: list = []
 
 
-def _render(sim, cam, source=None, settings=()):
+def _render(sim, cam, source=None, settings=(), flow=None):
+    """The frames of the resampled clip and, when ``flow`` names a direction, its flow: from the last clip
+    when it is the same (simulation, clock, size), else rendered once (``render_clip``). A render always
+    carries the forward flow's channels too (it adds about a quarter to the render), so a flow node
+    after the tracks or controls node costs nothing more; a backward flow renders again."""
     import weakref
 
-    from physmotion_core.render.frames import render_frames
+    from physmotion_core import controls as C
 
     key = (tuple(settings), repr(cam.to_dict()))
     if source is not None and _last_render:
-        ref, k, frames = _last_render[0]
-        if ref() is source and k == key:
-            return frames
+        ref, k, frames, flows = _last_render[0]
+        if ref() is source and k == key and (flow is None or flow in flows):
+            return frames, flows.get(flow)
     dev = torch_device()
-    frames = render_frames(sim, cam, device=dev if dev.type == "cuda" else "cpu", progress=progress_callback())
+    direction = flow or "forward"
+    frames, fl = C.render_clip(sim, cam, flow=direction if sim.num_frames > 1 else None,
+                               device=dev if dev.type == "cuda" else "cpu", progress=progress_callback())
     _last_render.clear()
     if source is not None:
-        _last_render.append((weakref.ref(source), key, frames))
-    return frames
+        _last_render.append((weakref.ref(source), key, frames, {direction: fl} if fl is not None else {}))
+    return frames, (fl if flow else None)
 
 
 def _fit_background(background, width, height, frames):
@@ -118,14 +124,13 @@ class PhysMotionPointTracks:
     def run(self, simulation, camera, width, height, fps, length, num_points, background_points, occlusion,
             background=None):
         from physmotion_core import controls as C
-        from physmotion_core.blend import composite
 
         sim, cam = _at_model_clock(simulation, camera, width, height, fps, length)
-        frames = _render(sim, cam, simulation, (fps, length))
+        frames, _ = _render(sim, cam, simulation, (fps, length))
         tracks = C.point_tracks(sim, frames, cam, int(num_points), background_points=int(background_points))
         text = C.wan_tracks_json(tracks, occlusion="end" if occlusion == "end track" else "keep")
         bg = _fit_background(background, cam.width, cam.height, sim.num_frames)
-        base = composite(frames.rgb, frames.alpha, bg) if bg is not None else frames.rgb
+        base = C.over_background(frames.rgb, frames.alpha, bg) if bg is not None else frames.rgb
         preview = C.draw_tracks(base, tracks)
         return {"ui": preview_video(preview, float(fps), "PhysMotion_tracks"),
                 "result": (text, preview, cam.width, cam.height, sim.num_frames)}
@@ -166,7 +171,7 @@ class PhysMotionControlVideos:
         from physmotion_core import controls as C
 
         sim, cam = _at_model_clock(simulation, camera, width, height, fps, length)
-        frames = _render(sim, cam, simulation, (fps, length))
+        frames, _ = _render(sim, cam, simulation, (fps, length))
         v = C.control_videos(frames, _fit_background(background, cam.width, cam.height, sim.num_frames),
                              grow_mask=int(grow_mask))
         return {"ui": preview_video(v.vace, float(fps), "PhysMotion_controls"),
@@ -208,9 +213,7 @@ class PhysMotionExactFlow:
         from physmotion_core import controls as C
 
         sim, cam = _at_model_clock(simulation, camera, width, height, fps, length)
-        dev = torch_device()
-        flow = C.exact_flow(sim, cam, direction=direction, device=dev if dev.type == "cuda" else "cpu",
-                            progress=progress_callback())
+        _, flow = _render(sim, cam, simulation, (fps, length), flow=direction)
         preview = C.flow_to_color(flow.flow, float(max_flow))
         path, _, _ = output_path(filename_prefix, "npz")
         C.save_flow_npz(path, flow, cam)

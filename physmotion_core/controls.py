@@ -279,19 +279,24 @@ def visibility(uv: torch.Tensor, z: torch.Tensor, frames: FrameSet, tolerance: f
     object covers the pixel (alpha > 0.5). Both are taken leniently over the point's 3x3 pixels (the
     farthest covered depth, any covered pixel), so a surface seen at a grazing angle, whose depth
     changes fast from pixel to pixel, still shows its points; a point behind the object is many
-    tolerances behind every pixel around it."""
+    tolerances behind every pixel around it. Only the 3x3 pixels under each point are read."""
     T, H, W = frames.alpha.shape
     ix = torch.floor(uv[..., 0]).long()
     iy = torch.floor(uv[..., 1]).long()
     inside = (ix >= 0) & (ix < W) & (iy >= 0) & (iy < H) & (z > 0)
-    covered = frames.alpha > 0.5
-    near = torch.where(covered, frames.depth, torch.full_like(frames.depth, -float("inf")))
-    near = torch.nn.functional.max_pool2d(near[:, None], 3, stride=1, padding=1)[:, 0]
-    cov = torch.nn.functional.max_pool2d(covered.float()[:, None], 3, stride=1, padding=1)[:, 0] > 0
     cx, cy = ix.clamp(0, W - 1), iy.clamp(0, H - 1)
     t = torch.arange(T)[:, None].expand_as(cx)
-    on_object = cov[t, cy, cx]
-    front = z <= near[t, cy, cx] + tolerance
+    near = torch.full(cx.shape, -float("inf"), dtype=frames.depth.dtype)
+    on_object = torch.zeros(cx.shape, dtype=torch.bool)
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            x, y = cx + dx, cy + dy
+            ok = (x >= 0) & (x < W) & (y >= 0) & (y < H)  # pixels off the image do not count
+            x, y = x.clamp(0, W - 1), y.clamp(0, H - 1)
+            covered = ok & (frames.alpha[t, y, x] > 0.5)
+            on_object |= covered
+            near = torch.where(covered, torch.maximum(near, frames.depth[t, y, x]), near)
+    front = z <= near + tolerance
     return inside & on_object & front
 
 
@@ -456,6 +461,19 @@ class ControlVideos:
     vace: torch.Tensor
 
 
+def over_background(rgb: torch.Tensor, alpha: torch.Tensor, background: torch.Tensor) -> torch.Tensor:
+    """``blend.composite`` (premultiplied ``rgb`` (T,H,W,3) with ``alpha`` over ``background`` (H,W,3) or
+    (T,H,W,3), clamped to 0..1), the same values, with one clip-sized allocation instead of three: a Wan
+    clip is hundreds of MB and on a VM every fresh page costs."""
+    from .blend import composite
+
+    bg = background[..., :3]
+    if rgb.ndim != 4 or alpha.shape != rgb.shape[:3] or bg.shape[-3:-1] != rgb.shape[1:3]:
+        return composite(rgb, alpha, bg)  # its checks and messages
+    out = (1.0 - alpha)[..., None] * bg.to(rgb.device, rgb.dtype)
+    return out.add_(rgb).clamp_(0.0, 1.0)  # rgb + (1 - alpha) bg: addition commutes exactly
+
+
 def control_videos(frames: FrameSet, background: Optional[torch.Tensor] = None, grow_mask: int = 0) -> ControlVideos:
     """The control videos of a rendered clip (already at the model's size and clock).
 
@@ -466,18 +484,14 @@ def control_videos(frames: FrameSet, background: Optional[torch.Tensor] = None, 
     video; the render when there is no background); vace: depth inside the mask, the blended video
     outside, for WanVaceToVideo with ``control_masks`` = mask (regenerate the object following the
     physics, keep the rest)."""
-    from .blend import composite
     from .render.frames import depth_to_image
 
     depth = depth_to_image(frames.depth, frames.alpha)
-    mask = _dilate(frames.alpha > 0.5, int(grow_mask)).float()
-    if background is not None:
-        blended = composite(frames.rgb, frames.alpha, background[..., :3])
-    else:
-        blended = frames.rgb.clamp(0, 1)
-    m = mask[..., None]
-    vace = depth * m + blended * (1 - m)
-    return ControlVideos(depth=depth, render=frames.rgb.clamp(0, 1), mask=mask, blended=blended, vace=vace)
+    inside = _dilate(frames.alpha > 0.5, int(grow_mask))
+    render = frames.rgb.clamp(0, 1)
+    blended = over_background(frames.rgb, frames.alpha, background) if background is not None else render
+    vace = torch.where(inside[..., None], depth, blended)  # depth * mask + blended * (1 - mask), in one pass
+    return ControlVideos(depth=depth, render=render, mask=inside.float(), blended=blended, vace=vace)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -500,15 +514,27 @@ class Flow:
     direction: str = "forward"
 
 
-def _posed_with_linear_part(sim: SimResult, frame: int):
-    """The Gaussians at ``frame``, their centres (N,3) and the linear part L (N,3,3) of their motion: the
-    deformation gradient their splats follow (their own particle's, clamped as ``gaussians_at`` clamps
-    it, stretch only for flowing material). For rigid motion this is the rotation itself."""
+def _splat_linear_part(sim: SimResult, frame: int) -> torch.Tensor:
+    """(P,3,3) float64: the deformation gradient each particle's splats follow at ``frame`` (clamped as
+    ``gaussians_at`` clamps it, stretch only for flowing material: ``splat_deformation``). Where no
+    singular value can reach the clamp (|F|_F <= limit and |det F| >= |F|_F² / (2 limit), which bounds
+    the largest by |F|_F and the smallest from below) and the material keeps its rotation, that is F
+    itself, so only the other particles go through the SVD."""
     from .types import MAX_SPLAT_STRETCH, splat_deformation
 
-    g = sim.gaussians_at(frame)
-    Fp = splat_deformation(sim.F[frame], MAX_SPLAT_STRETCH, sim.rotation_free)
-    return g, g.means.double(), Fp[sim.binding].double()
+    F = sim.F[frame]
+    Fd = F.double()
+    fro2 = (Fd * Fd).sum(dim=(1, 2))
+    lim = float(MAX_SPLAT_STRETCH)
+    need = ~((fro2 <= lim * lim) & (torch.linalg.det(Fd).abs() >= fro2 / (2.0 * lim)))
+    if sim.rotation_free is not None:
+        need |= sim.rotation_free.bool()
+    if bool(need.any()):
+        idx = need.nonzero().squeeze(1)
+        rf = None if sim.rotation_free is None else sim.rotation_free[idx]
+        Fd = Fd.clone()
+        Fd[idx] = splat_deformation(F[idx], MAX_SPLAT_STRETCH, rf).double()
+    return Fd
 
 
 def _inverse(L: torch.Tensor) -> torch.Tensor:
@@ -526,59 +552,110 @@ def _pixel_grid(camera: Camera) -> torch.Tensor:
     return torch.stack([xs, ys], dim=-1)  # (H,W,2)
 
 
-def exact_flow(sim: SimResult, camera: Camera, *, direction: str = "forward", device: Optional[str] = None,
-               backend: str = "auto", progress: Optional[ProgressFn] = None) -> Flow:
-    """The optical flow of the rendered clip, from the simulation itself.
+#: Per-Gaussian flow channels rendered with the colour (see ``render_clip``).
+FLOW_CHANNELS = 9
 
-    Every Gaussian moves from frame s to frame d by an affine map x -> A x + b (A = L_d L_s^-1, b =
-    mu_d - A mu_s: mu its centre, L the deformation gradient its splat follows). The 12 numbers of A and b
-    are rendered at frame s like colour (the same compositing weights as the image), so each visible
-    pixel gets the blended map of the splats behind it; the pixel's surface point (the pixel centre
-    unprojected at the rendered depth) is moved by it and projected: flow = project(A x + b) - p.
-    Exact for rigid motion; for deforming material it is first order in the splat size."""
+
+def _flow_features(sim: SimResult, w2c: torch.Tensor, mu_s: torch.Tensor, L_s: torch.Tensor, mu_d: torch.Tensor,
+                   L_d: torch.Tensor) -> torch.Tensor:
+    """(N,9) per-Gaussian channels G (3x3, row-major) such that, composited like colour, G(p) r(p) / alpha
+    is where the surface point seen at pixel p goes (camera coordinates), r(p) = ((u-cx)/fx, (v-cy)/fy, 1).
+
+    Each Gaussian moves from frame s to frame d by an affine map x -> A x + b (A = L_d L_s^-1 of the
+    deformation its splat follows, b = mu_d - A mu_s), here in camera coordinates. The point at depth z on
+    pixel p's ray is X = z r(p), so A X + b = (z A) r(p) + b: the columns of G are z A[:, 0], z A[:, 1] and
+    z A[:, 2] + b with z the Gaussian's own depth. Composited, the pixel gets A (sum w z) r + b alpha for
+    splats that share a motion, and sum w z / alpha is exactly the rendered (expected) depth: exact for rigid
+    motion, first order in the splat size for deforming material."""
+    R, t = w2c[:3, :3], w2c[:3, 3]
+    A = (R @ (L_d @ _inverse(L_s)) @ R.T)[sim.binding]  # per particle, in camera coordinates; per Gaussian
+    ms = mu_s @ R.T + t
+    md = mu_d @ R.T + t
+    b = md - (A @ ms[..., None])[..., 0]
+    G = A * ms[:, 2, None, None]
+    G[:, :, 2] += b
+    return G.reshape(-1, FLOW_CHANNELS)
+
+
+def render_clip(sim: SimResult, camera: Camera, *, flow: Optional[str] = None, device: Optional[str] = None,
+                backend: str = "auto", progress: Optional[ProgressFn] = None) -> tuple[FrameSet, Optional["Flow"]]:
+    """Every frame rendered once (RGB, alpha, depth as ``render_frames``) and, with ``flow`` ("forward" or
+    "backward"), the exact optical flow of the clip from the same renders: each frame carries 9 more
+    composited channels (``_flow_features``) that map its visible surface points to the next (forward) or
+    previous (backward) frame. So the tracks, the control videos and the flow of one clip cost one render,
+    posing each frame once."""
+    from .render.frames import check_frames_fit
     from .render.rasterize import rasterize
 
-    if direction not in ("forward", "backward"):
-        raise InputError(f"direction must be 'forward' or 'backward'; got {direction!r}")
+    if flow not in (None, "forward", "backward"):
+        raise InputError(f"direction must be 'forward' or 'backward'; got {flow!r}")
     T = sim.num_frames
-    if T < 2:
+    if flow is not None and T < 2:
         raise InputError("Optical flow needs at least two frames; the simulation has one.")
-    n = len(sim.rest)
     dev = torch.device(device) if device is not None else torch.device("cpu")
-    H, W = camera.height, camera.width
-    flow = torch.zeros(T - 1, H, W, 2)
-    valid = torch.zeros(T - 1, H, W, dtype=torch.bool)
-    grid = _pixel_grid(camera)
+    H, W = int(camera.height), int(camera.width)
+    # RGB + alpha + depth, and flow (2 floats) + valid (1 byte) per pair.
+    check_frames_fit(T, W, H, "The render", per_pixel=20 + (9 if flow else 0))
+    rgb, alpha, depth = torch.empty(T, H, W, 3), torch.empty(T, H, W), torch.empty(T, H, W)
+    if flow is not None:
+        flows = torch.zeros(T - 1, H, W, 2)
+        valid = torch.zeros(T - 1, H, W, dtype=torch.bool)
+        w2c = camera.w2c_opencv().double()
+        grid = _pixel_grid(camera)
+        ray = torch.stack([(grid[..., 0] - camera.cx) / camera.fx, (grid[..., 1] - camera.cy) / camera.fy,
+                           torch.ones(H, W, dtype=torch.float64)], -1)  # (H,W,3): r(p)
     posed: dict = {}
 
-    def pose(f):  # each frame is posed once: it is the destination of one pair and the source of the next
+    def pose(f):  # each frame posed once: it is a source and a destination of flow
         if f not in posed:
             for old in [k for k in posed if abs(k - f) > 1]:
                 del posed[old]
-            posed[f] = _posed_with_linear_part(sim, f)
+            g = sim.gaussians_at(f)
+            posed[f] = (g, g.means.double(), _splat_linear_part(sim, f) if flow is not None else None)
         return posed[f]
 
     with torch.no_grad():
-        for t in range(T - 1):
-            s, d = (t, t + 1) if direction == "forward" else (t + 1, t)
-            g_s, mu_s, L_s = pose(s)
-            _, mu_d, L_d = pose(d)
-            A = L_d @ _inverse(L_s)
-            b = mu_d - (A @ mu_s[..., None])[..., 0]
-            feats = torch.cat([A.reshape(n, 9), b], dim=1).to(g_s.means.dtype)
-            out = rasterize(g_s.to(dev), camera, extra_features=feats.to(dev), backend=backend)
-            alpha, depth, extra = out.alpha.cpu().double(), out.depth.cpu().double(), out.extra.cpu().double()
-            ok = alpha > 0.5
-            if bool(ok.any()):
-                e = extra[ok] / alpha[ok][:, None]
-                p = grid[ok]
-                X = camera.unproject(p, depth[ok])
-                Xn = (e[:, :9].reshape(-1, 3, 3) @ X[..., None])[..., 0] + e[:, 9:]
-                uv, _ = camera.project(Xn)
-                flow[t][ok] = (uv - p).float()
-                valid[t] = ok
-            report(progress, t + 1, T - 1)
-    return Flow(flow=flow, valid=valid, fps=sim_fps(sim), direction=direction)
+        for t in range(T):
+            g, mu, L = pose(t)
+            d = t + 1 if flow == "forward" else t - 1 if flow == "backward" else -1
+            feats = None
+            if 0 <= d < T:
+                _, mu_d, L_d = pose(d)
+                feats = _flow_features(sim, w2c, mu, L, mu_d, L_d).to(g.means.dtype).to(dev)
+            out = rasterize(g.to(dev), camera, extra_features=feats, backend=backend)
+            a = out.alpha.cpu()
+            rgb[t], alpha[t], depth[t] = out.rgb.cpu(), a, out.depth.cpu()
+            if feats is not None:
+                pair = t if flow == "forward" else d
+                ok = a > 0.5
+                if bool(ok.any()):
+                    e = (out.extra.cpu()[ok].double() / a[ok].double()[:, None]).view(-1, 3, 3)
+                    r = ray[ok]
+                    D = e[..., 0] * r[:, 0:1] + e[..., 1] * r[:, 1:2] + e[..., 2]  # where the point goes
+                    p = grid[ok]
+                    uv = torch.stack([camera.fx * D[:, 0] / D[:, 2] + camera.cx,
+                                      camera.fy * D[:, 1] / D[:, 2] + camera.cy], -1)
+                    flows[pair][ok] = (uv - p).float()
+                    valid[pair] = ok
+            report(progress, t + 1, T)
+    frames = FrameSet(rgb=rgb, alpha=alpha, depth=depth, fps=sim_fps(sim))
+    if flow is None:
+        return frames, None
+    return frames, Flow(flow=flows, valid=valid, fps=sim_fps(sim), direction=flow)
+
+
+def exact_flow(sim: SimResult, camera: Camera, *, direction: str = "forward", device: Optional[str] = None,
+               backend: str = "auto", progress: Optional[ProgressFn] = None) -> Flow:
+    """The optical flow of the rendered clip, from the simulation itself (``render_clip``, which renders
+    the frames too: use it directly when the frames are wanted as well).
+
+    Every Gaussian moves from frame s to frame d by an affine map x -> A x + b (A = L_d L_s^-1, b =
+    mu_d - A mu_s: mu its centre, L the deformation gradient its splat follows). Rendered at frame s like
+    colour (the same compositing weights as the image), each visible pixel gets the blended map of the
+    splats behind it, applied to its surface point (on the pixel's ray at the rendered depth), which is
+    projected: flow = project(A x + b) - p. Exact for rigid motion; for deforming material it is first
+    order in the splat size."""
+    return render_clip(sim, camera, flow=direction, device=device, backend=backend, progress=progress)[1]
 
 
 def flow_to_color(flow: torch.Tensor, max_flow: float = 0.0) -> torch.Tensor:
@@ -587,13 +664,17 @@ def flow_to_color(flow: torch.Tensor, max_flow: float = 0.0) -> torch.Tensor:
     import cv2
 
     f = flow.detach().float().cpu().numpy()
-    mag = np.sqrt((f ** 2).sum(-1))
+    shape = f.shape[:-1]
+    fx = np.ascontiguousarray(f[..., 0]).reshape(-1, shape[-1] if len(shape) else 1)
+    fy = np.ascontiguousarray(f[..., 1]).reshape(fx.shape)
+    mag, ang = cv2.cartToPolar(fx, fy, angleInDegrees=True)  # float32, angle in [0, 360)
     top = float(max_flow) if max_flow > 0 else float(mag.max()) if mag.size else 0.0
-    ang = np.degrees(np.arctan2(f[..., 1], f[..., 0])) % 360.0
-    hsv = np.stack([ang / 2.0, np.clip(mag / max(top, 1e-9), 0, 1) * 255.0, np.full(mag.shape, 255.0)], -1)
-    hsv = hsv.reshape(-1, 1, 3).astype(np.uint8)
-    rgb = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB).reshape(f.shape[:-1] + (3,))
-    return torch.from_numpy(rgb).float() / 255.0
+    hsv = np.empty(mag.shape + (3,), np.uint8)
+    hsv[..., 0] = (ang * 0.5).astype(np.uint8)  # OpenCV's hue runs 0..180
+    hsv[..., 1] = (np.minimum(mag * (1.0 / max(top, 1e-9)), 1.0) * 255.0).astype(np.uint8)
+    hsv[..., 2] = 255
+    rgb = cv2.cvtColor(hsv.reshape(-1, 1, 3), cv2.COLOR_HSV2RGB).reshape(shape + (3,))
+    return torch.from_numpy(rgb).float().div_(255.0)
 
 
 def save_flow_npz(path, flow: Flow, camera: Optional[Camera] = None) -> str:
@@ -608,6 +689,13 @@ def save_flow_npz(path, flow: Flow, camera: Optional[Camera] = None) -> str:
     if camera is not None:
         arrays["K"] = camera.K().numpy()
         arrays["c2w"] = camera.c2w.numpy()
+    import zipfile
+
+    # np.savez_compressed at zlib's fastest level: the flow is mostly exact zeros (the still background),
+    # which level 1 packs about as well as the default level in a fraction of the time. A standard .npz.
     with atomic_output(path, suffix=".tmp.npz") as tmp:
-        np.savez_compressed(tmp, **arrays)
+        with zipfile.ZipFile(tmp, "w", compression=zipfile.ZIP_DEFLATED, compresslevel=1) as zf:
+            for name, value in arrays.items():
+                with zf.open(name + ".npy", "w", force_zip64=True) as fh:
+                    np.lib.format.write_array(fh, np.asanyarray(value), allow_pickle=False)
     return str(path)

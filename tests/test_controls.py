@@ -353,6 +353,70 @@ def test_exact_flow_warps_better_than_zero_flow_and_farneback():
     uv, _ = cam.project(Xn)
     assert float((fwd.flow[0][ok].double() - (uv - p)).norm(dim=-1).max()) < 1e-3
     assert float(fwd.flow[0][~ok].abs().max()) == 0.0
+    # The backward flow likewise, from frame t+1's pixels back to frame t.
+    ok = bwd.valid[0]
+    assert torch.equal(ok, frames.alpha[1] > 0.5)
+    p = torch.stack([xs, ys], -1)[ok].double()
+    X = cam.unproject(p, frames.depth[1][ok].double())
+    Xp = CENTRE + torch.tensor(v, dtype=torch.float64) * t0 + \
+        (X - CENTRE - torch.tensor(v, dtype=torch.float64) * t1) @ rot_y(omega * (t0 - t1)).T
+    uv, _ = cam.project(Xp)
+    assert float((bwd.flow[0][ok].double() - (uv - p)).norm(dim=-1).max()) < 1e-3
+
+
+def test_one_render_gives_the_frames_and_the_flow(clip):
+    """render_clip renders each frame once, with the flow's channels: its frames are render_frames' frames
+    (to float round-off) and its flow is exact_flow's."""
+    _, rs, cam, frames, _ = clip
+    short = dataclasses.replace(rs, times=rs.times[:6], x=rs.x[:6], F=rs.F[:6])
+    got, flow = C.render_clip(short, cam, flow="forward")
+    for a, b in ((got.rgb, frames.rgb[:6]), (got.alpha, frames.alpha[:6]), (got.depth, frames.depth[:6])):
+        torch.testing.assert_close(a, b, atol=2e-6, rtol=0)
+    assert got.fps == pytest.approx(16.0) and flow.flow.shape == (5, 128, 192, 2)
+    alone = C.exact_flow(short, cam)
+    assert torch.equal(alone.flow, flow.flow) and torch.equal(alone.valid, flow.valid)
+    assert torch.equal(flow.valid, got.alpha[:5] > 0.5)
+    plain, none = C.render_clip(short, cam)
+    assert none is None and torch.allclose(plain.rgb, got.rgb, atol=2e-6)
+
+
+def test_visibility_reads_only_the_pixels_around_the_points(clip):
+    """The same answer as pooling the whole frames (3x3 farthest covered depth, any covered pixel), for
+    points inside, on the border of and outside the frame."""
+    _, _, cam, frames, _ = clip
+    T, H, W = frames.alpha.shape
+    gen = torch.Generator().manual_seed(0)
+    uv = torch.stack([torch.rand(T, 300, generator=gen) * (W + 8) - 4, torch.rand(T, 300, generator=gen) * (H + 8) - 4], -1)
+    uv[:, :4] = torch.tensor([[0.2, 0.3], [W - 0.1, H - 0.2], [0.5, H - 0.5], [W - 0.5, 0.5]])
+    z = frames.depth.amax() * torch.rand(T, 300, generator=gen) * 1.2 - 0.05
+    got = C.visibility(uv.double(), z.double(), frames, 0.02)
+    covered = frames.alpha > 0.5
+    near = torch.where(covered, frames.depth, torch.full_like(frames.depth, -float("inf")))
+    near = torch.nn.functional.max_pool2d(near[:, None], 3, stride=1, padding=1)[:, 0]
+    cov = torch.nn.functional.max_pool2d(covered.float()[:, None], 3, stride=1, padding=1)[:, 0] > 0
+    ix, iy = torch.floor(uv[..., 0]).long(), torch.floor(uv[..., 1]).long()
+    inside = (ix >= 0) & (ix < W) & (iy >= 0) & (iy < H) & (z > 0)
+    cx, cy = ix.clamp(0, W - 1), iy.clamp(0, H - 1)
+    t = torch.arange(T)[:, None].expand_as(cx)
+    want = inside & cov[t, cy, cx] & (z.double() <= near[t, cy, cx] + 0.02)
+    assert torch.equal(got, want) and 0 < int(got.sum()) < got.numel()
+
+
+def test_splat_linear_part_is_the_clamped_deformation():
+    from physmotion_core.types import MAX_SPLAT_STRETCH, splat_deformation
+
+    gen = torch.Generator().manual_seed(1)
+    P = 400
+    F = torch.linalg.matrix_exp(0.3 * torch.randn(P, 3, 3, generator=gen))
+    F[:50] *= 4.0  # stretched past the clamp
+    F[50:100] *= 0.2  # squashed past it
+    F[100:110, 0] *= -1.0  # inverted
+    F = F.float()
+    sim = cube_sim(frames=2)
+    sim = dataclasses.replace(sim, F=F[None].expand(2, -1, -1, -1).contiguous(),
+                              rotation_free=torch.arange(P) % 7 == 0)
+    want = splat_deformation(F, MAX_SPLAT_STRETCH, sim.rotation_free).double()
+    torch.testing.assert_close(C._splat_linear_part(sim, 1), want, atol=1e-6, rtol=1e-6)
 
 
 def test_flow_colours_and_npz(tmp_path):
@@ -433,10 +497,20 @@ def test_nodes_run_report_progress_and_cancel(tmp_path, monkeypatch):
     assert np.load(path)["flow"].shape == (8, 96, 160, 2) and str(tmp_path / "flows") in path
     with pytest.raises(InputError, match="4k\\+1"):
         classes["PhysMotionControlVideos"]().run(**{**common, "length": 10}, grow_mask=0)
-    # Cancel stops the flow's loop at the next frame pair.
+    # The flow of the clip just rendered comes from that render; the tracks of it too.
+    rendered = len(state.updates)
+    out = classes["PhysMotionExactFlow"]().run(**common, direction="forward", max_flow=0.0, filename_prefix="x")
+    assert torch.equal(out["result"][0].flow, flow.flow)
+    classes["PhysMotionPointTracks"]().run(**common, num_points=16, background_points=2, occlusion="keep")
+    assert len(state.updates) == rendered
+    # A backward flow renders again, and Cancel stops that render at the next frame (a new simulation object
+    # here, so nothing is reused).
+    back = classes["PhysMotionExactFlow"]().run(**common, direction="backward", max_flow=0.0, filename_prefix="b")
+    assert len(state.updates) > rendered and back["result"][0].direction == "backward"
     state.cancel_after = state.checks + 3
     with pytest.raises(InterruptProcessingException):
-        classes["PhysMotionExactFlow"]().run(**common, direction="forward", max_flow=0.0, filename_prefix="x")
+        classes["PhysMotionExactFlow"]().run(**{**common, "simulation": cube_sim(frames=12)}, direction="forward",
+                                            max_flow=0.0, filename_prefix="x")
     assert state.checks == state.cancel_after + 1
 
 
@@ -451,7 +525,7 @@ def test_wan_templates_validate_and_are_wired_to_the_model_clock(name, control, 
     from comfy_harness import ROOT
     from comfy_schemas import TEMPLATE_MODEL_FILES, all_schemas
 
-    from physmotion_core.workflow import validate_prompt_against_schemas
+    from physmotion_core.comfy.workflow import validate_prompt_against_schemas
 
     prompt = json.loads((ROOT / "example_workflows" / "api" / f"{name}.json").read_text())
     assert validate_prompt_against_schemas(prompt, all_schemas(), TEMPLATE_MODEL_FILES) == []

@@ -316,6 +316,74 @@ def test_chunked_equals_unchunked(tile_size, chunk, max_elements):
         torch.testing.assert_close(a, b, atol=1e-10, rtol=0)
 
 
+def _thin_splats(n: int, seed: int, dtype=torch.float64) -> Gaussians:
+    """Needles and discs at every orientation, opacities from just above 1/255 to 1: the tile lists of
+    their bounding boxes hold many tiles only a box corner reaches."""
+    g = random_gaussians(n, seed=seed, spread=0.6, size=0.1, opacity=(0.005, 1.0), dtype=dtype)
+    gen = torch.Generator().manual_seed(seed + 1)
+    squash = torch.ones(n, 3, dtype=dtype)
+    squash[torch.arange(n), torch.randint(0, 3, (n,), generator=gen)] = 0.05
+    squash[torch.arange(0, n, 3), torch.randint(0, 3, (len(range(0, n, 3)),), generator=gen)] = 0.1
+    return dataclasses.replace(g, scales=g.scales * squash * 1.5)
+
+
+def test_culled_tile_lists_drop_only_entries_below_the_alpha_threshold():
+    from physmotion_core.render._torch_raster import _tile_runs, project_gaussians
+
+    cam = camera(97, 71)
+    g = _thin_splats(400, seed=7)
+    w2c = cam.w2c_opencv().double()
+    proj, _ = project_gaussians(g.means, g.covariance(), g.opacities, w2c, cam.fx, cam.fy, cam.cx, cam.cy,
+                                cam.width, cam.height, cam.near, cam.far, EPS2D)
+    ts = 8
+
+    def pairs(cull):
+        gi, ty, lo, hi = _tile_runs(proj, ts, cull)
+        return {(int(a), int(y), x) for a, y, l, h in zip(gi, ty, lo, hi) for x in range(int(l), int(h) + 1)}
+
+    box, kept = pairs(False), pairs(True)
+    assert kept <= box
+    # Brute force, float64: the pairs in which alpha reaches 1/255 at some pixel centre of the tile.
+    allp = sorted(box)
+    gi = torch.tensor([d[0] for d in allp])
+    ty = torch.tensor([d[1] for d in allp], dtype=torch.float64)
+    tx = torch.tensor([d[2] for d in allp], dtype=torch.float64)
+    off = torch.arange(ts, dtype=torch.float64) + 0.5
+    dx = (tx[:, None, None] * ts + off[None, None, :]) - proj.uv[gi, 0, None, None]
+    dy = (ty[:, None, None] * ts + off[None, :, None]) - proj.uv[gi, 1, None, None]
+    a, b, c = (proj.conic[gi, k, None, None] for k in range(3))
+    alpha = proj.log_opacity[gi, None, None].exp() * torch.exp(-0.5 * (a * dx * dx + 2 * b * dx * dy + c * dy * dy))
+    inside = ((tx[:, None, None] * ts + off[None, None, :]) < cam.width) & \
+        ((ty[:, None, None] * ts + off[None, :, None]) < cam.height)
+    reach = ((alpha >= 1 / 255) & inside).flatten(1).any(1)
+    needed = {p for p, r in zip(allp, reach.tolist()) if r}
+    assert needed <= kept  # nothing that contributes is dropped
+    # and the lists are tight: the culled ones hold few pairs beyond those (the box ones hold many).
+    assert len(box - needed) > 0.1 * len(needed), (len(box), len(needed))
+    assert len(kept - needed) < 0.1 * len(box - needed), (len(kept), len(needed), len(box))
+
+
+@pytest.mark.parametrize("dtype,tol", [(torch.float64, 1e-12), (torch.float32, 2e-6)])
+def test_culled_tile_lists_render_the_same(dtype, tol):
+    cam = camera(97, 71)
+    g = _thin_splats(400, seed=8, dtype=dtype)
+    extra = torch.randn(400, 2, dtype=dtype, generator=torch.Generator().manual_seed(3))
+    for tiling in ({}, {"tile_size": 4, "chunk": 3}, {"tile_size": 16, "chunk": 7, "max_elements": 3000}):
+        a = _rasterize_with_torch(g, cam, g.rgb, g.opacities, extra, "z", EPS2D, cull=True, **tiling)
+        b = _rasterize_with_torch(g, cam, g.rgb, g.opacities, extra, "z", EPS2D, cull=False, **tiling)
+        for x, y in ((a.rgb, b.rgb), (a.alpha, b.alpha), (a.extra, b.extra), (a.depth, b.depth)):
+            torch.testing.assert_close(x, y, atol=tol, rtol=0)
+    # With gradients (Fit and Refine): the same gradients too.
+    grads = []
+    for cull in (True, False):
+        means = g.means.clone().requires_grad_()
+        gg = dataclasses.replace(g, means=means)
+        out = _rasterize_with_torch(gg, cam, g.rgb, g.opacities, extra, "z", EPS2D, cull=cull)
+        (out.rgb.sum() + out.depth.sum() + (out.extra * 0.3).sum()).backward()
+        grads.append(means.grad)
+    torch.testing.assert_close(grads[0], grads[1], atol=tol * 100, rtol=tol * 100)
+
+
 # ----------------------------------------------------------------------------------------------
 # Gradients
 # ----------------------------------------------------------------------------------------------

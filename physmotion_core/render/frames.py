@@ -68,8 +68,11 @@ def depth_to_image(depth: torch.Tensor, alpha: torch.Tensor) -> torch.Tensor:
     valid = alpha > 0.5
     if not bool(valid.any()):
         return torch.zeros(depth.shape + (3,))
-    inv = torch.where(valid, 1.0 / depth.clamp_min(1e-6), torch.zeros_like(depth))
-    lo = inv[valid].min()
-    hi = inv[valid].max()
-    norm = torch.where(valid, 0.1 + 0.9 * (inv - lo) / (hi - lo).clamp_min(1e-9), torch.zeros_like(inv))
+    # In place, in the order of 0.1 + 0.9 (inv - lo) / (hi - lo) (the same values), without the boolean
+    # gathers: a Wan clip's depth is tens of millions of pixels.
+    invalid = ~valid
+    inv = depth.clamp_min(1e-6).reciprocal_().masked_fill_(invalid, 0.0)
+    lo = inv.masked_fill(invalid, float("inf")).min()
+    hi = inv.max()  # valid pixels have 1/depth > 0, the others 0
+    norm = inv.sub_(lo).mul_(0.9).div_((hi - lo).clamp_min(1e-9)).add_(0.1).masked_fill_(invalid, 0.0)
     return norm[..., None].expand(*norm.shape, 3).contiguous()
