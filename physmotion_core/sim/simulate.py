@@ -5,46 +5,25 @@ from __future__ import annotations
 import logging
 import math
 import time
+from dataclasses import dataclass
 from typing import Callable, Optional, Sequence, Union
 
 import numpy as np
 import torch
 
-from ..errors import InputError, SimulationError
+from ..errors import InputError
 from ..memory import device_available_bytes, fmt_bytes, host_available_bytes
 from ..progress import ProgressFn, Throttle
-from ..types import (Anchor, Camera, Conditions, Force, Gaussians, InitialVelocity, Material, SimResult,
-                     SimSettings, Torque)
-from .fill import fill_particles
+from ..types import Anchor, Camera, Conditions, Gaussians, InitialVelocity, Material, SimResult, SimSettings, Torque
+from .fill import FilledObjects, fill_objects
 from .mpm import MAX_TORQUES, Domain, MPMSolver, cpu_chunks, estimate_bytes, resolve_device
 from .regions import select
+from .schedule import LoadSchedule
 
 log = logging.getLogger("physmotion.sim")
 
 REST_FRAMES = 3  # consecutive still frames before a scene counts as at rest
 FLOWING_MODELS = ("drucker_prager", "snow", "viscoplastic", "fluid")  # splats keep their orientation
-
-
-class _Schedule:
-    """Time-windowed terms (forces, torques): which are active at t, and when that next changes."""
-
-    def __init__(self):
-        self.windows: list[tuple[float, float]] = []
-
-    def add(self, t0: float, t1: float) -> int:
-        self.windows.append((t0, t1))
-        return len(self.windows) - 1
-
-    def active(self, t: float) -> tuple[int, ...]:
-        return tuple(i for i, (t0, t1) in enumerate(self.windows) if t0 <= t < t1)
-
-    def next_edge(self, t: float) -> float:
-        edges = [e for w in self.windows for e in w if e > t + 1e-12]
-        return min(edges) if edges else math.inf
-
-    def pending(self, t: float) -> bool:
-        """Is any term active now or still to come?"""
-        return any(t1 > t + 1e-12 for _, t1 in self.windows)
 
 
 def _as_materials(material, n_objects: int) -> list[Material]:
@@ -86,6 +65,189 @@ def _check_cost(solver: MPMSolver, settings: SimSettings, materials: Sequence[Ma
                          "raise max_substeps_per_frame if you mean to wait.")
 
 
+def _object_ids(gaussians: Gaussians) -> tuple[np.ndarray, np.ndarray]:
+    """Each Gaussian's object id, and the objects (0..n-1)."""
+    obj_ids = (gaussians.object_ids.cpu().numpy().astype(np.int64) if gaussians.object_ids is not None
+               else np.zeros(len(gaussians), np.int64))
+    objects = np.unique(obj_ids)
+    if objects.min() < 0 or not np.array_equal(objects, np.arange(objects.max() + 1)):
+        raise InputError(f"object_ids must number the objects 0..n-1 without gaps; got {objects.tolist()}")
+    return obj_ids, objects
+
+
+@dataclass
+class Resolution:
+    """The grid and particle spacing of a scene: ``grid_res`` cells across its largest extent."""
+
+    grid_res: int
+    dx: float
+    spacing: float
+
+    @classmethod
+    def of(cls, means: np.ndarray, settings: SimSettings, device: str) -> "Resolution":
+        size = float(np.max(means.max(0) - means.min(0)))
+        if not (size > 0):
+            raise InputError("The Gaussians have zero extent; the object must have a size to simulate")
+        grid_res = settings.resolved_grid_res(device)
+        dx = size / grid_res
+        per_axis = round(settings.particles_per_cell ** (1 / 3))
+        return cls(grid_res, dx, dx / per_axis)
+
+
+def check_memory(num_particles: int, domain: Domain, frames: int, recorded: int, device: str,
+                 make_room: Optional[Callable[[int, str], None]] = None) -> None:
+    """Refuse a run whose arrays would not fit (device memory on CUDA, RAM for the rest); on CUDA,
+    ``make_room(bytes, device)`` may free memory first."""
+    need = estimate_bytes(num_particles, domain.dims, frames, recorded, chunks=cpu_chunks(num_particles, device))
+    if make_room is not None and device.startswith("cuda"):
+        make_room(int(need["device"]), device)
+    dev_free = device_available_bytes(device)
+    if device.startswith("cuda"):
+        if need["device"] > 0.9 * dev_free:
+            raise InputError(f"The simulation needs about {fmt_bytes(need['device'])} on {device} but only "
+                             f"{fmt_bytes(dev_free)} is free. Lower grid_res, particles_per_cell or domain_margin.")
+        host_need = need["host"]
+    else:
+        host_need = need["host"] + need["device"]
+    if host_need > 0.8 * host_available_bytes():
+        raise InputError(f"The simulation needs about {fmt_bytes(host_need)} of RAM but only "
+                         f"{fmt_bytes(host_available_bytes())} is available. Lower frames, grid_res or "
+                         "particles_per_cell.")
+
+
+@dataclass
+class InitialState:
+    """What the Conditions set per particle before the first substep."""
+
+    v0: np.ndarray  # (P,3) initial velocities
+    C0: Optional[np.ndarray]  # (P,3,3) affine velocities of the initial spins (None: no spin)
+    anchor_sel: list  # each Anchor's particles (P,) bool
+    body: np.ndarray  # (P,) rigid body index, -1 for deformable particles
+    torque_mask: np.ndarray  # (P,) bit k: in torque k's region
+
+
+def initial_state(conditions: Conditions, parts: FilledObjects, materials: Sequence[Material],
+                  objects: np.ndarray, region: Callable) -> InitialState:
+    x0, volume, particle_obj = parts.x, parts.volume, parts.particle_object
+    # Initial velocities (ω about the region's centre of mass), with the velocity gradient of that
+    # rigid motion as the particles' affine velocity C = [ω]×: APIC carries an affine field to the
+    # grid and back exactly, so the body starts with exactly v0 + ω0 × r (with C = 0 the first
+    # transfer would average the spin away at the body's edges, ~2 % of it).
+    v0 = np.zeros_like(x0)
+    C0 = None
+    for iv in conditions.of(InitialVelocity):
+        sel = region(iv.region, "initial velocity")
+        mass = volume[sel]
+        com = (x0[sel] * mass[:, None]).sum(0) / mass.sum()
+        w = np.asarray(iv.angular_velocity, np.float64)
+        v0[sel] += np.asarray(iv.velocity) + np.cross(w, x0[sel] - com)
+        if np.any(w != 0):
+            C0 = np.zeros((len(x0), 3, 3)) if C0 is None else C0
+            C0[sel] += np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
+    anchor_sel = [region(a.region, "anchor") for a in conditions.of(Anchor)]
+    anchored = np.zeros(len(x0), bool)
+    for sel in anchor_sel:
+        anchored |= sel
+    # Rigid objects: one body each.
+    body = np.full(len(x0), -1, np.int64)
+    rigid_objects = [o for o in objects if materials[o].model == "rigid"]
+    for b, o in enumerate(rigid_objects):
+        body[particle_obj == o] = b
+    if np.any(anchored & (body >= 0)):
+        raise InputError("An anchor region covers a rigid object; anchor a deformable object, or give the rigid "
+                         "object no motion instead (it will rest on the ground)")
+    torques = conditions.of(Torque)
+    if len(torques) > MAX_TORQUES:
+        raise InputError(f"At most {MAX_TORQUES} torques are supported; got {len(torques)}")
+    torque_mask = np.zeros(len(x0), np.int64)
+    for k, tq in enumerate(torques):
+        torque_mask[region(tq.region, "torque")] |= 1 << k
+    return InitialState(v0, C0, anchor_sel, body, torque_mask)
+
+
+class _Recorder:
+    """The recorded particles' positions, deformation gradients and plastic state per frame, and
+    the energy per frame."""
+
+    def __init__(self, solver: MPMSolver, frames: int, recorded: np.ndarray, x0: np.ndarray):
+        self.solver = solver
+        self.recorded = recorded
+        n_rec = recorded.shape[0]
+        self.x = torch.empty(frames, n_rec, 3)
+        self.F = torch.empty(frames, n_rec, 3, 3)
+        self.plastic = torch.empty(frames, n_rec)
+        self.x[0] = torch.from_numpy(x0[recorded])
+        self.F[0] = torch.eye(3)
+        self.plastic[0] = torch.from_numpy(solver.plastic_state()[recorded])
+        self.energy = {"kinetic": [], "potential": [], "work": []}
+
+    def record_energy(self) -> None:
+        kin, pot = self.solver.energy()
+        self.energy["kinetic"].append(kin)
+        self.energy["potential"].append(pot)
+        self.energy["work"].append(self.solver.work)
+
+    def record(self, k: int) -> None:
+        """Frame k is the solver's state now."""
+        s, rec = self.solver, self.recorded
+        self.x[k] = torch.from_numpy(s.positions()[rec])
+        self.F[k] = torch.from_numpy(s.deformation()[rec])
+        self.plastic[k] = torch.from_numpy(s.plastic_state()[rec])
+        self.record_energy()
+
+    def repeat(self, k: int) -> None:
+        """Frame k repeats frame k - 1 (the scene is at rest)."""
+        self.x[k], self.F[k], self.plastic[k] = self.x[k - 1], self.F[k - 1], self.plastic[k - 1]
+        for key in self.energy:
+            self.energy[key].append(self.energy[key][-1])
+
+
+def _advance_frame(solver: MPMSolver, schedule: LoadSchedule, state: dict, t_frame: float, k: int,
+                   progress: Callable[[], None]) -> None:
+    """Substeps up to ``t_frame``, handing the solver each change of the active loads."""
+    solver.begin_frame()
+    while solver.t < t_frame - 1e-9:
+        now_active = schedule.active(solver.t)
+        if now_active != state["active"]:
+            schedule.apply(solver, now_active)
+            state["active"] = now_active
+        # Substeps run on the device up to the frame's end or the next change of the forces; the
+        # step is chosen there from the CFL limits (MPMSolver.advance). Between launches (a fraction
+        # of a second each) the progress callback lets Cancel act mid-frame.
+        solver.advance(min(t_frame, schedule.next_edge(solver.t)), frame=k, progress=progress)
+
+
+def run_frames(solver: MPMSolver, schedule: LoadSchedule, settings: SimSettings, recorded: np.ndarray,
+               x0: np.ndarray, progress: Optional[ProgressFn]) -> tuple[_Recorder, Optional[int], float]:
+    """The frame loop: frames at t = k / fps; once the scene is at rest (REST_FRAMES still frames
+    with no load still to come) later frames repeat its state. Returns the recording, the frame the
+    rest began (or None) and the seconds the loop took."""
+    frames = settings.frames
+    frame_dt = 1.0 / settings.fps
+    rec = _Recorder(solver, frames, recorded, x0)
+    tick = Throttle(progress, 0.2)
+    tick(0, frames - 1)
+    state = {"active": None}
+    still_frames = 0
+    rest_from = None
+    rec.record_energy()
+    t_loop = time.perf_counter()
+    for k in range(1, frames):
+        if rest_from is not None:
+            rec.repeat(k)
+            tick(k, frames - 1)
+            continue
+        _advance_frame(solver, schedule, state, k * frame_dt, k, lambda: tick(k - 1, frames - 1))
+        still = settings.rest_speed > 0 and solver.frame_rms < settings.rest_speed
+        still_frames = still_frames + 1 if still and not schedule.pending(solver.t) else 0
+        if still_frames >= REST_FRAMES:
+            rest_from = k  # at rest: later frames repeat this state without substepping
+            log.info("scene at rest from frame %d (RMS speed %.2g m/s): substepping stops", k, solver.frame_rms)
+        rec.record(k)
+        tick(k, frames - 1)
+    return rec, rest_from, time.perf_counter() - t_loop
+
+
 def simulate(
     gaussians: Gaussians,
     material: Union[Material, Sequence[Material]],
@@ -106,240 +268,64 @@ def simulate(
     particle's trajectory (default: only those carrying Gaussians). ``make_room(bytes, device)`` is
     called on CUDA with the device memory the run needs before it checks that it fits (ComfyUI's
     nodes free cached models there).
+
+    The steps: fill the objects with particles (``fill_objects``), check the run fits in memory
+    (``check_memory``), turn the Conditions into per-particle arrays (``initial_state``) and a
+    compiled ``LoadSchedule``, refuse a run the step limits make too long (``_check_cost``), then
+    the frame loop (``run_frames``).
     """
     settings = settings or SimSettings()
     settings.validate()
     conditions = conditions or Conditions()
     gaussians.validate("the Gaussians to simulate")
-    obj_ids = (gaussians.object_ids.cpu().numpy().astype(np.int64) if gaussians.object_ids is not None
-               else np.zeros(len(gaussians), np.int64))
-    objects = np.unique(obj_ids)
-    if objects.min() < 0 or not np.array_equal(objects, np.arange(objects.max() + 1)):
-        raise InputError(f"object_ids must number the objects 0..n-1 without gaps; got {objects.tolist()}")
+    obj_ids, objects = _object_ids(gaussians)
     materials = _as_materials(material, len(objects))
     device = resolve_device(settings.device)
     t_start = time.perf_counter()
 
     means = gaussians.means.detach().float().cpu().numpy()
-    size = float(np.max(means.max(0) - means.min(0)))
-    if not (size > 0):
-        raise InputError("The Gaussians have zero extent; the object must have a size to simulate")
-    grid_res = settings.resolved_grid_res(device)
-    dx = size / grid_res
-    per_axis = round(settings.particles_per_cell ** (1 / 3))
-    spacing = dx / per_axis
-
-    # Fill each object on its own, so the gap between two objects is never filled in.
-    xs, vols, obj_of, binding = [], [], [], np.zeros(len(gaussians), np.int64)
-    neighbours = np.zeros((len(gaussians), 1), np.int64)
-    weights = np.ones((len(gaussians), 1), np.float32)
-    offset = 0
-    budget = settings.max_particles
+    res = Resolution.of(means, settings, device)
     ground = conditions.ground()
-    if ground is not None and float(means[:, 1].min()) < ground.height - 0.5 * dx:
-        raise InputError(f"The object reaches below the ground (lowest Gaussian centre y={float(means[:, 1].min()):.4f} m, "
-                         f"ground at {ground.height:.4f} m). Raise the object or lower the ground.")
-    for o in objects:
-        sel = np.nonzero(obj_ids == o)[0]
-        g_o = gaussians.subset(torch.from_numpy(sel))
-        g_o.object_ids = None
-        share = max(1, int(budget * len(sel) / len(gaussians)))
-        # Splats resting on the ground reach below it; the particles start at the ground.
-        parts = fill_particles(g_o, spacing, max_particles=share, seed=settings.seed + int(o),
-                               floor=None if ground is None else ground.height)
-        if parts.spacing > spacing * 1.001:
-            log.warning("object %d: particle count capped (max_particles=%d): spacing raised from %.4g m to %.4g m",
-                        o, settings.max_particles, spacing, parts.spacing)
-        xs.append(parts.x)
-        vols.append(parts.volume)
-        obj_of.append(np.full(len(parts.x), o, np.int64))
-        binding[sel] = parts.binding + offset
-        if neighbours.shape[1] != parts.neighbours.shape[1]:
-            neighbours = np.zeros((len(gaussians), parts.neighbours.shape[1]), np.int64)
-            weights = np.zeros((len(gaussians), parts.neighbours.shape[1]), np.float32)
-        neighbours[sel] = parts.neighbours + offset
-        weights[sel] = parts.weights
-        offset += len(parts.x)
-    x0 = np.concatenate(xs)
-    volume = np.concatenate(vols)
-    particle_obj = np.concatenate(obj_of)
-
-    domain = Domain.around(x0.min(0), x0.max(0), dx, settings.domain_margin, ground)
-    recorded = np.arange(len(x0)) if record_all else np.unique(neighbours)
-    need = estimate_bytes(x0.shape[0], domain.dims, settings.frames, recorded.shape[0],
-                          chunks=cpu_chunks(x0.shape[0], device))
-    if make_room is not None and device.startswith("cuda"):
-        make_room(int(need["device"]), device)
-    dev_free = device_available_bytes(device)
-    if device.startswith("cuda"):
-        if need["device"] > 0.9 * dev_free:
-            raise InputError(f"The simulation needs about {fmt_bytes(need['device'])} on {device} but only "
-                             f"{fmt_bytes(dev_free)} is free. Lower grid_res, particles_per_cell or domain_margin.")
-        host_need = need["host"]
-    else:
-        host_need = need["host"] + need["device"]
-    if host_need > 0.8 * host_available_bytes():
-        raise InputError(f"The simulation needs about {fmt_bytes(host_need)} of RAM but only "
-                         f"{fmt_bytes(host_available_bytes())} is available. Lower frames, grid_res or "
-                         "particles_per_cell.")
+    parts = fill_objects(gaussians, obj_ids, objects, res.spacing, res.dx, settings.max_particles, settings.seed,
+                         ground)
+    x0 = parts.x
+    domain = Domain.around(x0.min(0), x0.max(0), res.dx, settings.domain_margin, ground)
+    recorded = np.arange(len(x0)) if record_all else np.unique(parts.neighbours)
+    check_memory(x0.shape[0], domain, settings.frames, recorded.shape[0], device, make_room)
 
     def region(r, what):
-        return select(r, x0, particle_obj, camera, what)
+        return select(r, x0, parts.particle_object, camera, what)
 
-    # Initial velocities (ω about the region's centre of mass), with the velocity gradient of that
-    # rigid motion as the particles' affine velocity C = [ω]×: APIC carries an affine field to the
-    # grid and back exactly, so the body starts with exactly v0 + ω0 × r (with C = 0 the first
-    # transfer would average the spin away at the body's edges, ~2 % of it).
-    v0 = np.zeros_like(x0)
-    C0 = None
-    for iv in conditions.of(InitialVelocity):
-        sel = region(iv.region, "initial velocity")
-        mass = volume[sel]
-        com = (x0[sel] * mass[:, None]).sum(0) / mass.sum()
-        w = np.asarray(iv.angular_velocity, np.float64)
-        v0[sel] += np.asarray(iv.velocity) + np.cross(w, x0[sel] - com)
-        if np.any(w != 0):
-            C0 = np.zeros((len(x0), 3, 3)) if C0 is None else C0
-            C0[sel] += np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    anchors = conditions.of(Anchor)
-    anchor_sel = [region(a.region, "anchor") for a in anchors]
-    anchored = np.zeros(len(x0), bool)
-    for sel in anchor_sel:
-        anchored |= sel
-    # Rigid objects: one body each.
-    body = np.full(len(x0), -1, np.int64)
-    rigid_objects = [o for o in objects if materials[o].model == "rigid"]
-    for b, o in enumerate(rigid_objects):
-        body[particle_obj == o] = b
-    if np.any(anchored & (body >= 0)):
-        raise InputError("An anchor region covers a rigid object; anchor a deformable object, or give the rigid "
-                         "object no motion instead (it will rest on the ground)")
-    torques = conditions.of(Torque)
-    if len(torques) > MAX_TORQUES:
-        raise InputError(f"At most {MAX_TORQUES} torques are supported; got {len(torques)}")
-    torque_mask = np.zeros(len(x0), np.int64)
-    for k, tq in enumerate(torques):
-        torque_mask[region(tq.region, "torque")] |= 1 << k
-
-    solver = MPMSolver(x0, volume, particle_obj, materials, domain, gravity=conditions.gravity(), ground=ground,
-                       walls=conditions.walls(), cfl=settings.cfl, device=device, v0=v0, C0=C0,
-                       body=body, torque_mask=torque_mask, transfer=settings.transfer,
+    init = initial_state(conditions, parts, materials, objects, region)
+    solver = MPMSolver(x0, parts.volume, parts.particle_object, materials, domain, gravity=conditions.gravity(),
+                       ground=ground, walls=conditions.walls(), cfl=settings.cfl, device=device, v0=init.v0,
+                       C0=init.C0, body=init.body, torque_mask=init.torque_mask, transfer=settings.transfer,
                        graph={"auto": None, "on": True, "off": False}[settings.graph],
                        threads=settings.cpu_threads)
-
-    forces = conditions.of(Force)
-    f_terms, schedule = [], _Schedule()
-    for force in forces:
-        sel = region(force.region, "force")
-        m = solver.mass_np[sel].astype(np.float64)
-        f = np.zeros((x0.shape[0], 3))
-        f[sel] = np.asarray(force.vector)[None, :] * (m / m.sum())[:, None]
-        f_terms.append(f)
-        schedule.add(force.t_start, force.t_end)
-    torque_bounds = []
-    for k, tq in enumerate(torques):
-        sel = (torque_mask >> k) & 1 == 1
-        m = solver.mass_np[sel].astype(np.float64)
-        r = x0[sel] - (x0[sel] * m[:, None]).sum(0) / m.sum()
-        inertia = np.eye(3) * (m * (r * r).sum(1)).sum() - (r.T * m) @ r
-        alpha = np.linalg.norm(np.linalg.solve(inertia, np.asarray(tq.vector)))
-        torque_bounds.append(alpha * float(np.linalg.norm(r, axis=1).max()))
-        schedule.add(tq.t_start, tq.t_end)
-    for a in anchors:
-        schedule.add(a.t_start, a.t_end)
-    n_ft = len(forces) + len(torques)
-    peak_accel = sum(float((np.linalg.norm(f, axis=1) / solver.mass_np).max()) for f in f_terms) + sum(torque_bounds)
-    peak_anchor = max([float(np.linalg.norm(a.velocity)) for a in anchors], default=0.0)
+    schedule = LoadSchedule.compile(conditions, x0, solver.mass_np, init.torque_mask, init.anchor_sel, region)
     frame_dt = 1.0 / settings.fps
-    _check_cost(solver, settings, materials, frame_dt, peak_accel, peak_anchor)
+    _check_cost(solver, settings, materials, frame_dt, schedule.peak_accel(solver.mass_np),
+                schedule.peak_anchor_speed())
     solver.set_limits(max_dt=min(frame_dt / settings.min_substeps, settings.fixed_dt or math.inf),
                       max_frame_substeps=settings.max_substeps_per_frame)
 
-    def apply_schedule(active: tuple[int, ...]) -> None:
-        f = np.zeros((x0.shape[0], 3))
-        for i in active:
-            if i < len(forces):
-                f += f_terms[i]
-        solver.set_external_forces(f)
-        taus = np.zeros((max(len(torques), 1), 3))
-        bound = 0.0
-        for i in active:
-            if len(forces) <= i < n_ft:
-                taus[i - len(forces)] = torques[i - len(forces)].vector
-                bound += torque_bounds[i - len(forces)]
-        solver.set_torques(taus, bound)
-        held = np.zeros(len(x0), bool)
-        velocity = np.zeros((len(x0), 3))
-        for i in active:
-            if i >= n_ft:
-                a = i - n_ft
-                held |= anchor_sel[a]
-                velocity[anchor_sel[a]] = anchors[a].velocity
-        solver.set_anchors(held, velocity)
-
-    frames = settings.frames
-    n_rec = recorded.shape[0]
-    xs_t = torch.empty(frames, n_rec, 3)
-    Fs_t = torch.empty(frames, n_rec, 3, 3)
-    plastic_t = torch.empty(frames, n_rec)
-    xs_t[0] = torch.from_numpy(x0[recorded])
-    Fs_t[0] = torch.eye(3)
-    plastic_t[0] = torch.from_numpy(solver.plastic_state()[recorded])
-    tick = Throttle(progress, 0.2)
-    tick(0, frames - 1)
-    active = None
-    still_frames = 0
-    rest_from = None
-    energy = {"kinetic": [], "potential": [], "work": []}
-
-    def record_energy() -> None:
-        kin, pot = solver.energy()
-        energy["kinetic"].append(kin)
-        energy["potential"].append(pot)
-        energy["work"].append(solver.work)
-
-    record_energy()
-    t_loop = time.perf_counter()
-    for k in range(1, frames):
-        t_frame = k * frame_dt
-        if rest_from is None:
-            solver.begin_frame()
-            while solver.t < t_frame - 1e-9:
-                now_active = schedule.active(solver.t)
-                if now_active != active:
-                    apply_schedule(now_active)
-                    active = now_active
-                # Substeps run on the device up to the frame's end or the next change of the forces;
-                # the step is chosen there from the CFL limits (MPMSolver.advance). Between launches
-                # (a fraction of a second each) the progress callback lets Cancel act mid-frame.
-                solver.advance(min(t_frame, schedule.next_edge(solver.t)), frame=k,
-                               progress=lambda: tick(k - 1, frames - 1))
-            still = settings.rest_speed > 0 and solver.frame_rms < settings.rest_speed
-            still_frames = still_frames + 1 if still and not schedule.pending(solver.t) else 0
-            if still_frames >= REST_FRAMES:
-                rest_from = k  # at rest: later frames repeat this state without substepping
-                log.info("scene at rest from frame %d (RMS speed %.2g m/s): substepping stops", k, solver.frame_rms)
-            xs_t[k] = torch.from_numpy(solver.positions()[recorded])
-            Fs_t[k] = torch.from_numpy(solver.deformation()[recorded])
-            plastic_t[k] = torch.from_numpy(solver.plastic_state()[recorded])
-            record_energy()
-        else:
-            xs_t[k], Fs_t[k], plastic_t[k] = xs_t[k - 1], Fs_t[k - 1], plastic_t[k - 1]
-            for key in energy:
-                energy[key].append(energy[key][-1])
-        tick(k, frames - 1)
-    loop_s = time.perf_counter() - t_loop
-
-    remap = np.full(x0.shape[0], -1, np.int64)
-    remap[recorded] = np.arange(n_rec)
+    rec, rest_from, loop_s = run_frames(solver, schedule, settings, recorded, x0, progress)
     wall = time.perf_counter() - t_start
-    stats = {
-        "device": device,
-        "particles": int(x0.shape[0]),
-        "objects": int(len(objects)),
-        "particle_spacing": float(spacing),
-        "dx": dx,
-        "grid_res": grid_res,
+    stats = _run_stats(solver, settings, res, domain, len(objects), rest_from, wall, loop_s, rec.energy)
+    log.info("simulated %d frames: %d particles, %d substeps, %.1fs (%d thread%s)", settings.frames, x0.shape[0],
+             solver.substeps, wall, solver.threads, "" if solver.threads == 1 else "s")
+    return _result(gaussians, parts, recorded, materials, rec, frame_dt, stats)
+
+
+def _run_stats(solver: MPMSolver, settings: SimSettings, res: Resolution, domain: Domain, n_objects: int,
+               rest_from: Optional[int], wall: float, loop_s: float, energy: dict) -> dict:
+    return {
+        "device": solver.device,
+        "particles": int(solver.n),
+        "objects": int(n_objects),
+        "particle_spacing": float(res.spacing),
+        "dx": res.dx,
+        "grid_res": res.grid_res,
         "grid_dims": list(domain.dims),
         "substeps": solver.substeps,
         "dt_min": solver.dt_min,
@@ -348,7 +334,7 @@ def simulate(
         "wall_time_s": wall,
         "kernel_load_s": solver.kernel_load_s,
         "stepping_s": loop_s,
-        "particle_substeps_per_s": x0.shape[0] * solver.substeps / max(loop_s, 1e-9),
+        "particle_substeps_per_s": solver.n * solver.substeps / max(loop_s, 1e-9),
         "mass_kg": float(solver.mass_np.astype(np.float64).sum()),
         "energy": energy,  # per frame: kinetic, gravitational potential, cumulative external work (J)
         "transfer": settings.transfer,
@@ -358,22 +344,27 @@ def simulate(
         "cpu_chunks": solver.chunks,  # particle chunks of p2g / g2p (1 on CUDA); fixed by the scene
         "threads": solver.threads,  # CPU threads that ran them
     }
-    log.info("simulated %d frames: %d particles, %d substeps, %.1fs (%d thread%s)", frames, x0.shape[0],
-             solver.substeps, wall, solver.threads, "" if solver.threads == 1 else "s")
+
+
+def _result(gaussians: Gaussians, parts: FilledObjects, recorded: np.ndarray, materials: Sequence[Material],
+            rec: _Recorder, frame_dt: float, stats: dict) -> SimResult:
+    remap = np.full(parts.x.shape[0], -1, np.int64)
+    remap[recorded] = np.arange(recorded.shape[0])
+    obj = parts.particle_object[recorded]
     return SimResult(
         rest=gaussians.detach(),
-        times=torch.arange(frames, dtype=torch.float64) * frame_dt,
-        x=xs_t,
-        F=Fs_t,
-        binding=torch.from_numpy(remap[binding]),
-        neighbours=torch.from_numpy(remap[neighbours]),
-        weights=torch.from_numpy(weights),
-        rest_particles=torch.from_numpy(x0[recorded]),
+        times=torch.arange(rec.x.shape[0], dtype=torch.float64) * frame_dt,
+        x=rec.x,
+        F=rec.F,
+        binding=torch.from_numpy(remap[parts.binding]),
+        neighbours=torch.from_numpy(remap[parts.neighbours]),
+        weights=torch.from_numpy(parts.weights),
+        rest_particles=torch.from_numpy(parts.x[recorded]),
         material=materials[0],
         materials=materials,
         stats=stats,
-        plastic=plastic_t,
-        particle_object=torch.from_numpy(particle_obj[recorded]),
-        rotation_free=torch.from_numpy(np.array([m.model in FLOWING_MODELS for m in materials])[particle_obj[recorded]]),
-        liquid=torch.from_numpy(np.array([m.model == "fluid" for m in materials])[particle_obj[recorded]]),
+        plastic=rec.plastic,
+        particle_object=torch.from_numpy(obj),
+        rotation_free=torch.from_numpy(np.array([m.model in FLOWING_MODELS for m in materials])[obj]),
+        liquid=torch.from_numpy(np.array([m.model == "fluid" for m in materials])[obj]),
     )
