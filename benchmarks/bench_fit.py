@@ -32,7 +32,7 @@ from physmotion_core.lift import silhouette_lift
 from physmotion_core.lift.fit import DEFAULT_IOU_THRESHOLD, DEFAULT_MAX_COLOR_ERROR, axis_angle_to_matrix, canonical_rotations, \
     fit_gaussians_to_photo, rotation_angle_deg, _quat_mul
 from physmotion_core.report import machine_description, update_section
-from physmotion_core.types import Gaussians, rotmat_to_quat
+from physmotion_core.types.gaussians import Gaussians, rotmat_to_quat
 
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent / "tests"))
 from test_fit import _photo as synthetic  # noqa: E402 - the asymmetric photo the tests fit
