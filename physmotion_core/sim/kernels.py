@@ -267,7 +267,8 @@ def stencil_base(x: wp.vec3, grid: GridInfo) -> wp.vec3i:
 
 # stats (float32, reset by plan_step, filled during the substep)
 S_VMAX = wp.constant(0)  # fastest particle (m/s)
-S_BOX = wp.constant(1)  # 1..3 box min, 4..6 box max (m)
+S_BOX_MIN = wp.constant(1)  # 1..3 the active box's lower corner (m)
+S_BOX_MAX = wp.constant(4)  # 4..6 its upper corner (m)
 S_NAN = wp.constant(7)  # 1 when a NaN/Inf speed or stiffness appeared
 S_C2 = wp.constant(8)  # largest wave speed² (m²/s²) at the current deformation
 S_MV2 = wp.constant(9)  # Σ m v² of the deformable particles
@@ -316,12 +317,12 @@ def track_position(x: wp.vec3, grid: GridInfo, span_lo: wp.vec3i, span_hi: wp.ve
             wp.abs(x[1]) > 1.0e18 or wp.abs(x[2]) > 1.0e18:
         stats[S_NAN] = 1.0
         return
-    wp.atomic_min(stats, 1, x[0])
-    wp.atomic_min(stats, 2, x[1])
-    wp.atomic_min(stats, 3, x[2])
-    wp.atomic_max(stats, 4, x[0])
-    wp.atomic_max(stats, 5, x[1])
-    wp.atomic_max(stats, 6, x[2])
+    wp.atomic_min(stats, S_BOX_MIN, x[0])
+    wp.atomic_min(stats, S_BOX_MIN + 1, x[1])
+    wp.atomic_min(stats, S_BOX_MIN + 2, x[2])
+    wp.atomic_max(stats, S_BOX_MAX, x[0])
+    wp.atomic_max(stats, S_BOX_MAX + 1, x[1])
+    wp.atomic_max(stats, S_BOX_MAX + 2, x[2])
     b = stencil_base(x, grid)
     if b[0] < span_lo[0] or b[1] < span_lo[1] or b[2] < span_lo[2] or b[0] + 2 > span_hi[0] or \
             b[1] + 2 > span_hi[1] or b[2] + 2 > span_hi[2]:
@@ -351,8 +352,8 @@ def plan_step(stats: wp.array(dtype=float), ctl: wp.array(dtype=wp.float64), dt_
     ctl[C_DT] = wp.float64(dt32)
     stats[S_VMAX] = 0.0
     for a in range(3):
-        stats[1 + a] = 1.0e30
-        stats[4 + a] = -1.0e30
+        stats[S_BOX_MIN + a] = 1.0e30
+        stats[S_BOX_MAX + a] = -1.0e30
     stats[S_NAN] = 0.0
     stats[S_C2] = 0.0
     stats[S_MV2] = 0.0
@@ -871,7 +872,7 @@ def g2p(
         x[p] = x[p] + dt * va
         xa = x[p]
         track_position(xa, grid, span_lo, span_hi, stats, status)
-        wp.atomic_max(stats, 0, wp.length(va))
+        wp.atomic_max(stats, S_VMAX, wp.length(va))
         return
     mat = materials[mat_id[p]]
     if mat.damping > 0.0:
@@ -883,7 +884,7 @@ def g2p(
         new_C = new_C * decay
     fp = f_ext[p]
     if fp[0] != 0.0 or fp[1] != 0.0 or fp[2] != 0.0:
-        wp.atomic_add(stats, 10, dt * wp.dot(fp, new_v))  # work done by the external forces
+        wp.atomic_add(stats, S_WORK, dt * wp.dot(fp, new_v))  # work done by the external forces
     v[p] = new_v
     C[p] = new_C
     if (fl & FLAG_RIGID) != 0:
@@ -896,10 +897,10 @@ def g2p(
     # Reductions plan_step reads for the next step: max speed and stiffness (CFL), active box, NaN flag.
     speed = wp.length(new_v)
     if not (speed == speed) or not (c2 == c2):
-        stats[7] = 1.0
-    wp.atomic_max(stats, 0, speed)
-    wp.atomic_max(stats, 8, c2)
-    wp.atomic_add(stats, 9, mass[p] * wp.dot(new_v, new_v))
+        stats[S_NAN] = 1.0
+    wp.atomic_max(stats, S_VMAX, speed)
+    wp.atomic_max(stats, S_C2, c2)
+    wp.atomic_add(stats, S_MV2, mass[p] * wp.dot(new_v, new_v))
     track_position(new_x, grid, span_lo, span_hi, stats, status)
 
 
@@ -907,8 +908,8 @@ def g2p(
 def reset_chunk_stats(rows: wp.array2d(dtype=float), r: int):
     rows[r, S_VMAX] = 0.0
     for a in range(3):
-        rows[r, 1 + a] = 1.0e30
-        rows[r, 4 + a] = -1.0e30
+        rows[r, S_BOX_MIN + a] = 1.0e30
+        rows[r, S_BOX_MAX + a] = -1.0e30
     rows[r, S_NAN] = 0.0
     rows[r, S_C2] = 0.0
     rows[r, S_MV2] = 0.0
@@ -922,8 +923,8 @@ def merge_stats(rows: wp.array2d(dtype=float), stats: wp.array(dtype=float)):
     for r in range(rows.shape[0]):
         stats[S_VMAX] = wp.max(stats[S_VMAX], rows[r, S_VMAX])
         for a in range(3):
-            stats[1 + a] = wp.min(stats[1 + a], rows[r, 1 + a])
-            stats[4 + a] = wp.max(stats[4 + a], rows[r, 4 + a])
+            stats[S_BOX_MIN + a] = wp.min(stats[S_BOX_MIN + a], rows[r, S_BOX_MIN + a])
+            stats[S_BOX_MAX + a] = wp.max(stats[S_BOX_MAX + a], rows[r, S_BOX_MAX + a])
         stats[S_NAN] = wp.max(stats[S_NAN], rows[r, S_NAN])
         stats[S_C2] = wp.max(stats[S_C2], rows[r, S_C2])
         stats[S_MV2] = stats[S_MV2] + rows[r, S_MV2]
@@ -1236,14 +1237,21 @@ def rigid_apply(
     F[p] = R
     speed = wp.length(new_v)
     if not (speed == speed):
-        stats[7] = 1.0
-    wp.atomic_max(stats, 0, speed)
+        stats[S_NAN] = 1.0
+    wp.atomic_max(stats, S_VMAX, speed)
     track_position(new_x, grid, span_lo, span_hi, stats, status)
 
 
 # ----------------------------------------------------------------------------------------------
 # Torques: f_p = m_p (I⁻¹τ) × (x_p − c) over the region, so Σf = 0 and Σ r×f = τ exactly
 # ----------------------------------------------------------------------------------------------
+
+
+# Columns of the torque sums, one row per torque region.
+T_MASS = wp.constant(0)  # Σ m
+T_MOMENT = wp.constant(1)  # 1..3 Σ m x
+T_SECOND_MOMENT = wp.constant(4)  # 4..12 Σ m x xᵀ, row-major
+N_TORQUE_SUMS = 13
 
 
 @wp.kernel
@@ -1263,11 +1271,11 @@ def torque_reduce(
     xp = x[p]
     for t in range(n_torques):
         if (bits >> t) & 1 != 0:
-            wp.atomic_add(sums, t, 0, m)
+            wp.atomic_add(sums, t, T_MASS, m)
             for a in range(3):
-                wp.atomic_add(sums, t, 1 + a, m * xp[a])
+                wp.atomic_add(sums, t, T_MOMENT + a, m * xp[a])
                 for b in range(3):
-                    wp.atomic_add(sums, t, 4 + 3 * a + b, m * xp[a] * xp[b])
+                    wp.atomic_add(sums, t, T_SECOND_MOMENT + 3 * a + b, m * xp[a] * xp[b])
 
 
 @wp.kernel
@@ -1286,10 +1294,11 @@ def apply_torques(
     bits = torque_mask[p]
     for t in range(n_torques):
         if (bits >> t) & 1 != 0:
-            M = sums[t, 0]
-            c = wp.vec3(sums[t, 1], sums[t, 2], sums[t, 3]) / M
-            S = wp.mat33(sums[t, 4], sums[t, 5], sums[t, 6], sums[t, 7], sums[t, 8], sums[t, 9],
-                         sums[t, 10], sums[t, 11], sums[t, 12])
+            M = sums[t, T_MASS]
+            c = wp.vec3(sums[t, T_MOMENT], sums[t, T_MOMENT + 1], sums[t, T_MOMENT + 2]) / M
+            k = T_SECOND_MOMENT
+            S = wp.mat33(sums[t, k], sums[t, k + 1], sums[t, k + 2], sums[t, k + 3], sums[t, k + 4], sums[t, k + 5],
+                         sums[t, k + 6], sums[t, k + 7], sums[t, k + 8])
             # Second moment about the centre of mass, then the inertia tensor tr(S) I − S.
             Sc = S - M * wp.outer(c, c)
             inertia = (Sc[0, 0] + Sc[1, 1] + Sc[2, 2]) * wp.identity(n=3, dtype=float) - Sc

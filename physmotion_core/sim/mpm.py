@@ -261,13 +261,13 @@ class MPMSolver:
 
         flags = np.zeros(n, np.int32)
         if anchored is not None:
-            flags[np.asarray(anchored, bool)] |= 1
+            flags[np.asarray(anchored, bool)] |= K.FLAG_ANCHORED
         rigid_model = np.array([m.model == "rigid" for m in materials])[mat_index]
         body_np = np.full(n, -1, np.int32) if body is None else np.asarray(body, np.int32).copy()
         if rigid_model.any() and (body_np[rigid_model] < 0).any():
             raise InputError("rigid particles need a body index (one per rigid object)")
         body_np[~rigid_model] = -1
-        flags[rigid_model] |= 2
+        flags[rigid_model] |= K.FLAG_RIGID
         self.body_np = body_np
         self.n_bodies = int(body_np.max()) + 1 if (body_np >= 0).any() else 0
         tmask = np.zeros(n, np.int32) if torque_mask is None else np.asarray(torque_mask, np.int32)
@@ -318,7 +318,7 @@ class MPMSolver:
             self.cond = wp.zeros(1, dtype=int)
             self.dt_arr = wp.zeros(1, dtype=float)
             self.torque_mask = wp.array(tmask, dtype=int)
-            self.torque_sums = wp.zeros((max(self.n_torques, 1), 13), dtype=float)
+            self.torque_sums = wp.zeros((max(self.n_torques, 1), K.N_TORQUE_SUMS), dtype=float)
             self.torque_taus = wp.zeros(max(self.n_torques, 1), dtype=wp.vec3)
             self._torques_on = False
             if self.n_bodies:
@@ -345,7 +345,7 @@ class MPMSolver:
         st = np.zeros(K.N_STATS, np.float32)
         st[K.S_VMAX] = vmax0
         st[K.S_C2] = self._c0 ** 2
-        st[1:4], st[4:7] = x.min(axis=0), x.max(axis=0)
+        st[K.S_BOX_MIN:K.S_BOX_MIN + 3], st[K.S_BOX_MAX:K.S_BOX_MAX + 3] = x.min(axis=0), x.max(axis=0)
         self._stats = st
         self._ctl = np.zeros(K.N_CTL, np.float64)
         self._ctl[K.C_DT_CAP] = math.inf
@@ -354,7 +354,8 @@ class MPMSolver:
         self._ctl[K.C_DT_VISC] = self._dt_viscous
         self._ctl[K.C_DT_MIN] = math.inf
         self._ctl[K.C_FRAME_VMAX] = vmax0
-        self._ctl[K.C_DEF_MASS] = float(mass[(flags & 3) == 0].astype(np.float64).sum())
+        deformable = (flags & (K.FLAG_ANCHORED | K.FLAG_RIGID)) == 0
+        self._ctl[K.C_DEF_MASS] = float(mass[deformable].astype(np.float64).sum())
         self._status = np.zeros(K.N_STATUS, np.int32)
         self._status[K.I_MAX_FRAME_SUBSTEPS] = 2 ** 31 - 1
         self.stats.assign(st)
@@ -485,7 +486,7 @@ class MPMSolver:
     def set_anchors(self, anchored: np.ndarray, velocity: np.ndarray) -> None:
         """Which particles are held now, and their prescribed velocities (P,3) m/s."""
         flags = self.flags.numpy()
-        flags = (flags & ~1) | np.asarray(anchored, bool).astype(np.int32)
+        flags = (flags & ~K.FLAG_ANCHORED) | np.where(np.asarray(anchored, bool), K.FLAG_ANCHORED, 0).astype(np.int32)
         self.flags.assign(self.wp.array(flags.astype(np.int32), dtype=int, device=self.device))
         self.anchor_v.assign(self.wp.array(np.asarray(velocity, np.float32), dtype=self.wp.vec3, device=self.device))
         held = np.asarray(anchored, bool)
@@ -750,7 +751,8 @@ class MPMSolver:
         self._stats = self.stats.numpy().copy()
         st = self._stats
         if self._status[K.I_NAN] == 0:
-            self._box = (st[1:4].astype(np.float64), st[4:7].astype(np.float64))
+            self._box = (st[K.S_BOX_MIN:K.S_BOX_MIN + 3].astype(np.float64),
+                         st[K.S_BOX_MAX:K.S_BOX_MAX + 3].astype(np.float64))
         else:
             self._box = (np.full(3, np.nan), np.full(3, np.nan))
 
