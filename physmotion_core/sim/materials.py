@@ -47,7 +47,7 @@ PRESETS: dict[str, dict] = {
                   note="a rigid body (E unused): its particles move with one rigid motion"),
 }
 
-# Integer ids used inside the Warp kernels (kernels.MODEL_*).
+# Integer ids used inside the Warp kernels (constitutive.MODEL_*).
 MODEL_IDS = {
     "fixed_corotated": 0, "neo_hookean": 1, "von_mises": 2, "drucker_prager": 3, "snow": 4, "plasticine": 5,
     "fracture": 6, "viscoplastic": 7, "fluid": 8, "rigid": 9,
@@ -78,9 +78,9 @@ def material_preset(name: str, **overrides) -> Material:
 
 def kernel_params(mat: Material):
     """The kernels' MaterialParams struct for a validated Material."""
-    from . import kernels as K
+    from .constitutive import MaterialParams
 
-    p = K.MaterialParams()
+    p = MaterialParams()
     p.model = MODEL_IDS[mat.model]
     p.mu = mat.mu
     p.lam = mat.lam
