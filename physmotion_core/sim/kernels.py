@@ -73,6 +73,24 @@ class Boundary:
     pad: int  # cells of padding at each wall: nodes closer than this to a face are wall nodes
 
 
+@wp.struct
+class Particles:
+    """The particles' state: what every substep's kernels read and write (MPMSolver owns the arrays)."""
+
+    x: wp.array(dtype=wp.vec3)  # positions (m)
+    v: wp.array(dtype=wp.vec3)  # velocities (m/s)
+    C: wp.array(dtype=wp.mat33)  # affine velocity (APIC / MLS-MPM), the velocity gradient
+    F: wp.array(dtype=wp.mat33)  # elastic deformation gradient
+    tau: wp.array(dtype=wp.mat33)  # Kirchhoff stress for the next p2g
+    rot: wp.array(dtype=wp.quat)  # the tracked rotation of F (corotated models)
+    plastic: wp.array(dtype=float)  # the model's state: plastic strain, snow's J_p, fracture damage
+    mass: wp.array(dtype=float)  # kg
+    vol: wp.array(dtype=float)  # rest volume (m³)
+    mat_id: wp.array(dtype=int)  # row of the material table
+    flags: wp.array(dtype=int)  # FLAG_ANCHORED | FLAG_RIGID
+    anchor_v: wp.array(dtype=wp.vec3)  # prescribed velocity of an anchored particle (m/s)
+
+
 # ----------------------------------------------------------------------------------------------
 # Transfers
 # ----------------------------------------------------------------------------------------------
@@ -244,13 +262,7 @@ def body_speed(lin_vel: wp.array(dtype=wp.vec3), ang_vel: wp.array(dtype=wp.vec3
 
 @wp.kernel
 def p2g(
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    C: wp.array(dtype=wp.mat33),
-    tau: wp.array(dtype=wp.mat33),
-    mass: wp.array(dtype=float),
-    vol: wp.array(dtype=float),
-    flags: wp.array(dtype=int),
+    ps: Particles,
     f_ext: wp.array(dtype=wp.vec3),
     grid: GridInfo,
     dt_arr: wp.array(dtype=float),
@@ -258,7 +270,6 @@ def p2g(
     grid_mv: wp.array4d(dtype=wp.vec3),
     grid_fix: wp.array4d(dtype=int),
     grid_fix_v: wp.array4d(dtype=wp.vec3),
-    anchor_v: wp.array(dtype=wp.vec3),
     apic: float,
     offset: int,
     layer: int,
@@ -271,22 +282,22 @@ def p2g(
     reads only the nodes a layer can hold."""
     p = wp.tid() + offset
     dt = dt_arr[0]
-    base = stencil_base(x[p], grid)
+    base = stencil_base(ps.x[p], grid)
     if grid_m.shape[0] > 1:
         for a in range(3):
             wp.atomic_min(layer_box, layer, a, base[a])
             wp.atomic_max(layer_box, layer, 3 + a, base[a])
-    xp = (x[p] - grid.origin) * grid.inv_dx
+    xp = (ps.x[p] - grid.origin) * grid.inv_dx
     fx = xp - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
     wx = bspline_weights(fx, 0)
     wy = bspline_weights(fx, 1)
     wz = bspline_weights(fx, 2)
-    m = mass[p]
+    m = ps.mass[p]
     # MLS-MPM: the stress enters as an affine momentum term -dt * V * (4/dx^2) * tau. The particle's
     # affine velocity m C is transferred with APIC (apic = 1) and dropped with PIC (apic = 0).
-    affine = (-dt * vol[p] * 4.0 * grid.inv_dx * grid.inv_dx) * tau[p] + (apic * m) * C[p]
-    fl = flags[p]
-    mv = m * v[p]
+    affine = (-dt * ps.vol[p] * 4.0 * grid.inv_dx * grid.inv_dx) * ps.tau[p] + (apic * m) * ps.C[p]
+    fl = ps.flags[p]
+    mv = m * ps.v[p]
     if (fl & FLAG_RIGID) == 0:
         mv = mv + dt * f_ext[p]  # a rigid body takes its external forces directly (rigid_reduce)
     anchored = (fl & FLAG_ANCHORED) != 0
@@ -302,7 +313,7 @@ def p2g(
                 wp.atomic_add(grid_mv, layer, ix, iy, iz, w * (mv + affine * dpos))
                 if anchored:
                     grid_fix[layer, ix, iy, iz] = 1
-                    grid_fix_v[layer, ix, iy, iz] = anchor_v[p]
+                    grid_fix_v[layer, ix, iy, iz] = ps.anchor_v[p]
 
 
 @wp.func
@@ -425,18 +436,8 @@ def grid_update(
 
 @wp.kernel
 def g2p(
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    C: wp.array(dtype=wp.mat33),
-    F: wp.array(dtype=wp.mat33),
-    rot: wp.array(dtype=wp.quat),
-    plastic: wp.array(dtype=float),
-    tau: wp.array(dtype=wp.mat33),
-    mat_id: wp.array(dtype=int),
+    ps: Particles,
     materials: wp.array(dtype=MaterialParams),
-    flags: wp.array(dtype=int),
-    mass: wp.array(dtype=float),
-    anchor_v: wp.array(dtype=wp.vec3),
     f_ext: wp.array(dtype=wp.vec3),
     grid_v: wp.array3d(dtype=wp.vec3),
     grid: GridInfo,
@@ -451,8 +452,8 @@ def g2p(
     own row on the CPU, folded in by ``merge_stats``)."""
     p = wp.tid() + offset
     dt = dt_arr[0]
-    base = stencil_base(x[p], grid)
-    xp = (x[p] - grid.origin) * grid.inv_dx
+    base = stencil_base(ps.x[p], grid)
+    xp = (ps.x[p] - grid.origin) * grid.inv_dx
     fx = xp - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
     wx = bspline_weights(fx, 0)
     wy = bspline_weights(fx, 1)
@@ -469,17 +470,17 @@ def g2p(
                 new_v += w * gv
                 new_C += (4.0 * grid.inv_dx * w) * wp.outer(gv, dpos)
 
-    fl = flags[p]
+    fl = ps.flags[p]
     if (fl & FLAG_ANCHORED) != 0:
-        va = anchor_v[p]
-        v[p] = va
-        C[p] = wp.mat33(0.0)
-        x[p] = x[p] + dt * va
-        xa = x[p]
+        va = ps.anchor_v[p]
+        ps.v[p] = va
+        ps.C[p] = wp.mat33(0.0)
+        ps.x[p] = ps.x[p] + dt * va
+        xa = ps.x[p]
         track_position(xa, grid, span_lo, span_hi, stats, status)
         wp.atomic_max(stats, S_VMAX, wp.length(va))
         return
-    mat = materials[mat_id[p]]
+    mat = materials[ps.mat_id[p]]
     if mat.damping > 0.0:
         # Mass-proportional damping scales the whole local velocity field, so its gradient too: F
         # (updated from C) and the positions (from v) then describe the same strain, and a damped
@@ -490,14 +491,14 @@ def g2p(
     fp = f_ext[p]
     if fp[0] != 0.0 or fp[1] != 0.0 or fp[2] != 0.0:
         wp.atomic_add(stats, S_WORK, dt * wp.dot(fp, new_v))  # work done by the external forces
-    v[p] = new_v
-    C[p] = new_C
+    ps.v[p] = new_v
+    ps.C[p] = new_C
     if (fl & FLAG_RIGID) != 0:
         return  # rigid particles move with their body (rigid_apply)
-    new_x = x[p] + dt * new_v
-    x[p] = new_x
-    Ftrial = (wp.identity(n=3, dtype=float) + dt * new_C) * F[p]
-    c2 = update_material(mat, Ftrial, new_C, rot[p], plastic[p], dt, p, rot, plastic, F, tau)
+    new_x = ps.x[p] + dt * new_v
+    ps.x[p] = new_x
+    Ftrial = (wp.identity(n=3, dtype=float) + dt * new_C) * ps.F[p]
+    c2 = update_material(mat, Ftrial, new_C, ps.rot[p], ps.plastic[p], dt, p, ps.rot, ps.plastic, ps.F, ps.tau)
 
     # Reductions plan_step reads for the next step: max speed and stiffness (CFL), active box, NaN flag.
     speed = wp.length(new_v)
@@ -505,7 +506,7 @@ def g2p(
         stats[S_NAN] = 1.0
     wp.atomic_max(stats, S_VMAX, speed)
     wp.atomic_max(stats, S_C2, c2)
-    wp.atomic_add(stats, S_MV2, mass[p] * wp.dot(new_v, new_v))
+    wp.atomic_add(stats, S_MV2, ps.mass[p] * wp.dot(new_v, new_v))
     track_position(new_x, grid, span_lo, span_hi, stats, status)
 
 
@@ -549,9 +550,7 @@ def init_chunk_stats(rows: wp.array2d(dtype=float)):
 
 @wp.kernel
 def rigid_reduce(
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    mass: wp.array(dtype=float),
+    ps: Particles,
     f_ext: wp.array(dtype=wp.vec3),
     body: wp.array(dtype=int),
     centre: wp.array(dtype=wp.vec3),
@@ -572,10 +571,10 @@ def rigid_reduce(
     b = body[p]
     if b < 0:
         return
-    r = x[p] - centre[b]
+    r = ps.x[p] - centre[b]
     v_body = lin_vel[b] + wp.cross(ang_vel[b], r)
     imp = dt_arr[0] * f_ext[p]
-    dmv = mass[p] * (v[p] - v_body) + imp
+    dmv = ps.mass[p] * (ps.v[p] - v_body) + imp
     wp.atomic_add(d_momentum, b, dmv)
     wp.atomic_add(d_ang_momentum, b, wp.cross(r, dmv))
     wp.atomic_add(ext_momentum, b, imp)
@@ -657,8 +656,7 @@ def plane_impulse(V: wp.vec3, w: wp.vec3, Iinv: wp.mat33, inv_m: float, r: wp.ve
 
 @wp.kernel
 def rigid_contacts(
-    x: wp.array(dtype=wp.vec3),
-    vol: wp.array(dtype=float),
+    ps: Particles,
     body_start: wp.array(dtype=int),
     body_end: wp.array(dtype=int),
     centre: wp.array(dtype=wp.vec3),
@@ -701,9 +699,9 @@ def rigid_contacts(
         dL = wp.vec3(0.0, 0.0, 0.0)
         count = float(0.0)
         for p in range(body_start[b], body_end[b]):
-            xp = x[p]
+            xp = ps.x[p]
             r = xp - c
-            skin = 0.5 * wp.pow(vol[p], 1.0 / 3.0)
+            skin = 0.5 * wp.pow(ps.vol[p], 1.0 / 3.0)
             J = wp.vec3(0.0, 0.0, 0.0)
             if bc.has_ground != 0:
                 if xp[1] - skin <= ground_y:
@@ -810,10 +808,7 @@ def rigid_integrate(
 
 @wp.kernel
 def rigid_apply(
-    x: wp.array(dtype=wp.vec3),
-    v: wp.array(dtype=wp.vec3),
-    C: wp.array(dtype=wp.mat33),
-    F: wp.array(dtype=wp.mat33),
+    ps: Particles,
     body: wp.array(dtype=int),
     offset: wp.array(dtype=wp.vec3),
     centre: wp.array(dtype=wp.vec3),
@@ -836,10 +831,10 @@ def rigid_apply(
     new_x = centre[b] + r
     w = ang_vel[b]
     new_v = lin_vel[b] + wp.cross(w, r)
-    x[p] = new_x
-    v[p] = new_v
-    C[p] = wp.skew(w)
-    F[p] = R
+    ps.x[p] = new_x
+    ps.v[p] = new_v
+    ps.C[p] = wp.skew(w)
+    ps.F[p] = R
     speed = wp.length(new_v)
     if not (speed == speed):
         stats[S_NAN] = 1.0
@@ -861,8 +856,7 @@ N_TORQUE_SUMS = 13
 
 @wp.kernel
 def torque_reduce(
-    x: wp.array(dtype=wp.vec3),
-    mass: wp.array(dtype=float),
+    ps: Particles,
     torque_mask: wp.array(dtype=int),
     n_torques: int,
     sums: wp.array2d(dtype=float),
@@ -872,8 +866,8 @@ def torque_reduce(
     bits = torque_mask[p]
     if bits == 0:
         return
-    m = mass[p]
-    xp = x[p]
+    m = ps.mass[p]
+    xp = ps.x[p]
     for t in range(n_torques):
         if (bits >> t) & 1 != 0:
             wp.atomic_add(sums, t, T_MASS, m)
@@ -885,8 +879,7 @@ def torque_reduce(
 
 @wp.kernel
 def apply_torques(
-    x: wp.array(dtype=wp.vec3),
-    mass: wp.array(dtype=float),
+    ps: Particles,
     torque_mask: wp.array(dtype=int),
     n_torques: int,
     sums: wp.array2d(dtype=float),
@@ -908,7 +901,7 @@ def apply_torques(
             Sc = S - M * wp.outer(c, c)
             inertia = (Sc[0, 0] + Sc[1, 1] + Sc[2, 2]) * wp.identity(n=3, dtype=float) - Sc
             alpha = wp.inverse(inertia) * taus[t]
-            f = f + mass[p] * wp.cross(alpha, x[p] - c)
+            f = f + ps.mass[p] * wp.cross(alpha, ps.x[p] - c)
     f_out[p] = f
 
 

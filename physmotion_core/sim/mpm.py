@@ -318,6 +318,7 @@ class MPMSolver:
             self.cond = wp.zeros(1, dtype=int)
             self.dt_arr = wp.zeros(1, dtype=float)
             self.torque_mask = wp.array(tmask, dtype=int)
+            self.particles = self._particle_struct()
             self.torque_sums = wp.zeros((max(self.n_torques, 1), K.N_TORQUE_SUMS), dtype=float)
             self.torque_taus = wp.zeros(max(self.n_torques, 1), dtype=wp.vec3)
             self._torques_on = False
@@ -361,6 +362,14 @@ class MPMSolver:
         self.stats.assign(st)
         self._box = (x.min(axis=0).astype(np.float64), x.max(axis=0).astype(np.float64))
         self._check_box(frame=0)
+
+    def _particle_struct(self):
+        """The kernels' view of the particle arrays (the struct holds references: it stays valid
+        while the arrays are only written in place)."""
+        ps = K.Particles()
+        for name in ("x", "v", "C", "F", "tau", "rot", "plastic", "mass", "vol", "mat_id", "flags", "anchor_v"):
+            setattr(ps, name, getattr(self, name))
+        return ps
 
     # -- accumulator layers -------------------------------------------------------------------
     def _alloc_layers(self, layers: int, lo: tuple, hi: tuple) -> None:
@@ -664,34 +673,33 @@ class MPMSolver:
         forces = self.f_static
         if torques:
             step(K.zero_sums, self.torque_sums.shape, [self.torque_sums])
-            step(K.torque_reduce, self.n, [self.x, self.mass, self.torque_mask, self.n_torques, self.torque_sums])
-            step(K.apply_torques, self.n, [self.x, self.mass, self.torque_mask, self.n_torques, self.torque_sums,
+            step(K.torque_reduce, self.n, [self.particles, self.torque_mask, self.n_torques, self.torque_sums])
+            step(K.apply_torques, self.n, [self.particles, self.torque_mask, self.n_torques, self.torque_sums,
                                            self.torque_taus, self.f_static, self.f_total])
             forces = self.f_total
         chunks = list(enumerate(self._chunk_ranges))
         layered = self.layers > 1  # else the chunks take turns on one layer
         prog.append((K.p2g, [self._cmd(K.p2g, count, [
-            self.x, self.v, self.C, self.tau, self.mass, self.vol, self.flags, forces, self.grid, self.dt_arr,
-            self.grid_m, self.grid_mv, self.grid_fix, self.grid_fix_v, self.anchor_v, self.apic, start,
-            c if layered else 0, self.layer_box, self._layer_lo_w]) for c, (start, count) in chunks], layered))
+            self.particles, forces, self.grid, self.dt_arr, self.grid_m, self.grid_mv, self.grid_fix,
+            self.grid_fix_v, self.apic, start, c if layered else 0, self.layer_box, self._layer_lo_w])
+            for c, (start, count) in chunks], layered))
         prog.append((K.grid_update, [self._cmd(K.grid_update, slab_dims, [
             self.grid_m, self.grid_mv, self.grid_v, self.grid_fix, self.grid_fix_v, slab_lo, self.grid, self.bc,
             self._gravity_w, self.dt_arr, self.layer_box, self._layer_lo_w, run, int(span_hi[2]) + 1])
             for slab_dims, slab_lo, run in self._grid_slabs(span_lo, dims)], True))
         prog.append((K.g2p, [self._cmd(K.g2p, count, [
-            self.x, self.v, self.C, self.F, self.rot, self.plastic, self.tau, self.mat_id, self.material_table,
-            self.flags, self.mass, self.anchor_v, forces, self.grid_v, self.grid, self.dt_arr, self._stats_of[c],
+            self.particles, self.material_table, forces, self.grid_v, self.grid, self.dt_arr, self._stats_of[c],
             lo, hi, self.status, start]) for c, (start, count) in chunks], True))
         if self.stats_rows is not None:
             step(K.merge_stats, 1, [self.stats_rows, self.stats])
         if self.n_bodies:
-            step(K.rigid_reduce, self.n, [self.x, self.v, self.mass, forces, self.body, self.body_centre,
+            step(K.rigid_reduce, self.n, [self.particles, forces, self.body, self.body_centre,
                                           self.body_v, self.body_w, self.dt_arr, self.body_dp, self.body_dl,
                                           self.body_ext_p, self.body_ext_l])
             step(K.rigid_velocity, self.n_bodies, [self.body_orient, self.body_axes, self.body_moments,
                                                    self.body_mass, self.body_dp, self.body_dl, self.body_l,
                                                    self.body_v, self.body_w])
-            step(K.rigid_contacts, self.n_bodies, [self.x, self.vol, self.body_start, self.body_end,
+            step(K.rigid_contacts, self.n_bodies, [self.particles, self.body_start, self.body_end,
                                                    self.body_centre, self.body_orient, self.body_axes,
                                                    self.body_moments, self.body_mass, self.body_v, self.body_w,
                                                    self.body_l, self.body_contact, self.grid, self.bc, 8])
@@ -699,7 +707,7 @@ class MPMSolver:
                                                     self.body_moments, self.body_mass, self.body_v, self.body_w,
                                                     self.body_l, self.body_ext_p, self.body_ext_l,
                                                     self.body_contact, self._gravity_w, self.dt_arr])
-            step(K.rigid_apply, self.n, [self.x, self.v, self.C, self.F, self.body, self.body_offset,
+            step(K.rigid_apply, self.n, [self.particles, self.body, self.body_offset,
                                          self.body_centre, self.body_orient, self.body_v, self.body_w, self.grid,
                                          self.stats, lo, hi, self.status])
             step(K.body_speed, self.n_bodies, [self.body_v, self.body_w, self.body_radius_w, self.stats])
