@@ -177,6 +177,16 @@ def estimate_bytes(num_particles: int, dims: Sequence[int], frames: int, recorde
     return {"device": device, "host": host, "nodes": nodes}
 
 
+def _check_materials(materials: Sequence[Material], transfer: str) -> None:
+    for m in materials:
+        m.validate()
+        if m.model not in IMPLEMENTED_MODELS:
+            raise InputError(f"Material '{m.name}' uses the '{m.model}' model, which this simulator does "
+                             f"not implement; available: {', '.join(IMPLEMENTED_MODELS)}")
+    if transfer not in TRANSFERS:
+        raise InputError(f"transfer must be one of {TRANSFERS}; got '{transfer}'")
+
+
 class MPMSolver:
     """MLS-MPM on a dense Warp grid, with grid work limited to the particles' active box.
 
@@ -206,13 +216,7 @@ class MPMSolver:
         graph: Optional[bool] = None,
         threads: int = 0,
     ):
-        for m in materials:
-            m.validate()
-            if m.model not in IMPLEMENTED_MODELS:
-                raise InputError(f"Material '{m.name}' uses the '{m.model}' model, which this simulator does "
-                                 f"not implement; available: {', '.join(IMPLEMENTED_MODELS)}")
-        if transfer not in TRANSFERS:
-            raise InputError(f"transfer must be one of {TRANSFERS}; got '{transfer}'")
+        _check_materials(materials, transfer)
         self.apic = 1.0 if transfer == "apic" else 0.0
         self.wp = wp = _warp()
         self.device = device
@@ -226,10 +230,29 @@ class MPMSolver:
         self._gravity_w = wp.vec3(*self.gravity.astype(np.float32))
         self.ground = ground
         self.walls = walls or Walls()
-        n = x.shape[0]
-        self.n = n
+        self.n = x.shape[0]
+        self._init_launch_state(graph, threads)
+        mat_index = np.asarray(mat_index, dtype=np.int64)
+        mass = self._init_mass_and_limits(mat_index, volume)
+        flags, tmask = self._particle_flags(mat_index, anchored, body, torque_mask)
+        with wp.ScopedDevice(device):
+            self._alloc_particles(x, v0, C0, volume, mass, mat_index, flags)
+            self._alloc_grid()
+            self._alloc_step_control()
+            self._alloc_torques(tmask)
+            self.particles = self._particle_struct()
+            if self.n_bodies:
+                self._init_bodies(x, mass, volume, v0)
+        self.grid = self._grid_info()
+        self.bc = self._boundary()
+        self._init_host_mirrors(x, v0, mass, flags)
+        self._check_box(frame=0)
+
+    # -- setup steps (in the order __init__ takes them) ----------------------------------------
+    def _init_launch_state(self, graph: Optional[bool], threads: int) -> None:
+        """Counters, caches of recorded programs and graphs, and the CPU's particle chunks and threads."""
         self.kernel_times: Optional[dict] = None  # set to {} to time every kernel (benchmarks; no graphs)
-        self.use_graph = _graphs_supported(wp, device) if graph is None else bool(graph)
+        self.use_graph = _graphs_supported(self.wp, self.device) if graph is None else bool(graph)
         self.graph_captures = 0  # how many launch graphs were captured (benchmarks / tests)
         self.launches = 0
         self.span_changes = 0  # how often the particles outgrew the grid span of a launch
@@ -238,14 +261,17 @@ class MPMSolver:
         self._span: Optional[tuple] = None
         self._chunk = 8
         # Particle chunks (see MIN_CHUNK_PARTICLES) and the threads that run them.
-        self.chunks = cpu_chunks(n, device)
-        edges = np.linspace(0, n, self.chunks + 1).astype(np.int64)
+        self.chunks = cpu_chunks(self.n, self.device)
+        edges = np.linspace(0, self.n, self.chunks + 1).astype(np.int64)
         self._chunk_ranges = [(int(a), int(b - a)) for a, b in zip(edges[:-1], edges[1:])]
-        self.threads = cpu_threads(threads) if device == "cpu" else 1
+        self.threads = cpu_threads(threads) if self.device == "cpu" else 1
         self._pool: Optional[ThreadPoolExecutor] = None
         self._capturing = False
-        mat_index = np.asarray(mat_index, dtype=np.int64)
 
+    def _init_mass_and_limits(self, mat_index: np.ndarray, volume: np.ndarray) -> np.ndarray:
+        """Particle masses (float32), and what bounds the step besides them: the stiffest
+        material's wave speed, the viscous limit and gravity."""
+        materials = self.materials
         density = np.array([m.density for m in materials], dtype=np.float64)[mat_index]
         mass = (density * volume).astype(np.float32)
         self.mass_np = mass
@@ -253,16 +279,21 @@ class MPMSolver:
         self._c0 = max(m.wave_speed() for m in materials)
         # Explicit viscosity is stable for dt <= ρ dx² / (6 η) (diffusion in 3-D); keep half of it.
         visc = [m.density / m.viscosity for m in materials if m.model == "fluid" and m.viscosity > 0]
-        self._dt_viscous = 0.5 * min(visc) * domain.dx**2 / 6.0 if visc else math.inf
+        self._dt_viscous = 0.5 * min(visc) * self.domain.dx**2 / 6.0 if visc else math.inf
         self._accel_static = float(np.linalg.norm(self.gravity))
         self._accel_extra = 0.0
         self._accel_torque = 0.0
         self._anchor_speed = 0.0
+        return mass
 
+    def _particle_flags(self, mat_index: np.ndarray, anchored: Optional[np.ndarray], body: Optional[np.ndarray],
+                        torque_mask: Optional[np.ndarray]) -> tuple[np.ndarray, np.ndarray]:
+        """Each particle's flags (anchored, rigid), its rigid body (``body_np``) and torque bits."""
+        n = self.n
         flags = np.zeros(n, np.int32)
         if anchored is not None:
             flags[np.asarray(anchored, bool)] |= K.FLAG_ANCHORED
-        rigid_model = np.array([m.model == "rigid" for m in materials])[mat_index]
+        rigid_model = np.array([m.model == "rigid" for m in self.materials])[mat_index]
         body_np = np.full(n, -1, np.int32) if body is None else np.asarray(body, np.int32).copy()
         if rigid_model.any() and (body_np[rigid_model] < 0).any():
             raise InputError("rigid particles need a body index (one per rigid object)")
@@ -272,77 +303,103 @@ class MPMSolver:
         self.n_bodies = int(body_np.max()) + 1 if (body_np >= 0).any() else 0
         tmask = np.zeros(n, np.int32) if torque_mask is None else np.asarray(torque_mask, np.int32)
         self.n_torques = int(np.max(np.floor(np.log2(np.maximum(tmask, 1)))) + 1) if tmask.any() else 0
+        return flags, tmask
 
-        with wp.ScopedDevice(device):
-            self.x = wp.array(x.astype(np.float32), dtype=wp.vec3)
-            self.v = wp.array(np.zeros((n, 3), np.float32) if v0 is None else v0.astype(np.float32), dtype=wp.vec3)
-            self.C = (wp.zeros(n, dtype=wp.mat33) if C0 is None
-                      else wp.array(np.asarray(C0, np.float32).reshape(n, 3, 3), dtype=wp.mat33))
-            self.F = wp.array(np.tile(np.eye(3, dtype=np.float32), (n, 1, 1)), dtype=wp.mat33)
-            self.tau = wp.zeros(n, dtype=wp.mat33)
-            self.rot = wp.array(np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1)), dtype=wp.quat)
-            snow = np.array([m.model == "snow" for m in materials])[mat_index]
-            self.plastic = wp.array(np.where(snow, 1.0, 0.0).astype(np.float32), dtype=float)  # snow: Jp = 1
-            self.mass = wp.array(mass, dtype=float)
-            self.vol = wp.array(volume.astype(np.float32), dtype=float)
-            self.mat_id = wp.array(mat_index.astype(np.int32), dtype=int)
-            self.flags = wp.array(flags, dtype=int)
-            self.f_static = wp.zeros(n, dtype=wp.vec3)
-            self.f_total = wp.zeros(n, dtype=wp.vec3)
-            self.material_table = wp.array([kernel_params(m) for m in materials], dtype=K.MaterialParams)
-            self.grid_v = wp.zeros(domain.dims, dtype=wp.vec3)
-            # The accumulators: one layer over the whole domain with one chunk (CUDA, small scenes);
-            # with several, layers over the grid span, allocated by _fit_layers.
-            self.layers = 1
-            self._layer_lo = (0, 0, 0)
-            self._layer_hi = tuple(int(d) - 1 for d in domain.dims)
-            if self.chunks == 1:
-                self._alloc_layers(1, self._layer_lo, self._layer_hi)
-            else:
-                self.grid_m = self.grid_mv = self.grid_fix = self.grid_fix_v = None  # at the first launch
-                self._layer_hi = (-1, -1, -1)
-                self.layer_reallocations = -1
-            # Each layer's box of stencil bases (p2g). Rows of chunk-private data are padded to
-            # ROW_PAD values (128 bytes), so threads never share a cache line.
-            self.layer_box = wp.zeros((self.chunks, ROW_PAD), dtype=int)
-            self.anchor_v = wp.zeros(n, dtype=wp.vec3)
-            self.stats = wp.zeros(K.N_STATS, dtype=float)
-            self.stats_rows = None  # per-chunk reductions of a chunked g2p
-            self._stats_of = [self.stats]
-            if self.chunks > 1:
-                self.stats_rows = wp.zeros((self.chunks, max(K.N_STATS, ROW_PAD)), dtype=float)
-                wp.launch(K.init_chunk_stats, dim=self.chunks, inputs=[self.stats_rows])
-                self._stats_of = [self.stats_rows[k] for k in range(self.chunks)]
-            self.ctl = wp.zeros(K.N_CTL, dtype=wp.float64)
-            self.status = wp.zeros(K.N_STATUS, dtype=int)
-            self.cond = wp.zeros(1, dtype=int)
-            self.dt_arr = wp.zeros(1, dtype=float)
-            self.torque_mask = wp.array(tmask, dtype=int)
-            self.particles = self._particle_struct()
-            self.torque_sums = wp.zeros((max(self.n_torques, 1), K.N_TORQUE_SUMS), dtype=float)
-            self.torque_taus = wp.zeros(max(self.n_torques, 1), dtype=wp.vec3)
-            self._torques_on = False
-            if self.n_bodies:
-                self._init_bodies(x, mass, volume, v0)
+    def _alloc_particles(self, x: np.ndarray, v0: Optional[np.ndarray], C0: Optional[np.ndarray],
+                         volume: np.ndarray, mass: np.ndarray, mat_index: np.ndarray, flags: np.ndarray) -> None:
+        """The particle arrays (the ``Particles`` struct's fields), the force arrays and the material table."""
+        wp, n, materials = self.wp, self.n, self.materials
+        self.x = wp.array(x.astype(np.float32), dtype=wp.vec3)
+        self.v = wp.array(np.zeros((n, 3), np.float32) if v0 is None else v0.astype(np.float32), dtype=wp.vec3)
+        self.C = (wp.zeros(n, dtype=wp.mat33) if C0 is None
+                  else wp.array(np.asarray(C0, np.float32).reshape(n, 3, 3), dtype=wp.mat33))
+        self.F = wp.array(np.tile(np.eye(3, dtype=np.float32), (n, 1, 1)), dtype=wp.mat33)
+        self.tau = wp.zeros(n, dtype=wp.mat33)
+        self.rot = wp.array(np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1)), dtype=wp.quat)
+        snow = np.array([m.model == "snow" for m in materials])[mat_index]
+        self.plastic = wp.array(np.where(snow, 1.0, 0.0).astype(np.float32), dtype=float)  # snow: Jp = 1
+        self.mass = wp.array(mass, dtype=float)
+        self.vol = wp.array(volume.astype(np.float32), dtype=float)
+        self.mat_id = wp.array(mat_index.astype(np.int32), dtype=int)
+        self.flags = wp.array(flags, dtype=int)
+        self.anchor_v = wp.zeros(n, dtype=wp.vec3)
+        self.f_static = wp.zeros(n, dtype=wp.vec3)
+        self.f_total = wp.zeros(n, dtype=wp.vec3)
+        self.material_table = wp.array([kernel_params(m) for m in materials], dtype=K.MaterialParams)
 
+    def _alloc_grid(self) -> None:
+        """Node velocities over the domain, and the accumulators: one layer over the whole domain
+        with one chunk (CUDA, small scenes); with several, layers over the grid span, allocated by
+        _fit_layers at the first launch."""
+        wp, dims = self.wp, self.domain.dims
+        self.grid_v = wp.zeros(dims, dtype=wp.vec3)
+        self.layers = 1
+        self._layer_lo = (0, 0, 0)
+        self._layer_hi = tuple(int(d) - 1 for d in dims)
+        if self.chunks == 1:
+            self._alloc_layers(1, self._layer_lo, self._layer_hi)
+        else:
+            self.grid_m = self.grid_mv = self.grid_fix = self.grid_fix_v = None  # at the first launch
+            self._layer_hi = (-1, -1, -1)
+            self.layer_reallocations = -1
+        # Each layer's box of stencil bases (p2g). Rows of chunk-private data are padded to
+        # ROW_PAD values (128 bytes), so threads never share a cache line.
+        self.layer_box = wp.zeros((self.chunks, ROW_PAD), dtype=int)
+
+    def _alloc_step_control(self) -> None:
+        """The device's step control: reductions (one row per chunk when chunked), clock, checks."""
+        wp = self.wp
+        self.stats = wp.zeros(K.N_STATS, dtype=float)
+        self.stats_rows = None  # per-chunk reductions of a chunked g2p
+        self._stats_of = [self.stats]
+        if self.chunks > 1:
+            self.stats_rows = wp.zeros((self.chunks, max(K.N_STATS, ROW_PAD)), dtype=float)
+            wp.launch(K.init_chunk_stats, dim=self.chunks, inputs=[self.stats_rows])
+            self._stats_of = [self.stats_rows[k] for k in range(self.chunks)]
+        self.ctl = wp.zeros(K.N_CTL, dtype=wp.float64)
+        self.status = wp.zeros(K.N_STATUS, dtype=int)
+        self.cond = wp.zeros(1, dtype=int)
+        self.dt_arr = wp.zeros(1, dtype=float)
+
+    def _alloc_torques(self, tmask: np.ndarray) -> None:
+        wp = self.wp
+        self.torque_mask = wp.array(tmask, dtype=int)
+        self.torque_sums = wp.zeros((max(self.n_torques, 1), K.N_TORQUE_SUMS), dtype=float)
+        self.torque_taus = wp.zeros(max(self.n_torques, 1), dtype=wp.vec3)
+        self._torques_on = False
+
+    def _particle_struct(self):
+        """The kernels' view of the particle arrays (the struct holds references: it stays valid
+        while the arrays are only written in place)."""
+        ps = K.Particles()
+        for name in ("x", "v", "C", "F", "tau", "rot", "plastic", "mass", "vol", "mat_id", "flags", "anchor_v"):
+            setattr(ps, name, getattr(self, name))
+        return ps
+
+    def _grid_info(self):
+        d = self.domain
         g = K.GridInfo()
-        g.origin = wp.vec3(*domain.origin.astype(np.float32))
-        g.dx = domain.dx
-        g.inv_dx = 1.0 / domain.dx
-        g.nx, g.ny, g.nz = domain.dims
-        self.grid = g
+        g.origin = self.wp.vec3(*d.origin.astype(np.float32))
+        g.dx = d.dx
+        g.inv_dx = 1.0 / d.dx
+        g.nx, g.ny, g.nz = d.dims
+        return g
+
+    def _boundary(self):
+        ground = self.ground
         bc = K.Boundary()
         bc.has_ground = int(ground is not None)
-        bc.ground_node = domain.ground_node
+        bc.ground_node = self.domain.ground_node
         bc.ground_contact = _CONTACT_IDS[ground.contact] if ground else 0
         bc.ground_friction = ground.friction if ground else 0.0
         bc.wall_contact = _CONTACT_IDS[self.walls.contact]
         bc.wall_friction = self.walls.friction
         bc.pad = PAD
-        self.bc = bc
+        return bc
 
-        # Host mirrors of the device's step control (uploaded before, read back after each launch).
-        vmax0 = 0.0 if v0 is None or n == 0 else float(np.linalg.norm(v0, axis=1).max())
+    def _init_host_mirrors(self, x: np.ndarray, v0: Optional[np.ndarray], mass: np.ndarray, flags: np.ndarray) -> None:
+        """Host mirrors of the device's step control (uploaded before, read back after each launch)."""
+        vmax0 = 0.0 if v0 is None or self.n == 0 else float(np.linalg.norm(v0, axis=1).max())
         st = np.zeros(K.N_STATS, np.float32)
         st[K.S_VMAX] = vmax0
         st[K.S_C2] = self._c0 ** 2
@@ -350,7 +407,7 @@ class MPMSolver:
         self._stats = st
         self._ctl = np.zeros(K.N_CTL, np.float64)
         self._ctl[K.C_DT_CAP] = math.inf
-        self._ctl[K.C_CFL_DX] = self.cfl * domain.dx
+        self._ctl[K.C_CFL_DX] = self.cfl * self.domain.dx
         self._ctl[K.C_ACCEL] = self._accel_static
         self._ctl[K.C_DT_VISC] = self._dt_viscous
         self._ctl[K.C_DT_MIN] = math.inf
@@ -361,15 +418,6 @@ class MPMSolver:
         self._status[K.I_MAX_FRAME_SUBSTEPS] = 2 ** 31 - 1
         self.stats.assign(st)
         self._box = (x.min(axis=0).astype(np.float64), x.max(axis=0).astype(np.float64))
-        self._check_box(frame=0)
-
-    def _particle_struct(self):
-        """The kernels' view of the particle arrays (the struct holds references: it stays valid
-        while the arrays are only written in place)."""
-        ps = K.Particles()
-        for name in ("x", "v", "C", "F", "tau", "rot", "plastic", "mass", "vol", "mat_id", "flags", "anchor_v"):
-            setattr(ps, name, getattr(self, name))
-        return ps
 
     # -- accumulator layers -------------------------------------------------------------------
     def _alloc_layers(self, layers: int, lo: tuple, hi: tuple) -> None:
