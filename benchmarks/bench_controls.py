@@ -46,6 +46,9 @@ def _timed(fn):
 
 
 def main(names: list[str]) -> int:
+    # One torch thread, as the simulation's Warp CPU kernels: on a 2-core machine shared with other jobs,
+    # two OpenMP threads spin against each other and the render's wall time balloons.
+    torch.set_num_threads(1)
     classes = node_classes()
     loads = []  # 1-minute load averages while the nodes ran: how busy the shared machine was
     rows, totals = [], {"sim": 0.0, "render": 0.0, "tracks": 0.0, "controls": 0.0, "flow": 0.0}
