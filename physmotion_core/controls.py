@@ -48,7 +48,8 @@ import torch
 
 from .errors import InputError
 from .progress import ProgressFn, report
-from .types import Camera, FrameSet, SimResult
+from .types.camera import Camera
+from .types.results import FrameSet, SimResult
 
 log = logging.getLogger(__name__)
 
@@ -515,26 +516,12 @@ class Flow:
 
 
 def _splat_linear_part(sim: SimResult, frame: int) -> torch.Tensor:
-    """(P,3,3) float64: the deformation gradient each particle's splats follow at ``frame`` (clamped as
-    ``gaussians_at`` clamps it, stretch only for flowing material: ``splat_deformation``). Where no
-    singular value can reach the clamp (|F|_F <= limit and |det F| >= |F|_F² / (2 limit), which bounds
-    the largest by |F|_F and the smallest from below) and the material keeps its rotation, that is F
-    itself, so only the other particles go through the SVD."""
-    from .types import MAX_SPLAT_STRETCH, splat_deformation
+    """(P,3,3) float64: the deformation gradient each particle's splats follow at ``frame``, clamped as
+    ``gaussians_at`` clamps it (stretch only for flowing material: ``splat_deformation``, which runs
+    the SVD only where the clamp can change F)."""
+    from .types.results import MAX_SPLAT_STRETCH, splat_deformation
 
-    F = sim.F[frame]
-    Fd = F.double()
-    fro2 = (Fd * Fd).sum(dim=(1, 2))
-    lim = float(MAX_SPLAT_STRETCH)
-    need = ~((fro2 <= lim * lim) & (torch.linalg.det(Fd).abs() >= fro2 / (2.0 * lim)))
-    if sim.rotation_free is not None:
-        need |= sim.rotation_free.bool()
-    if bool(need.any()):
-        idx = need.nonzero().squeeze(1)
-        rf = None if sim.rotation_free is None else sim.rotation_free[idx]
-        Fd = Fd.clone()
-        Fd[idx] = splat_deformation(F[idx], MAX_SPLAT_STRETCH, rf).double()
-    return Fd
+    return splat_deformation(sim.F[frame].double(), MAX_SPLAT_STRETCH, sim.rotation_free)
 
 
 def _inverse(L: torch.Tensor) -> torch.Tensor:

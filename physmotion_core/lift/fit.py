@@ -50,7 +50,8 @@ import torch.nn.functional as F
 from ..errors import InputError
 from ..progress import ProgressFn, report
 from ..segment.classic import as_image_array, as_mask_array
-from ..types import Camera, Gaussians, quat_to_rotmat, rotmat_to_quat
+from ..types.camera import Camera
+from ..types.gaussians import Gaussians, rotmat_to_quat
 
 log = logging.getLogger(__name__)
 

@@ -9,7 +9,8 @@ import torch
 from ..errors import InputError
 from ..memory import fmt_bytes, host_available_bytes
 from ..progress import ProgressFn, report
-from ..types import Camera, FrameSet, SimResult
+from ..types.camera import Camera
+from ..types.results import FrameSet, SimResult
 
 
 #: Bytes per pixel and frame of a rendered clip: RGB + alpha + depth, float32.

@@ -34,7 +34,8 @@ from typing import Optional
 import torch
 
 from ..errors import InputError
-from ..types import Camera, Gaussians
+from ..types.camera import Camera
+from ..types.gaussians import Gaussians
 from ._torch_raster import rasterize_torch
 
 log = logging.getLogger(__name__)

@@ -17,13 +17,28 @@ MAX_SPLAT_STRETCH = 3.0
 
 def splat_deformation(F: torch.Tensor, limit: float, rotation_free: Optional[torch.Tensor] = None) -> torch.Tensor:
     """The deformation applied to splats: F = U S Vᵀ with S clamped to [1/limit, limit]; where
-    ``rotation_free`` (…,) is true, only the stretch V S Vᵀ (the polar factor without its rotation)."""
-    U, S, Vh = torch.linalg.svd(F.double())
-    S = S.clamp(1.0 / limit, limit)
-    out = U @ torch.diag_embed(S) @ Vh
-    if rotation_free is not None and bool(rotation_free.any()):
-        stretch = Vh.transpose(-1, -2) @ torch.diag_embed(S) @ Vh
-        out = torch.where(rotation_free[..., None, None], stretch, out)
+    ``rotation_free`` (…,) is true, only the stretch V S Vᵀ (the polar factor without its rotation).
+
+    Only the matrices the clamp can change go through the SVD: the largest singular value is at most
+    |F|_F and the smallest at least 2 |det F| / |F|_F² (σ₁σ₂ <= (σ₁² + σ₂²) / 2), so where
+    |F|_F <= limit and |det F| >= |F|_F² / (2 limit) the clamp is the identity and F is returned as it
+    is (most particles of most frames: the SVD was most of the cost of posing a frame)."""
+    Fd = F.double()
+    fro2 = (Fd * Fd).sum(dim=(-2, -1))
+    need = ~((fro2 <= limit * limit) & (torch.linalg.det(Fd).abs() >= fro2 / (2.0 * limit)))
+    if rotation_free is not None:
+        need = need | rotation_free.bool()
+    if not bool(need.any()):
+        return F.clone()
+    U, S, Vh = torch.linalg.svd(Fd[need])
+    S = torch.diag_embed(S.clamp(1.0 / limit, limit))
+    part = U @ S @ Vh
+    if rotation_free is not None:
+        rf = rotation_free.bool()[need]
+        if bool(rf.any()):
+            part = torch.where(rf[:, None, None], Vh.transpose(-1, -2) @ S @ Vh, part)
+    out = Fd.clone()
+    out[need] = part
     return out.to(F.dtype)
 
 
@@ -79,6 +94,7 @@ class SimResult:
         dtype = self.rest.means.dtype
         F = splat_deformation(self.F[frame], MAX_SPLAT_STRETCH, self.rotation_free)
         x, X, Xg = self.x[frame], self.rest_particles, self.rest.means
+        rest = self._rest_state()
         if self.neighbours is None:
             nb = self.binding[:, None]
             w = torch.ones(nb.shape, dtype=dtype)
@@ -86,28 +102,49 @@ class SimResult:
             nb, w = self.neighbours, self.weights.to(dtype)
             # Neighbours torn away from the Gaussian's own particle (now more than twice as far from it
             # as at rest, plus one spacing) no longer pull on it: a crack stays a crack.
-            x0, X0 = x[nb[:, :1]], X[nb[:, :1]]
-            rest_d = (X[nb] - X0).norm(dim=-1)
-            now_d = (x[nb] - x0).norm(dim=-1)
+            now_d = (x[nb] - x[nb[:, :1]]).norm(dim=-1)
             spacing = float(self.stats.get("particle_spacing", 0.0))
-            w = torch.where(now_d <= 2.0 * rest_d + spacing, w, torch.zeros_like(w))
+            w = torch.where(now_d <= 2.0 * rest["rest_d"] + spacing, w, torch.zeros_like(w))
             w[:, 0] = torch.clamp_min(w[:, 0], 1e-6)
             w = w / w.sum(dim=1, keepdim=True)
-        Fk = F[nb].to(dtype)  # (N, K, 3, 3)
-        pos = x[nb] + (Fk @ (Xg[:, None, :] - X[nb])[..., None])[..., 0]
-        means = (w[..., None] * pos).sum(dim=1)
-        Fg = (w[..., None, None] * Fk).sum(dim=1)
+        # x_g = Σ w_k (x_k + F_k (X_g − X_k)) = Σ w_k (x_k − F_k X_k) + F̄ X_g: the per-particle part is
+        # computed once per particle (in float64: x_k and F_k X_k are metres apart from the cm they differ by).
+        F = F.to(dtype)
+        b = x.double() - torch.einsum("pij,pj->pi", F.double(), X.double())
+        Fg = (w[..., None, None] * F[nb]).sum(dim=1)
+        wd = w.double()
+        means = ((wd[..., None] * b[nb]).sum(dim=1) + torch.einsum("nij,nj->ni", Fg.double(), Xg.double())).to(dtype)
+        covars = torch.einsum("nij,njk,nlk->nil", Fg, rest["cov"], Fg)
+        return dataclasses.replace(self.rest, means=means, covars=covars)
+
+    def __getstate__(self) -> dict:
+        state = dict(self.__dict__)
+        state.pop("_rest_cache", None)  # derived: recomputed on first use
+        return state
+
+    def _rest_state(self) -> dict:
+        """What every frame needs from the rest state, computed once: the covariances the frames deform
+        (liquid splats made round, see gaussians_at) and each Gaussian's neighbours' rest distances."""
+        key = (self.rest, self.liquid, self.neighbours, self.rest_particles)
+        cache = self.__dict__.get("_rest_cache")
+        if cache is not None and all(a is b for a, b in zip(cache[0], key)):
+            return cache[1]
         rest_cov = self.rest.covariance()
+        nb = self.binding if self.neighbours is None else self.neighbours[:, 0]
         if self.liquid is not None and bool(self.liquid.any()):
-            own = self.liquid[nb[:, 0]]
+            own = self.liquid[nb]
             if bool(own.any()):
+                dtype = rest_cov.dtype
                 s = torch.linalg.eigvalsh(rest_cov[own].double()).clamp_min(0).sqrt()  # ascending σ
                 r2 = (s[:, 1] * s[:, 2]).to(dtype)
-                ball = r2[:, None, None] * torch.eye(3, dtype=dtype)
                 rest_cov = rest_cov.clone()
-                rest_cov[own] = ball
-        covars = Fg @ rest_cov @ Fg.transpose(-1, -2)
-        return dataclasses.replace(self.rest, means=means, covars=covars)
+                rest_cov[own] = r2[:, None, None] * torch.eye(3, dtype=dtype)
+        state = {"cov": rest_cov}
+        if self.neighbours is not None:
+            X = self.rest_particles
+            state["rest_d"] = (X[self.neighbours] - X[self.neighbours[:, :1]]).norm(dim=-1)
+        self.__dict__["_rest_cache"] = (key, state)
+        return state
 
 
 @dataclass
