@@ -107,13 +107,15 @@ class SimResult:
             w = torch.where(now_d <= 2.0 * rest["rest_d"] + spacing, w, torch.zeros_like(w))
             w[:, 0] = torch.clamp_min(w[:, 0], 1e-6)
             w = w / w.sum(dim=1, keepdim=True)
-        # x_g = Σ w_k (x_k + F_k (X_g − X_k)) = Σ w_k (x_k − F_k X_k) + F̄ X_g: the per-particle part is
-        # computed once per particle (in float64: x_k and F_k X_k are metres apart from the cm they differ by).
+        # x_g = Σ w_k (x_k + F_k (X_g − X_k)) = Σ w_k (x_k − F_k (X_k − c)) + F̄ (X_g − c): the per-particle
+        # part is computed once per particle, in float64, about the rest centre c (so F̄ (X_g − c) is an
+        # object's size, not the scene's, and float32 F̄ costs no more than the direct sum did).
         F = F.to(dtype)
-        b = x.double() - torch.einsum("pij,pj->pi", F.double(), X.double())
+        c = rest["centre"]
+        b = x.double() - torch.einsum("pij,pj->pi", F.double(), X.double() - c)
         Fg = (w[..., None, None] * F[nb]).sum(dim=1)
-        wd = w.double()
-        means = ((wd[..., None] * b[nb]).sum(dim=1) + torch.einsum("nij,nj->ni", Fg.double(), Xg.double())).to(dtype)
+        means = ((w.double()[..., None] * b[nb]).sum(dim=1)
+                 + torch.einsum("nij,nj->ni", Fg.double(), Xg.double() - c)).to(dtype)
         covars = torch.einsum("nij,njk,nlk->nil", Fg, rest["cov"], Fg)
         return dataclasses.replace(self.rest, means=means, covars=covars)
 
@@ -139,7 +141,7 @@ class SimResult:
                 r2 = (s[:, 1] * s[:, 2]).to(dtype)
                 rest_cov = rest_cov.clone()
                 rest_cov[own] = r2[:, None, None] * torch.eye(3, dtype=dtype)
-        state = {"cov": rest_cov}
+        state = {"cov": rest_cov, "centre": self.rest_particles.double().mean(dim=0)}
         if self.neighbours is not None:
             X = self.rest_particles
             state["rest_d"] = (X[self.neighbours] - X[self.neighbours[:, :1]]).norm(dim=-1)
