@@ -27,41 +27,9 @@ from __future__ import annotations
 
 import warp as wp
 
-# Constitutive model ids (materials.MODEL_IDS maps names to these).
-MODEL_FIXED_COROTATED = wp.constant(0)
-MODEL_NEO_HOOKEAN = wp.constant(1)
-MODEL_VON_MISES = wp.constant(2)
-MODEL_DRUCKER_PRAGER = wp.constant(3)
-MODEL_SNOW = wp.constant(4)
-MODEL_PLASTICINE = wp.constant(5)
-MODEL_FRACTURE = wp.constant(6)
-MODEL_VISCOPLASTIC = wp.constant(7)
-MODEL_FLUID = wp.constant(8)
-MODEL_RIGID = wp.constant(9)
-
-# Volume limits (J = det F) every model shares. Below MIN_J (a body crushed to 5 % of its volume by
-# a hit no grid resolves, far past any material's validity) stresses and wave speeds stop growing,
-# so such a particle costs bounded substeps instead of stalling the run (docs/stability.md); fluid,
-# torn material and snow's plastic volume are also kept below MAX_J.
-MIN_J = wp.constant(0.05)
-MAX_J = wp.constant(20.0)
-NEO_HOOKEAN_MIN_J = MIN_J  # the former name
-MIN_STRETCH = wp.constant(1.0e-4)  # principal stretches below this count as this (log of 0 is -inf)
-TINY = wp.constant(1.0e-12)  # norms below this are zero (no direction to project along)
-
-SQRT_2_3 = wp.constant(0.816496580927726)
-# Below this Frobenius norm of F Fᵀ - I (stretches within about ±5 %), the von Mises family and sand work on
-# the matrix logarithm of the left stretch by series instead of an SVD (hencky_small_strain).
-LOG_SERIES_MAX = wp.constant(0.1)
-
-# Snow: the hardening exponent ξ (1 - J_p) is capped so exp() stays finite.
-SNOW_MAX_HARDENING_EXPONENT = wp.constant(10.0)
-# Fracture: the state of a torn particle (plastic = 1), and the range where the polar rotation
-# comes from Newton's iteration (J above this, fracture stretch below that) instead of an SVD.
-FRACTURE_TORN = wp.constant(1.0)
-FRACTURE_TORN_ABOVE = wp.constant(0.5)
-NEWTON_MIN_J = wp.constant(0.5)
-NEWTON_MAX_STRETCH = wp.constant(1.2)
+# Constitutive model ids 0..9, in this order; materials.MODEL_IDS maps the models' names to them.
+(MODEL_FIXED_COROTATED, MODEL_NEO_HOOKEAN, MODEL_VON_MISES, MODEL_DRUCKER_PRAGER, MODEL_SNOW, MODEL_PLASTICINE,
+ MODEL_FRACTURE, MODEL_VISCOPLASTIC, MODEL_FLUID, MODEL_RIGID) = (wp.constant(i) for i in range(10))
 
 
 @wp.struct
@@ -83,6 +51,16 @@ class MaterialParams:
     xi: float
     fracture_stretch: float
     damping: float
+
+
+# Volume limits (J = det F) every model shares. Below MIN_J (a body crushed to 5 % of its volume by
+# a hit no grid resolves, far past any material's validity) stresses and wave speeds stop growing,
+# so such a particle costs bounded substeps instead of stalling the run (docs/stability.md); fluid,
+# torn material and snow's plastic volume are also kept below MAX_J.
+MIN_J = wp.constant(0.05)
+MAX_J = wp.constant(20.0)
+MIN_STRETCH = wp.constant(1.0e-4)  # principal stretches below this count as this (log of 0 is -inf)
+TINY = wp.constant(1.0e-12)  # norms below this are zero (no direction to project along)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -247,18 +225,23 @@ def barrier_corotated(mat: MaterialParams, F: wp.mat33, Cp: wp.mat33, q_in: wp.q
     q = extract_rotation(F, q_pred)
     rot[p] = q
     R = wp.quat_to_matrix(q)
-    Fe = F
-    Jc = wp.determinant(F)
-    if Jc < MIN_J:
+    J = wp.determinant(F)
+    # Under compression the bulk stiffness J dτ/dJ = λ grows relative to the density ρ₀/J, hence
+    # the extra factor 1/J on the wave speed².
+    if J < MIN_J:
         # Crushed past MIN_J of its volume (or inverted) by a hit no mesh resolves: the particle
         # keeps its rotation and MIN_J of its volume, isotropically (energy can only be lost),
         # and the barrier's pressure pushes it back out (docs/materials.md).
-        Jc = MIN_J
         Fe = wp.pow(MIN_J, 1.0 / 3.0) * R
-    Fout[p] = Fe
-    tau[p] = barrier_corotated_stress(Fe, R, mat.mu, mat.lam)
-    # Under compression the bulk stiffness J dτ/dJ = λ grows relative to the density ρ₀/J.
-    return wave_speed_sq(mat.mu, mat.lam, mat.density, Jc) * wp.max(1.0, 1.0 / Jc)
+        Fout[p] = Fe
+        tau[p] = barrier_corotated_stress(Fe, R, mat.mu, mat.lam)
+        return wave_speed_sq(mat.mu, mat.lam, mat.density, MIN_J) * wp.max(1.0, 1.0 / MIN_J)
+    # Two returns rather than a clamped J: with J clamped by a branch, the CPU compiler folds the
+    # NaN of a corrupted F into the wave speed, where the single-function form never did (a NaN F
+    # must be reported the substep its velocities turn NaN, tests/test_sim.py).
+    Fout[p] = F
+    tau[p] = barrier_corotated_stress(F, R, mat.mu, mat.lam)
+    return wave_speed_sq(mat.mu, mat.lam, mat.density, J) * wp.max(1.0, 1.0 / J)
 
 
 @wp.func
@@ -303,6 +286,14 @@ def weakly_compressible_fluid(mat: MaterialParams, F: wp.mat33, Cp: wp.mat33, p:
 # ----------------------------------------------------------------------------------------------
 
 
+# Fracture: the state of a torn particle (plastic = 1), and the range where the polar rotation
+# comes from Newton's iteration (J above this, fracture stretch below that) instead of an SVD.
+FRACTURE_TORN = wp.constant(1.0)
+FRACTURE_TORN_ABOVE = wp.constant(0.5)
+NEWTON_MIN_J = wp.constant(0.5)
+NEWTON_MAX_STRETCH = wp.constant(1.2)
+
+
 @wp.func
 def fracture(mat: MaterialParams, F: wp.mat33, state_in: float, p: int, plastic: wp.array(dtype=float),
              Fout: wp.array(dtype=wp.mat33), tau: wp.array(dtype=wp.mat33)) -> float:
@@ -335,6 +326,10 @@ def fracture(mat: MaterialParams, F: wp.mat33, state_in: float, p: int, plastic:
     Fout[p] = F
     tau[p] = corotated_stress(F, U * wp.transpose(V), mat.mu, mat.lam)
     return wave_speed_sq(mat.mu, mat.lam, mat.density, J)
+
+
+# Snow (Stomakhin et al. 2013): the hardening exponent ξ (1 - J_p) is capped so exp() stays finite.
+SNOW_MAX_HARDENING_EXPONENT = wp.constant(10.0)
 
 
 @wp.func
@@ -377,6 +372,11 @@ def snow(mat: MaterialParams, F: wp.mat33, state_in: float, p: int, plastic: wp.
 # ----------------------------------------------------------------------------------------------
 # Plasticity on the Hencky strain: the von Mises family and Drucker-Prager sand
 # ----------------------------------------------------------------------------------------------
+
+SQRT_2_3 = wp.constant(0.816496580927726)  # von Mises: equivalent plastic strain per unit of deviatoric strain
+# Below this Frobenius norm of F Fᵀ - I (stretches within about ±5 %), the von Mises family and sand work on
+# the matrix logarithm of the left stretch by series instead of an SVD (hencky_small_strain).
+LOG_SERIES_MAX = wp.constant(0.1)
 
 
 @wp.func
