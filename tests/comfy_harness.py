@@ -174,7 +174,8 @@ def topological_order(prompt: dict) -> list[str]:
 
 
 def run_prompt(prompt: dict, overrides: dict | None = None, class_overrides: dict | None = None) -> dict:
-    """Execute an API prompt and return outputs per node.
+    """Execute an API prompt and return outputs per node, each node under ``torch.inference_mode()``
+    as ComfyUI runs them (so a node that needs gradients must turn them on itself).
 
     ``overrides`` maps "node_id.input" to a value; ``class_overrides`` maps "ClassName.input" to a
     value for every node of that class (e.g. shrink every simulation for a quick test).
@@ -202,7 +203,8 @@ def run_prompt(prompt: dict, overrides: dict | None = None, class_overrides: dic
                 kwargs[name] = results[value[0]][value[1]]
             else:
                 kwargs[name] = value
-        out = getattr(cls(), cls.FUNCTION)(**kwargs)
+        with torch.inference_mode():  # as ComfyUI 0.3.64 runs every node (execution.py)
+            out = getattr(cls(), cls.FUNCTION)(**kwargs)
         if isinstance(out, dict):
             ui[nid] = out.get("ui", {})
             out = out.get("result", ())

@@ -92,8 +92,9 @@ def test_recovers_a_random_canonical_frame_rotation_scale_and_offset(lifted, see
     res = fit_gaussians_to_photo(moved, img, m, object_height=0.45, levels=LEVELS, yaw_steps=4, keep=2,
                                  screen_steps=10, seed=seed)
     assert res.ok and res.iou >= 0.95, res.report()
-    # The world frame of the lift is the camera's (level, looking down -z), so the fit must undo R.
-    err = rotation_angle_deg(res.rotation @ R_applied)
+    # The lift's camera frame is the world's (level, looking down -z), so the pose the fit found relative
+    # to the camera must undo R.
+    err = rotation_angle_deg(res.view_rotation @ R_applied)
     assert err <= 3.0, (err, res.report())
     # The returned pair reproduces the photo on its own (at the photo's full size).
     with torch.no_grad():
@@ -103,8 +104,14 @@ def test_recovers_a_random_canonical_frame_rotation_scale_and_offset(lifted, see
     y = res.gaussians.means[:, 1]
     assert float(y.min()) == pytest.approx(0.0, abs=1e-6)
     assert float(y.max() - y.min()) == pytest.approx(0.45, rel=1e-5)
-    # Camera level, looking down -z, behind the object; the reported similarity is what was applied.
-    assert torch.allclose(res.camera.c2w[:3, :3], torch.eye(3))
+    # Upright: one of the input's axes (the one nearest the photo's up, within the 20° added above) is
+    # the world's +y, and the camera turns by the rest (its c2w rotation times the pose = the world
+    # rotation), so the render is unchanged; it stays behind the object, looking down -z.
+    world_y_in_input = res.rotation.double()[1]
+    assert float(world_y_in_input.abs().max()) == pytest.approx(1.0, abs=1e-5)
+    assert torch.allclose(res.camera.c2w[:3, :3].double() @ res.view_rotation.double(), res.rotation.double(),
+                          atol=1e-5)
+    assert rotation_angle_deg(res.camera.c2w[:3, :3]) <= 20.0 * math.sqrt(2.0)
     assert float(res.camera.c2w[2, 3]) > float(res.gaussians.means[:, 2].max())
     pred = res.scale * moved.means.double() @ res.rotation.double().T + res.translation.double()
     assert torch.allclose(pred.float(), res.gaussians.means, atol=1e-5)
@@ -361,7 +368,7 @@ def test_the_standin_with_its_cameras_principal_point_recovers_the_rotation(stan
     res = fit_gaussians_to_photo(g, rgb, mask, object_height=0.3, principal_point=(cam.cx, cam.cy),
                                  levels=((48, 30), (96, 30)))
     assert res.ok and res.iou >= 0.97 and res.color_error <= 0.05, res.report()
-    assert rotation_angle_deg(res.rotation @ R_applied) <= 3.0, res.report()
+    assert rotation_angle_deg(res.view_rotation @ R_applied) <= 3.0, res.report()
 
 
 def test_a_refused_first_round_retries_the_pose_turned_round(lifted, monkeypatch):
@@ -377,8 +384,61 @@ def test_a_refused_first_round_retries_the_pose_turned_round(lifted, monkeypatch
     monkeypatch.setattr(fit_module, "canonical_rotations", lambda yaw_steps=8: flipped[None])
     kw = dict(object_height=0.45, levels=LEVELS, keep=1, screen_steps=10)
     res = fit_gaussians_to_photo(moved, img, m, retry=False, **kw)
-    assert not res.ok and rotation_angle_deg(res.rotation @ R_applied) > 150.0, res.report()
+    assert not res.ok and rotation_angle_deg(res.view_rotation @ R_applied) > 150.0, res.report()
     res = fit_gaussians_to_photo(moved, img, m, **kw)
     assert res.ok and res.iou >= 0.95, res.report()
-    assert rotation_angle_deg(res.rotation @ R_applied) <= 3.0, res.report()
+    assert rotation_angle_deg(res.view_rotation @ R_applied) <= 3.0, res.report()
     assert [c["round"] for c in res.info["contenders"]] == ["", "_retry"]
+
+
+def _rot_x(deg: float) -> torch.Tensor:
+    c, s_ = math.cos(math.radians(deg)), math.sin(math.radians(deg))
+    return torch.tensor([[1.0, 0.0, 0.0], [0.0, c, -s_], [0.0, s_, c]])
+
+
+@pytest.mark.parametrize("upright", [True, False])
+def test_a_photo_from_above_stands_the_object_up_and_tilts_the_camera(lifted, upright):
+    """A photo taken from 25° above: the upright lift seen by a camera pitched down is the lift turned
+    25° towards the camera about the camera's x axis, seen level. Fitting the upright lift to it, the
+    pose relative to the camera carries that pitch. ``upright`` stands the object up (its +y is the
+    world's, so it does not topple when simulated) and pitches the camera 25° instead; without it the
+    object is tilted 25° under a level camera."""
+    _img, _m, lift = lifted
+    c = lift.gaussians.means.mean(0)
+    R_view = _rot_x(25.0)
+    seen = _similarity(lift.gaussians, R_view, 1.0, c - R_view @ c)
+    with torch.no_grad():
+        out = rasterize(seen, lift.camera)
+    photo = (out.rgb / out.alpha.clamp_min(1e-6)[..., None]).clamp(0, 1) * (out.alpha > 0.5)[..., None]
+    mask = (out.alpha > 0.5).float()
+    res = fit_gaussians_to_photo(lift.gaussians, photo, mask, object_height=0.45, levels=LEVELS, yaw_steps=4,
+                                 keep=2, screen_steps=10, upright=upright)
+    assert res.ok and res.iou >= 0.95, res.report()
+    assert rotation_angle_deg(res.view_rotation @ R_view.T) <= 3.0, res.report()
+    pitch = rotation_angle_deg(res.camera.c2w[:3, :3])
+    tilt = math.degrees(math.acos(min(1.0, float(res.rotation.double()[1, 1]))))  # object's +y from the world's
+    if upright:
+        assert tilt <= 1e-3 and pitch == pytest.approx(25.0, abs=3.0), (tilt, pitch)
+        assert float(res.camera.c2w[1, 2]) > 0.3  # the camera's back axis points up: it looks down
+    else:
+        assert pitch == 0.0 and tilt == pytest.approx(25.0, abs=3.0), (tilt, pitch)
+    # Either way the pair reproduces the photo.
+    with torch.no_grad():
+        again = rasterize(res.gaussians, res.camera)
+    assert _iou(again.alpha, mask) >= 0.95
+
+
+
+def test_fits_under_inference_mode_as_comfyui_runs_nodes(lifted):
+    """ComfyUI runs every node under torch.inference_mode(), and its tensors are inference tensors:
+    the fit (gradient descent) turns autograd on for itself and works on normal copies."""
+    img, m, lift = lifted
+    with torch.inference_mode():
+        g = _similarity(lift.gaussians, canonical_rotations(4)[5], 1.5, torch.tensor([0.2, 0.0, -1.0]))
+        photo, mask = torch.from_numpy(img), torch.from_numpy(m)
+        assert g.means.is_inference() and photo.is_inference()
+        res = fit_gaussians_to_photo(g, photo, mask, object_height=0.45, levels=LEVELS, yaw_steps=4, keep=2,
+                                     screen_steps=10)
+        assert torch.is_inference_mode_enabled()  # the caller's mode is back
+    assert res.ok and res.iou >= 0.95, res.report()
+    assert rotation_angle_deg(res.view_rotation @ canonical_rotations(4)[5]) <= 3.0, res.report()

@@ -185,6 +185,22 @@ def test_colour_only_without_depth_targets_says_so(scene):
     assert all("depth" not in h for h in res.history)
 
 
+def test_refines_under_inference_mode_as_comfyui_runs_nodes(scene):
+    """ComfyUI runs nodes under torch.inference_mode() and hands over inference tensors; refinement
+    (gradient descent) turns autograd on for itself: the same iterations give the same Gaussians."""
+    truth, cams, views, start = scene
+    want = refine_gaussians(start, views, RefineSettings(iterations=3)).gaussians
+    with torch.inference_mode():
+        g = Gaussians(means=start.means.clone(), quats=start.quats.clone(), scales=start.scales.clone(),
+                      opacities=start.opacities.clone(), sh=start.sh.clone())
+        v = [RefineView(camera=x.camera, image=x.image.clone(), mask=None if x.mask is None else x.mask.clone(),
+                        depth=None if x.depth is None else x.depth.clone(), colour=x.colour, name=x.name) for x in views]
+        assert g.means.is_inference() and v[0].image.is_inference()
+        got = refine_gaussians(g, v, RefineSettings(iterations=3)).gaussians
+        assert torch.is_inference_mode_enabled()
+    torch.testing.assert_close(got.means, want.means, rtol=0, atol=1e-6)
+
+
 def test_refine_validates_its_inputs(scene):
     truth, cams, views, start = scene
     with pytest.raises(InputError, match="at least one view"):

@@ -29,6 +29,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..autograd import with_autograd
 from ..errors import InputError
 from ..progress import ProgressFn, report
 
@@ -225,6 +226,7 @@ def activate_lora(unet, spec) -> None:
 # Training
 # ----------------------------------------------------------------------------------------------
 
+@with_autograd
 def personalize(models, images: Sequence, masks: Sequence = (), settings: Optional[LoraSettings] = None,
                 folder: Optional[os.PathLike] = None, progress: Optional[ProgressFn] = None,
                 force: bool = False) -> LoraResult:

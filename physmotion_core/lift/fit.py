@@ -47,6 +47,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
+from ..autograd import with_autograd
 from ..errors import InputError
 from ..progress import ProgressFn, report
 from ..segment.classic import as_image_array, as_mask_array
@@ -95,7 +96,9 @@ class FitResult:
 
     ``gaussians`` (world: metres, +y up, on the ground) and ``camera`` reproduce the photo;
     ``rotation`` (3,3), ``scale`` and ``translation`` (3,) are the similarity applied to the input
-    (``x_world = scale · rotation @ x_in + translation``); ``iou`` is the final hard IoU of the
+    (``x_world = scale · rotation @ x_in + translation``); ``view_rotation`` turns the input frame
+    into the camera's (the pose the fit found; ``rotation`` = the camera's c2w rotation times it,
+    see ``upright``); ``iou`` is the final hard IoU of the
     rendered silhouette with the mask, ``color_error`` the mean absolute colour difference (0..1)
     over the mask; ``overlay`` (H', W', 3) is the render over the photo beside the two silhouettes
     (mask green, render red, overlap yellow). ``ok`` is ``iou >= iou_threshold`` and, unless
@@ -118,6 +121,7 @@ class FitResult:
     seconds: float
     candidates: list = field(default_factory=list)
     info: dict = field(default_factory=dict)
+    view_rotation: Optional[torch.Tensor] = None  # (3,3): the input frame turned into the camera's (OpenGL)
 
     def report(self) -> str:
         """A few lines for a node's STRING output / the log."""
@@ -167,6 +171,24 @@ def canonical_rotations(yaw_steps: int = 8) -> torch.Tensor:
         for k in range(int(yaw_steps)):
             out.append(_rot_y(2 * math.pi * k / int(yaw_steps)) @ R_up)
     return torch.stack(out)
+
+
+def upright_turn(R: torch.Tensor) -> torch.Tensor:
+    """(3,3) float64: the smallest rotation that stands up the object whose input frame ``R`` turns into
+    the camera's: the input axis nearest to the camera's up (±x, ±y or ±z; its up) is taken to the
+    world's +y. It is the camera's c2w rotation when the object stands upright."""
+    R = R.double()
+    up_in = R[1]  # the camera's +y in input coordinates (Rᵀ e_y)
+    k = int(torch.argmax(up_in.abs()))
+    axis_in = torch.zeros(3, dtype=torch.float64)
+    axis_in[k] = 1.0 if float(up_in[k]) >= 0 else -1.0
+    u = R @ axis_in  # the object's up, in camera coordinates
+    y = torch.tensor([0.0, 1.0, 0.0], dtype=torch.float64)
+    w = torch.linalg.cross(u, y)
+    sin, cos = float(torch.linalg.vector_norm(w)), float(u @ y)
+    if sin < 1e-12:
+        return torch.eye(3, dtype=torch.float64)
+    return axis_angle_to_matrix(w / sin * math.atan2(sin, cos))
 
 
 def _skew(w: torch.Tensor) -> torch.Tensor:
@@ -507,6 +529,7 @@ def _check_number(name, value, ok, what) -> float:
     return v
 
 
+@with_autograd
 def fit_gaussians_to_photo(
     gaussians: Gaussians, image, mask, *, object_height: float = 0.3, focal: Optional[float] = None,
     principal_point: Optional[Sequence[float]] = None, iou_threshold: float = DEFAULT_IOU_THRESHOLD,
@@ -514,7 +537,8 @@ def fit_gaussians_to_photo(
     ground_height: float = 0.0, colour_weight: float = 0.5, yaw_steps: int = 8,
     keep: int = 3, levels: Sequence[tuple[int, int]] = ((48, 30), (96, 30), (160, 20)),
     screen_steps: int = 12, max_fit_gaussians: int = 20000, lr: float = 0.02, seed: int = 0,
-    retry: bool = True, raise_on_failure: bool = False, progress: Optional[ProgressFn] = None,
+    retry: bool = True, upright: bool = True, raise_on_failure: bool = False,
+    progress: Optional[ProgressFn] = None,
 ) -> FitResult:
     """Line ``gaussians`` (any frame, any units) up with the masked object of ``image``.
 
@@ -546,6 +570,13 @@ def fit_gaussians_to_photo(
         retry: when the best fit fails the checks, refine a second round of starts (the next
             ``keep`` coarse candidates and the finalists turned 180° about the up axis) and keep
             the better round; a refused fit then takes about twice as long.
+        upright: stand the object up in the world and tilt the camera instead. The fit finds the
+            object's pose relative to the camera; a photo taken from above (or with a principal
+            point off the centre) shows it tilted. The input axis nearest to the photo's up (±x,
+            ±y or ±z of the .ply) is taken as the object's up and made the world's +y; the camera
+            turns by what is left (its elevation and roll), so the render is the same. False puts
+            the whole pose on the object under a level camera (a tilted object on flat ground
+            topples when simulated).
         raise_on_failure: raise ``FitError`` (carrying the result) instead of returning a result
             with ``ok = False``.
         progress: ``progress(done, total)``, called every step (raise from it to cancel).
@@ -806,9 +837,11 @@ def fit_gaussians_to_photo(
     p, iou, color_error = best["params"], best["iou"], best["color_error"]
     contenders = [{k: v for k, v in c.items() if k != "params"} for r in rounds for c in r["contenders"]]
 
-    # 4. Into the world: metres, +y up, on the ground, camera level looking down -z.
+    # 4. Into the world: metres, +y up, on the ground; the camera tilted by what the object's pose
+    #    relative to it leaves once the object stands upright (level if ``upright`` is off).
     with torch.no_grad():
         R = p.rotation().detach().double()
+        Rc = upright_turn(R) if upright else torch.eye(3, dtype=torch.float64)
         f = float(torch.exp(p.log_f))
         s_cam = float(torch.exp(p.log_sigma)) / f
         u, v = float(p.uv[0]) * side, float(p.uv[1]) * side
@@ -816,7 +849,7 @@ def fit_gaussians_to_photo(
         # x_cam = (s_cam/extent) R x_in + t_cam - (s_cam/extent) R centre
         a = s_cam / extent
         b = t_cam - a * (R @ centre)
-        x_cam = a * (g_in.means.double() @ R.T) + b
+        x_cam = (a * (g_in.means.double() @ R.T) + b) @ Rc.T  # camera at the origin, world axes
         sel = x_cam[sig] if int(sig.sum()) >= 1 else x_cam
         k_m = object_height / max(float(sel[:, 1].max() - sel[:, 1].min()), 1e-12)
         x_k = k_m * x_cam
@@ -827,8 +860,8 @@ def fit_gaussians_to_photo(
                               dtype=torch.float64)
         means_w = x_k + offset
         scale = a * k_m
-        translation = k_m * b + offset
-        Rf = R.float()
+        translation = k_m * (Rc @ b) + offset
+        Rf = (Rc @ R).float()
         q_R = rotmat_to_quat(Rf[None])[0]
         quats = _quat_mul(q_R[None].expand(n, 4), F.normalize(g_in.quats, dim=-1))
         covars = None if g_in.covars is None else (scale ** 2) * (Rf @ g_in.covars @ Rf.T)
@@ -844,6 +877,7 @@ def fit_gaussians_to_photo(
                           object_ids=None if g_in.object_ids is None else g_in.object_ids.clone())
         dist = float(torch.linalg.vector_norm(offset - (means_w.mean(0))))
         c2w = torch.eye(4)
+        c2w[:3, :3] = Rc.float()
         c2w[:3, 3] = offset.float()
         camera = Camera(W, H, f, f, cx, cy, c2w, near=max(1e-4, 0.01 * dist), far=max(100.0, 100.0 * dist))
         overlay = fit_overlay(out_g, camera, img, m)
@@ -865,7 +899,7 @@ def fit_gaussians_to_photo(
                    "object; give the photo's focal length if it is unusual (telephoto or fisheye); or lower "
                    "iou_threshold to accept this fit.")
     result = FitResult(
-        gaussians=out_g, camera=camera, iou=iou, color_error=color_error, rotation=R.float(), scale=scale,
+        gaussians=out_g, camera=camera, iou=iou, color_error=color_error, rotation=Rf, view_rotation=R.float(), scale=scale,
         translation=translation.float(), focal=f, ok=ok, iou_threshold=iou_threshold,
         max_color_error=max_color_error, overlay=overlay,
         message=message, seconds=time.perf_counter() - t_start,

@@ -30,6 +30,7 @@ import cv2
 import numpy as np
 import torch
 
+from ..autograd import with_autograd
 from ..errors import InputError
 from ..progress import ProgressFn, report
 from ..render.rasterize import rasterize
@@ -178,6 +179,7 @@ def prune_floaters(gaussians: Gaussians, views: Sequence[RefineView], dilate: fl
     return keep
 
 
+@with_autograd
 def refine_gaussians(gaussians: Gaussians, views: Sequence[RefineView], settings: Optional[RefineSettings] = None,
                      *, progress: Optional[ProgressFn] = None,
                      preview: Optional[Callable[[int, torch.Tensor], None]] = None,
