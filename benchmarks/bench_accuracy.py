@@ -25,7 +25,7 @@ from pathlib import Path
 import numpy as np
 
 from physmotion_core.report import DOCS, machine_description, update_section
-from physmotion_core.sim.materials import material_preset
+from physmotion_core.types.material import material_preset
 from physmotion_core.sim.simulate import simulate
 from physmotion_core.types.conditions import Conditions, Force, Ground
 from physmotion_core.types.settings import SimSettings

@@ -21,7 +21,7 @@ import time
 import numpy as np
 
 from physmotion_core.report import machine_description, update_section
-from physmotion_core.sim.materials import material_preset
+from physmotion_core.types.material import material_preset
 from physmotion_core.sim import mpm
 from physmotion_core.sim.mpm import Domain, MPMSolver, cpu_threads, estimate_bytes
 from physmotion_core.validate.harness import lattice

@@ -59,7 +59,7 @@ class PhysMotionMaterial:
 
     @classmethod
     def INPUT_TYPES(cls):
-        from physmotion_core.sim.materials import material_names
+        from physmotion_core.types.material import material_names
 
         return {"required": {
             "preset": (material_names(), {"default": "jelly", "tooltip": "Material preset (SI parameters): "
@@ -86,7 +86,7 @@ class PhysMotionMaterial:
     CATEGORY = f"{CATEGORY}/physics"
 
     def run(self, preset, youngs_modulus, poissons_ratio, density, overrides=""):
-        from physmotion_core.sim.materials import parse_overrides
+        from physmotion_core.types.material import parse_overrides
         from physmotion_core.types.material import Material
 
         over = parse_overrides(overrides)

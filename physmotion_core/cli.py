@@ -25,7 +25,7 @@ def _floats(text: str, n: int, what: str) -> tuple[float, ...]:
 
 
 def _build_parser() -> argparse.ArgumentParser:
-    from .sim.materials import material_names
+    from .types.material import material_names
 
     p = argparse.ArgumentParser(prog="physmotion", description="Physics-grounded image-to-video.")
     p.add_argument("-v", "--verbose", action="store_true", help="log details of every stage")

@@ -15,7 +15,8 @@ import warp as wp
 from physmotion_core.errors import InputError
 from physmotion_core.sim import kernels as K
 from physmotion_core.sim import simulate
-from physmotion_core.sim.materials import kernel_params, material_preset
+from physmotion_core.sim.materials import kernel_params
+from physmotion_core.types.material import material_preset
 from physmotion_core.types import (Anchor, Conditions, Force, Gaussians, Gravity, Ground, InitialVelocity,
                                    Material, Region, SimSettings, Torque)
 
@@ -315,7 +316,7 @@ def test_anchors_hold_still_or_move_at_their_velocity_then_release():
 def test_every_preset_is_documented_and_valid():
     from pathlib import Path
 
-    from physmotion_core.sim.materials import PRESETS
+    from physmotion_core.types.material import PRESETS
 
     doc = (Path(__file__).resolve().parent.parent / "docs" / "materials.md").read_text()
     for name in PRESETS:
@@ -367,7 +368,7 @@ def test_plane_strain_cone_meets_mohr_coulomb_in_plane_strain(b):
     assert sin_phi["triaxial"] == pytest.approx(3 * t / math.sqrt(2), rel=1e-4)
     with pytest.raises(InputError, match="yield_surface must be"):
         material_preset("sand", yield_surface="cone")
-    from physmotion_core.sim.materials import parse_overrides  # the node's key=value overrides
+    from physmotion_core.types.material import parse_overrides  # the node's key=value overrides
     assert parse_overrides("yield_surface=plane_strain, friction_angle=30") == {
         "yield_surface": "plane_strain", "friction_angle": 30.0}
 

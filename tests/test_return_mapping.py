@@ -17,7 +17,8 @@ import pytest
 import warp as wp
 
 from physmotion_core.sim import kernels as K
-from physmotion_core.sim.materials import kernel_params, material_preset
+from physmotion_core.sim.materials import kernel_params
+from physmotion_core.types.material import material_preset
 
 wp.config.quiet = True
 wp.init()

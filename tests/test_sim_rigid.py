@@ -10,7 +10,7 @@ from __future__ import annotations
 import numpy as np
 import pytest
 
-from physmotion_core.sim.materials import material_preset
+from physmotion_core.types.material import material_preset
 from physmotion_core.sim.simulate import simulate
 from physmotion_core.types import Conditions, Gravity, Ground, InitialVelocity, SimSettings
 from physmotion_core.validate.stress import gaussian_box

@@ -18,7 +18,7 @@ from warp._src.context import Launch
 from physmotion_core.errors import InputError
 from physmotion_core.sim import mpm, simulate
 from physmotion_core.sim.mpm import Domain, MPMSolver, cpu_chunks, cpu_threads
-from physmotion_core.sim.materials import material_preset
+from physmotion_core.types.material import material_preset
 from physmotion_core.types import Anchor, Conditions, Force, Gaussians, Ground, Material, SimSettings, Torque
 from physmotion_core.validate.harness import lattice as lattice_points
 

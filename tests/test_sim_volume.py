@@ -6,7 +6,7 @@ ended as sheets with det F ~ 0 (docs/materials.md)."""
 
 import numpy as np
 
-from physmotion_core.sim.materials import material_preset
+from physmotion_core.types.material import material_preset
 from physmotion_core.sim.simulate import simulate
 from physmotion_core.types import Conditions, Force, Ground, InitialVelocity, SimSettings, Walls
 from physmotion_core.validate.stress import _check_completed, gaussian_box

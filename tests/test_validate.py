@@ -14,7 +14,7 @@ import pytest
 
 from physmotion_core.cli import main
 from physmotion_core.errors import InputError
-from physmotion_core.sim.materials import material_preset
+from physmotion_core.types.material import material_preset
 from physmotion_core.sim.simulate import simulate
 from physmotion_core.types import Conditions, Force, Gravity, Ground, InitialVelocity, SimSettings
 from physmotion_core.validate import cases as C

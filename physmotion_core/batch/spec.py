@@ -220,7 +220,7 @@ def normalise(raw: dict) -> dict:
                 raise InputError(f"{key} must be one of {STR_CHOICES[key]}; got {value!r}")
             s[key] = value
         elif key == "material":
-            from ..sim.materials import material_names
+            from ..types.material import material_names
 
             if not isinstance(value, str) or value.strip().lower() not in material_names():
                 raise InputError(f"material must be one of {', '.join(material_names())}; got {value!r}")

@@ -1,7 +1,8 @@
 """MPM simulation (NVIDIA Warp; the same kernels on cpu and cuda)."""
 
 from .fill import ParticleSet, fill_particles
-from .materials import IMPLEMENTED_MODELS, PRESETS, material_names, material_preset
+from ..types.material import CONSTITUTIVE_MODELS as IMPLEMENTED_MODELS
+from ..types.material import PRESETS, material_names, material_preset
 from .mpm import Domain, MPMSolver, resolve_device
 from .simulate import simulate
 

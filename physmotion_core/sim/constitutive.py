@@ -27,9 +27,12 @@ from __future__ import annotations
 
 import warp as wp
 
-# Constitutive model ids 0..9, in this order; materials.MODEL_IDS maps the models' names to them.
+from ..types.material import CONSTITUTIVE_MODELS
+
+# Constitutive model ids: each model's place in types.material.CONSTITUTIVE_MODELS, the one list of them
+# (types.material.model_id gives a name's id; a model added there must be added here too, or this fails).
 (MODEL_FIXED_COROTATED, MODEL_NEO_HOOKEAN, MODEL_VON_MISES, MODEL_DRUCKER_PRAGER, MODEL_SNOW, MODEL_PLASTICINE,
- MODEL_FRACTURE, MODEL_VISCOPLASTIC, MODEL_FLUID, MODEL_RIGID) = (wp.constant(i) for i in range(10))
+ MODEL_FRACTURE, MODEL_VISCOPLASTIC, MODEL_FLUID, MODEL_RIGID) = (wp.constant(i) for i in range(len(CONSTITUTIVE_MODELS)))
 
 
 @wp.struct

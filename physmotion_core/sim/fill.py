@@ -29,7 +29,8 @@ import numpy as np
 import torch
 
 from ..errors import InputError
-from ..types import Gaussians, Ground, quat_to_rotmat
+from ..types.conditions import Ground
+from ..types.gaussians import Gaussians, quat_to_rotmat
 
 log = logging.getLogger("physmotion.sim")
 

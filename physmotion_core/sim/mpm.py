@@ -15,9 +15,10 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..errors import InputError, SimulationError
-from ..types import Ground, Material, Walls
+from ..types.conditions import Ground, Walls
+from ..types.material import CONSTITUTIVE_MODELS, Material
 from . import kernels as K
-from .materials import IMPLEMENTED_MODELS, kernel_params
+from .materials import kernel_params
 
 log = logging.getLogger("physmotion.sim")
 
@@ -180,9 +181,9 @@ def estimate_bytes(num_particles: int, dims: Sequence[int], frames: int, recorde
 def _check_materials(materials: Sequence[Material], transfer: str) -> None:
     for m in materials:
         m.validate()
-        if m.model not in IMPLEMENTED_MODELS:
+        if m.model not in CONSTITUTIVE_MODELS:
             raise InputError(f"Material '{m.name}' uses the '{m.model}' model, which this simulator does "
-                             f"not implement; available: {', '.join(IMPLEMENTED_MODELS)}")
+                             f"not implement; available: {', '.join(CONSTITUTIVE_MODELS)}")
     if transfer not in TRANSFERS:
         raise InputError(f"transfer must be one of {TRANSFERS}; got '{transfer}'")
 

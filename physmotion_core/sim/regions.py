@@ -8,7 +8,8 @@ import numpy as np
 import torch
 
 from ..errors import InputError
-from ..types import Camera, Region
+from ..types.camera import Camera
+from ..types.conditions import Region
 
 
 def select(region: Region, x: np.ndarray, object_id: np.ndarray, camera: Optional[Camera] = None,

@@ -15,7 +15,7 @@ from typing import Callable, Sequence, Union
 
 import numpy as np
 
-from ..types import Anchor, Conditions, Force, Torque
+from ..types.conditions import Anchor, Conditions, Force, Torque
 
 TIME_EPS = 1e-12  # s: a window edge closer than this to t counts as passed
 

@@ -14,7 +14,12 @@ import torch
 from ..errors import InputError
 from ..memory import device_available_bytes, fmt_bytes, host_available_bytes
 from ..progress import ProgressFn, Throttle
-from ..types import Anchor, Camera, Conditions, Gaussians, InitialVelocity, Material, SimResult, SimSettings, Torque
+from ..types.camera import Camera
+from ..types.conditions import Anchor, Conditions, InitialVelocity, Torque
+from ..types.gaussians import Gaussians
+from ..types.material import Material
+from ..types.results import SimResult
+from ..types.settings import SimSettings
 from .fill import FilledObjects, fill_objects
 from .mpm import MAX_TORQUES, Domain, MPMSolver, cpu_chunks, estimate_bytes, resolve_device
 from .regions import select

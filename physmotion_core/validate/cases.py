@@ -12,7 +12,7 @@ from typing import Callable
 
 import numpy as np
 
-from ..sim.materials import material_preset
+from ..types.material import material_preset
 from ..sim.mpm import MPMSolver
 from ..types.conditions import Ground
 from ..types.material import Material

@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError, PhysMotionError
-from ..sim.materials import material_preset
+from ..types.material import material_preset
 from ..sim.simulate import simulate
 from ..types.conditions import Conditions, Force, Gravity, Ground, InitialVelocity, Torque, Walls
 from ..types.gaussians import Gaussians
