@@ -52,3 +52,20 @@ def with_autograd(fn):
             return fn(*args, **kwargs)
 
     return wrapper
+
+
+def normal_parameters(module: torch.nn.Module) -> int:
+    """Replace ``module``'s parameters and buffers that are inference tensors (a model loaded or moved
+    to its device inside ComfyUI's inference mode) by normal copies, in place, so gradients can flow
+    through it. Returns how many were replaced; call with inference mode off."""
+    replaced = 0
+    for sub in module.modules():
+        for name, p in list(sub._parameters.items()):
+            if p is not None and p.is_inference():
+                sub._parameters[name] = torch.nn.Parameter(p.detach().clone(), requires_grad=p.requires_grad)
+                replaced += 1
+        for name, b in list(sub._buffers.items()):
+            if b is not None and b.is_inference():
+                sub._buffers[name] = b.clone()
+                replaced += 1
+    return replaced

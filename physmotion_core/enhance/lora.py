@@ -29,7 +29,7 @@ import numpy as np
 import torch
 import torch.nn.functional as F
 
-from ..autograd import with_autograd
+from ..autograd import normal_parameters, with_autograd
 from ..errors import InputError
 from ..progress import ProgressFn, report
 
@@ -277,6 +277,7 @@ def personalize(models, images: Sequence, masks: Sequence = (), settings: Option
     sched = DDIMSchedule.from_config(models.scheduler_config, 1)
 
     models.place("unet")
+    normal_parameters(unet)  # weights loaded or placed inside ComfyUI's inference mode cannot carry gradients
     was_training = unet.training
     if TRAIN_ADAPTER in (getattr(unet, "peft_config", None) or {}):
         with _quiet_peft():

@@ -323,7 +323,10 @@ def _workspace(count: int, size: int, device: torch.device, dtype: torch.dtype,
     key = (tag, str(device), dtype)
     bufs = cache.get(key)
     if bufs is None or len(bufs) < count or bufs[0].numel() < size:
-        bufs = cache[key] = [torch.empty(size, device=device, dtype=dtype) for _ in range(count)]
+        # Normal tensors even when first asked for under torch.inference_mode() (ComfyUI runs nodes so):
+        # an inference tensor could not be written later outside it (e.g. by Fit, which needs gradients).
+        with torch.inference_mode(False):
+            bufs = cache[key] = [torch.empty(size, device=device, dtype=dtype) for _ in range(count)]
     return bufs
 
 
