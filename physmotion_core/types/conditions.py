@@ -67,8 +67,8 @@ class Region:
 
 
 @dataclass(frozen=True)
-class Force:
-    """A total force (N) spread over the region's particles in proportion to their mass."""
+class _Load:
+    """A vector load on a region over a time window (the fields Force and Torque share)."""
 
     vector: Vec3
     region: Region = field(default_factory=Region)
@@ -76,22 +76,19 @@ class Force:
     t_end: float = float("inf")
 
     def __post_init__(self) -> None:
-        object.__setattr__(self, "vector", as_vec3(self.vector, "Force vector"))
-        _check_window(self.t_start, self.t_end, "Force")
+        name = type(self).__name__
+        object.__setattr__(self, "vector", as_vec3(self.vector, f"{name} vector"))
+        _check_window(self.t_start, self.t_end, name)
 
 
 @dataclass(frozen=True)
-class Torque:
+class Force(_Load):
+    """A total force (N) spread over the region's particles in proportion to their mass."""
+
+
+@dataclass(frozen=True)
+class Torque(_Load):
     """A torque (N·m) about the region's centre of mass: net force zero, net torque exact."""
-
-    vector: Vec3
-    region: Region = field(default_factory=Region)
-    t_start: float = 0.0
-    t_end: float = float("inf")
-
-    def __post_init__(self) -> None:
-        object.__setattr__(self, "vector", as_vec3(self.vector, "Torque vector"))
-        _check_window(self.t_start, self.t_end, "Torque")
 
 
 @dataclass(frozen=True)
