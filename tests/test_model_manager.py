@@ -146,7 +146,8 @@ def test_real_model_patcher_loads_and_evicts_our_modules():
             pass
         print("OK", patcher_of(net).model_size())
     """)
-    out = subprocess.run([sys.executable, "-c", script], cwd=os.environ["COMFYUI_DIR"], capture_output=True,
+    python = os.environ.get("COMFYUI_PYTHON") or sys.executable  # the checkout's own environment (einops, ...)
+    out = subprocess.run([python, "-c", script], cwd=os.environ["COMFYUI_DIR"], capture_output=True,
                          text=True, timeout=300)
     assert out.returncode == 0 and "OK 48" in out.stdout, out.stderr[-3000:]
 
