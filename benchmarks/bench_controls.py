@@ -97,6 +97,8 @@ def main(names: list[str]) -> int:
     all_three = totals["tracks"] + totals["controls"] + totals["flow"]
     rows.append(f"| **all** | | | {totals['sim']:.1f} | {totals['render']:.1f} | {totals['tracks']:.1f} | "
                 f"{totals['controls']:.1f} | {totals['flow']:.1f} | {100 * all_three / max(totals['sim'], 1e-9):.0f} % |")
+    busy = (" (above the core count: shared with other jobs, so every time here is longer than on an idle machine)"
+            if max(loads, default=0.0) > (os.cpu_count() or 1) else " (not above the core count)")
     md = f"""## Wan controls next to the simulation
 
 The three video-control nodes (`PhysMotionPointTracks`, `PhysMotionControlVideos`, `PhysMotionExactFlow`)
@@ -110,8 +112,7 @@ colour-wheel preview and the .npz. The "render" column is a plain render of the 
 colour and depth only) for comparison. Posing the Gaussians each frame (`SimResult.gaussians_at`) and
 rasterizing are most of it. Simulation: the template's own settings, Warp kernels already compiled. Templates: {"a representative subset (" + ", ".join(names) + ")"
                                                      if names else "every CPU template"}. Machine: {machine_description()}; 1-minute load
-average while the nodes ran {min(loads, default=0):.1f}-{max(loads, default=0):.1f} on {os.cpu_count()} cores (above the core
-count: shared with other jobs, and every time here is longer than on an idle machine); torch ran with
+average while the nodes ran {min(loads, default=0):.1f}-{max(loads, default=0):.1f} on {os.cpu_count()} cores{busy}; torch ran with
 {torch.get_num_threads()} thread(s). Measured
 {datetime.date.today().isoformat()}. Re-run: `python -m benchmarks.bench_controls`.
 
