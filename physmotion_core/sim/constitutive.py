@@ -29,6 +29,10 @@ import warp as wp
 
 from ..types.material import CONSTITUTIVE_MODELS
 
+# The simulation is never differentiated: no adjoint code (halves the CUDA build; the forward code
+# and its results are unchanged).
+wp.set_module_options({"enable_backward": False})
+
 # Constitutive model ids: each model's place in types.material.CONSTITUTIVE_MODELS, the one list of them
 # (types.material.model_id gives a name's id; a model added there must be added here too, or this fails).
 (MODEL_FIXED_COROTATED, MODEL_NEO_HOOKEAN, MODEL_VON_MISES, MODEL_DRUCKER_PRAGER, MODEL_SNOW, MODEL_PLASTICINE,

@@ -42,6 +42,10 @@ import warp as wp
 
 from .constitutive import MaterialParams, update_material  # noqa: F401 - the material table and its rules
 
+# The simulation is never differentiated: no adjoint code (halves the CUDA build; the forward code
+# and its results are unchanged).
+wp.set_module_options({"enable_backward": False})
+
 # Contact ids.
 CONTACT_STICKY = wp.constant(0)
 CONTACT_SLIP = wp.constant(1)
