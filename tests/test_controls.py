@@ -403,7 +403,7 @@ def test_visibility_reads_only_the_pixels_around_the_points(clip):
 
 
 def test_splat_linear_part_is_the_clamped_deformation():
-    from physmotion_core.types import MAX_SPLAT_STRETCH, splat_deformation
+    from physmotion_core.types import MAX_SPLAT_STRETCH
 
     gen = torch.Generator().manual_seed(1)
     P = 400
@@ -415,7 +415,10 @@ def test_splat_linear_part_is_the_clamped_deformation():
     sim = cube_sim(frames=2)
     sim = dataclasses.replace(sim, F=F[None].expand(2, -1, -1, -1).contiguous(),
                               rotation_free=torch.arange(P) % 7 == 0)
-    want = splat_deformation(F, MAX_SPLAT_STRETCH, sim.rotation_free).double()
+    # Against the clamp written out (every F through the SVD), not the shared shortcut both now use.
+    U, S, Vh = torch.linalg.svd(F.double())
+    S = torch.diag_embed(S.clamp(1.0 / MAX_SPLAT_STRETCH, MAX_SPLAT_STRETCH))
+    want = torch.where(sim.rotation_free[:, None, None], Vh.transpose(-1, -2) @ S @ Vh, U @ S @ Vh)
     torch.testing.assert_close(C._splat_linear_part(sim, 1), want, atol=1e-6, rtol=1e-6)
 
 
