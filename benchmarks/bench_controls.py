@@ -2,11 +2,11 @@
 
 Each CPU template of example_workflows/api/ (no learned weights, not a Wan template) runs in-process up
 to its simulation (tests/comfy_harness.py: the node classes ComfyUI calls), at the template's own
-settings. Then the three video-control nodes run on that simulation as the Wan templates use them:
-832x480, 16 fps, the 4k+1 frame count the simulated duration fills (48 frames at 24 fps -> 33),
-64 tracked points + 8 background anchors, an 8 px grown mask, forward flow, in that order (tracks,
-controls, flow), as a workflow using all three runs them: the first renders the resampled clip once
-(colour, depth and the forward flow's channels) and the other two reuse it. A plain render of the clip
+settings. Then the three video-control nodes run on that simulation at 832x480, 16 fps and the 4k+1
+frame count the simulated duration fills (48 frames at 24 fps -> 33), in three scenarios as prompts
+hold them: the tracks node alone (as the Wan tracks template), the controls node alone (as the VACE
+template) and all three (tracks, controls, forward flow; one render shared, see nodes/video_control.py).
+A plain render of the clip
 (render_frames, what the coarse video costs) is timed too. Written to docs/benchmarks.md, section
 "controls". Usage:
     .venv/bin/python -m benchmarks.bench_controls [name ...]   (names: a subset, said so in the section)
@@ -45,13 +45,40 @@ def _timed(fn):
     return out, time.perf_counter() - t0
 
 
+_NODES = {"tracks": "PhysMotionPointTracks", "controls": "PhysMotionControlVideos", "flow": "PhysMotionExactFlow"}
+
+
+def _scenario(classes, common, background, which) -> float:
+    """Seconds the nodes ``which`` take on one simulation, run in that order as ComfyUI runs a prompt that
+    holds just them (hidden PROMPT and UNIQUE_ID, so the first render carries the flow's channels only when
+    a flow node follows). Nothing is shared with an earlier scenario."""
+    import sys as _sys
+
+    vc = _sys.modules[classes["PhysMotionPointTracks"].__module__]
+    vc._last_render.clear()
+    clip = {k: common[k] for k in ("width", "height", "fps", "length")}
+    links = {"simulation": ["7", 0], "camera": ["3", 1]}
+    extra = {"tracks": dict(num_points=64, background_points=8, occlusion="end track", background=background),
+             "controls": dict(grow_mask=8, background=background),
+             "flow": dict(direction="forward", max_flow=0.0, filename_prefix="bench/flow")}
+    prompt = {str(20 + i): {"class_type": _NODES[w], "inputs": {**links, **clip,
+                                                                **{k: v for k, v in extra[w].items() if k != "background"}}}
+              for i, w in enumerate(which)}
+    t0 = time.perf_counter()
+    for i, w in enumerate(which):
+        hidden = dict(prompt=prompt, unique_id=str(20 + i)) if w != "flow" else {}
+        classes[_NODES[w]]().run(**common, **extra[w], **hidden)
+    return time.perf_counter() - t0
+
+
 def main(names: list[str]) -> int:
-    # One torch thread, as the simulation's Warp CPU kernels: on a 2-core machine shared with other jobs,
-    # two OpenMP threads spin against each other and the render's wall time balloons.
-    torch.set_num_threads(1)
+    # Torch renders with as many threads as the simulation ran with (PHYSMOTION_CPU_THREADS, else every
+    # core), as in ComfyUI, where both use the machine.
+    env = os.environ.get("PHYSMOTION_CPU_THREADS", "").strip()
+    torch.set_num_threads(int(env) if env.isdigit() and int(env) > 0 else (os.cpu_count() or 1))
     classes = node_classes()
     loads = []  # 1-minute load averages while the nodes ran: how busy the shared machine was
-    rows, totals = [], {"sim": 0.0, "render": 0.0, "tracks": 0.0, "controls": 0.0, "flow": 0.0}
+    rows, totals = [], {"sim": 0.0, "render": 0.0, "tracks": 0.0, "controls": 0.0, "all": 0.0}
     for path in sorted((ROOT / "example_workflows" / "api").glob("*.json")):
         if names and path.stem not in names:
             continue
@@ -80,44 +107,43 @@ def main(names: list[str]) -> int:
             rs = C.resample_simulation(sim, FPS, length)
             loads.append(os.getloadavg()[0])
             _, t_render = _timed(lambda: render_frames(rs, C.fit_camera(camera, WIDTH, HEIGHT)))
-            _, t_tracks = _timed(lambda: classes["PhysMotionPointTracks"]().run(
-                **common, num_points=64, background_points=8, occlusion="end track", background=background))
-            _, t_controls = _timed(lambda: classes["PhysMotionControlVideos"]().run(
-                **common, grow_mask=8, background=background))
-            _, t_flow = _timed(lambda: classes["PhysMotionExactFlow"]().run(
-                **common, direction="forward", max_flow=0.0, filename_prefix="bench/flow"))
+            t_tracks = _scenario(classes, common, background, ("tracks",))
+            t_controls = _scenario(classes, common, background, ("controls",))
+            t_all = _scenario(classes, common, background, ("tracks", "controls", "flow"))
             loads.append(os.getloadavg()[0])
         t_sim = float(sim.stats["wall_time_s"])
-        share = (t_tracks + t_controls + t_flow) / t_sim
-        for k, v in zip(totals, (t_sim, t_render, t_tracks, t_controls, t_flow)):
+        threads = int(sim.stats.get("threads", 0))
+        for k, v in zip(totals, (t_sim, t_render, t_tracks, t_controls, t_all)):
             totals[k] += v
-        rows.append(f"| {path.stem} | {len(sim.rest):,} | {sim.num_frames} -> {length} | {t_sim:.1f} | {t_render:.1f} | "
-                    f"{t_tracks:.1f} | {t_controls:.1f} | {t_flow:.1f} | {100 * share:.0f} % |")
+        rows.append(f"| {path.stem} | {len(sim.rest):,} | {sim.num_frames} -> {length} | {t_sim:.1f} ({threads}) | "
+                    f"{t_render:.1f} | {t_tracks:.1f} ({100 * t_tracks / t_sim:.0f} %) | "
+                    f"{t_controls:.1f} ({100 * t_controls / t_sim:.0f} %) | {t_all:.1f} ({100 * t_all / t_sim:.0f} %) |")
         print(rows[-1], flush=True)
-    all_three = totals["tracks"] + totals["controls"] + totals["flow"]
-    rows.append(f"| **all** | | | {totals['sim']:.1f} | {totals['render']:.1f} | {totals['tracks']:.1f} | "
-                f"{totals['controls']:.1f} | {totals['flow']:.1f} | {100 * all_three / max(totals['sim'], 1e-9):.0f} % |")
+    ts = max(totals["sim"], 1e-9)
+    rows.append(f"| **all** | | | {totals['sim']:.1f} | {totals['render']:.1f} | {totals['tracks']:.1f} "
+                f"({100 * totals['tracks'] / ts:.0f} %) | {totals['controls']:.1f} ({100 * totals['controls'] / ts:.0f} %) | "
+                f"{totals['all']:.1f} ({100 * totals['all'] / ts:.0f} %) |")
     busy = (" (above the core count: shared with other jobs, so every time here is longer than on an idle machine)"
             if max(loads, default=0.0) > (os.cpu_count() or 1) else " (not above the core count)")
     md = f"""## Wan controls next to the simulation
 
 The three video-control nodes (`PhysMotionPointTracks`, `PhysMotionControlVideos`, `PhysMotionExactFlow`)
-on the simulation of each CPU template, as the Wan templates use them: {WIDTH}x{HEIGHT}, {FPS:g} fps, the
-4k+1 frame count the simulated duration fills, 64 tracked points + 8 background anchors, forward flow.
-The tracks node resamples the simulation and renders the clip once for all three nodes (colour, depth
-and 9 flow channels per frame: `render_clip`), then samples, projects, tests visibility at the points,
-writes the JSON and draws the preview; the controls node, run next on the same simulation, clock and size,
-reuses that render and adds the depth/mask/blend/VACE videos; the flow node reuses it too and adds the
-colour-wheel preview and the .npz. The "render" column is a plain render of the same clip (`render_frames`,
-colour and depth only) for comparison. Posing the Gaussians each frame (`SimResult.gaussians_at`) and
-rasterizing are most of it. Simulation: the template's own settings, Warp kernels already compiled. Templates: {"a representative subset (" + ", ".join(names) + ")"
-                                                     if names else "every CPU template"}. Machine: {machine_description()}; 1-minute load
-average while the nodes ran {min(loads, default=0):.1f}-{max(loads, default=0):.1f} on {os.cpu_count()} cores{busy}; torch ran with
-{torch.get_num_threads()} thread(s). Measured
-{datetime.date.today().isoformat()}. Re-run: `python -m benchmarks.bench_controls`.
+on the simulation of each CPU template, at {WIDTH}x{HEIGHT}, {FPS:g} fps and the 4k+1 frame count the
+simulated duration fills, as the Wan templates use them: the tracks node alone (64 points + 8 background
+anchors; the `wan_tracks_*` template), the controls node alone (8 px grown mask; the `wan_vace_*` template),
+and all three in one prompt (tracks, controls, forward flow). Each scenario starts from nothing: the first
+node resamples the simulation and renders the clip once (`render_clip`: colour and depth, plus the flow's 9
+channels only when a flow node of the same prompt asks for the same clip), and the others reuse that
+render. The "render" column is a plain render of the same clip (`render_frames`), what any coarse video of
+it costs. Percentages are of the simulation's time. Simulation: the template's own settings, Warp kernels
+already compiled, its thread count in brackets; torch ran with {torch.get_num_threads()} thread(s).
+Templates: {"a representative subset (" + ", ".join(names) + ")" if names else "every CPU template"}. Machine:
+{machine_description()}; 1-minute load average while the nodes ran {min(loads, default=0):.1f}-{max(loads, default=0):.1f}
+on {os.cpu_count()} cores{busy}. Measured {datetime.date.today().isoformat()}. Re-run:
+`python -m benchmarks.bench_controls`.
 
-| template | Gaussians | frames (sim -> Wan) | simulation s | render s | tracks node s | controls node s | flow node s | all three / simulation |
-| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: | ---: |
+| template | Gaussians | frames (sim -> Wan) | simulation s (threads) | render s | tracks node s | controls node s | all three s |
+| --- | ---: | --- | ---: | ---: | ---: | ---: | ---: |
 """ + "\n".join(rows) + "\n"
     update_section("benchmarks.md", "controls", md)
     print(md)

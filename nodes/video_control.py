@@ -7,6 +7,8 @@ format is matched to); these nodes parse inputs, call it and report progress.
 
 from __future__ import annotations
 
+from typing import Optional
+
 from ._util import CATEGORY, output_path, preview_video, progress_callback, torch_device
 
 _STAGE = f"{CATEGORY}/video_models"  # as ComfyUI files its Wan nodes: conditioning/video_models
@@ -46,12 +48,37 @@ def _at_model_clock(simulation, camera, width, height, fps, length):
 #: direction). The three nodes on the same simulation at the same clock and size share one render.
 _last_render: list = []
 
+_SETTINGS = ("width", "height", "fps", "length")
 
-def _render(sim, cam, source=None, settings=(), flow=None):
+
+def _flow_follows(prompt, unique_id) -> Optional[str]:
+    """The direction of the exact flow a PhysMotion Exact Flow node of the running prompt will ask of the same
+    clip as node ``unique_id`` (same simulation and camera links, same size, clock and length), so the render
+    this node makes carries that flow's channels and the flow node costs nothing more; None when no such
+    node is in the prompt. Without the prompt (the library's or an old caller's use): "forward", as before."""
+    if not isinstance(prompt, dict) or unique_id is None or str(unique_id) not in prompt:
+        return "forward"
+    me = prompt[str(unique_id)].get("inputs", {})
+    for node in prompt.values():
+        if not isinstance(node, dict) or node.get("class_type") != "PhysMotionExactFlow":
+            continue
+        other = node.get("inputs", {})
+        if other.get("simulation") != me.get("simulation") or other.get("camera") != me.get("camera"):
+            continue
+        # A linked setting may equal ours at run time: render the channels then too.
+        if all(isinstance(other.get(k), list) or isinstance(me.get(k), list) or other.get(k) == me.get(k)
+               for k in _SETTINGS):
+            direction = other.get("direction", "forward")
+            return direction if direction in ("forward", "backward") else "forward"
+    return None
+
+
+def _render(sim, cam, source=None, settings=(), flow=None, share=None):
     """The frames of the resampled clip and, when ``flow`` names a direction, its flow: from the last clip
-    when it is the same (simulation, clock, size), else rendered once (``render_clip``). A render always
-    carries the forward flow's channels too (about a fifth more than colour and depth alone), so a flow node
-    after the tracks or controls node costs nothing more; a backward flow renders again."""
+    when it is the same (simulation, clock, size), else rendered once (``render_clip``). A render for the
+    tracks or controls carries the channels of the flow ``share`` names (a flow node that follows in the
+    same prompt, see ``_flow_follows``: a fifth more than colour and depth alone), so that node then costs
+    nothing more; with no flow node after it, none are rendered."""
     import weakref
 
     from physmotion_core import controls as C
@@ -62,7 +89,7 @@ def _render(sim, cam, source=None, settings=(), flow=None):
         if ref() is source and k == key and (flow is None or flow in flows):
             return frames, flows.get(flow)
     dev = torch_device()
-    direction = flow or "forward"
+    direction = flow or share
     frames, fl = C.render_clip(sim, cam, flow=direction if sim.num_frames > 1 else None,
                                device=dev if dev.type == "cuda" else "cpu", progress=progress_callback())
     _last_render.clear()
@@ -106,7 +133,7 @@ class PhysMotionPointTracks:
         }, "optional": {
             "background": ("IMAGE", {"tooltip": "The (inpainted) background, to draw the preview over the coarse "
                                                 "video; without it the preview shows the render over black."}),
-        }}
+        }, "hidden": {"prompt": "PROMPT", "unique_id": "UNIQUE_ID"}}
 
     DESCRIPTION = ("Tracks physics particles on the object's surface through the photo's camera, at the video model's "
                    "frame rate and 4k+1 frame count, as the tracks JSON WanTrackToVideo reads (pixel coordinates of "
@@ -122,11 +149,11 @@ class PhysMotionPointTracks:
     CATEGORY = _STAGE
 
     def run(self, simulation, camera, width, height, fps, length, num_points, background_points, occlusion,
-            background=None):
+            background=None, prompt=None, unique_id=None):
         from physmotion_core import controls as C
 
         sim, cam = _at_model_clock(simulation, camera, width, height, fps, length)
-        frames, _ = _render(sim, cam, simulation, (fps, length))
+        frames, _ = _render(sim, cam, simulation, (fps, length), share=_flow_follows(prompt, unique_id))
         tracks = C.point_tracks(sim, frames, cam, int(num_points), background_points=int(background_points))
         text = C.wan_tracks_json(tracks, occlusion="end" if occlusion == "end track" else "keep")
         bg = _fit_background(background, cam.width, cam.height, sim.num_frames)
@@ -149,7 +176,7 @@ class PhysMotionControlVideos:
         }, "optional": {
             "background": ("IMAGE", {"tooltip": "The (inpainted) background from PhysMotion Segment, for the blended "
                                                 "video and the VACE control. Without it they use black."}),
-        }}
+        }, "hidden": {"prompt": "PROMPT", "unique_id": "UNIQUE_ID"}}
 
     DESCRIPTION = ("Renders the simulation at the video model's frame rate, 4k+1 frame count and size (multiples of "
                    "16): depth (near = bright), the coarse render, the object mask, the blended coarse video, and "
@@ -167,11 +194,12 @@ class PhysMotionControlVideos:
     FUNCTION = "run"
     CATEGORY = _STAGE
 
-    def run(self, simulation, camera, width, height, fps, length, grow_mask, background=None):
+    def run(self, simulation, camera, width, height, fps, length, grow_mask, background=None, prompt=None,
+            unique_id=None):
         from physmotion_core import controls as C
 
         sim, cam = _at_model_clock(simulation, camera, width, height, fps, length)
-        frames, _ = _render(sim, cam, simulation, (fps, length))
+        frames, _ = _render(sim, cam, simulation, (fps, length), share=_flow_follows(prompt, unique_id))
         v = C.control_videos(frames, _fit_background(background, cam.width, cam.height, sim.num_frames),
                              grow_mask=int(grow_mask))
         return {"ui": preview_video(v.vace, float(fps), "PhysMotion_controls"),

@@ -198,6 +198,8 @@ def run_prompt(prompt: dict, overrides: dict | None = None, class_overrides: dic
         kwargs = {}
         if "prompt" in cls.INPUT_TYPES().get("hidden", {}):  # ComfyUI's hidden PROMPT: the prompt being run
             kwargs["prompt"] = prompt
+        if "unique_id" in cls.INPUT_TYPES().get("hidden", {}):  # and UNIQUE_ID: the node's own id, a string
+            kwargs["unique_id"] = str(nid)
         for name, value in node["inputs"].items():
             if isinstance(value, list) and len(value) == 2 and isinstance(value[0], str):
                 kwargs[name] = results[value[0]][value[1]]

@@ -517,6 +517,50 @@ def test_nodes_run_report_progress_and_cancel(tmp_path, monkeypatch):
     assert state.checks == state.cancel_after + 1
 
 
+def test_the_flow_channels_are_rendered_only_when_a_flow_node_follows(tmp_path, monkeypatch):
+    """Run as ComfyUI runs them (hidden PROMPT and UNIQUE_ID), the tracks and controls nodes render the exact
+    flow's nine channels with the clip only when a PhysMotion Exact Flow node of the same prompt asks for the
+    same clip (same simulation and camera links, size, clock and length), in the direction it asks; then the
+    flow node renders nothing. Alone (the Wan tracks and VACE templates), they render colour and depth only."""
+    import sys
+
+    from comfy_harness import node_classes
+    from fake_comfy import install_fake_comfy
+
+    monkeypatch.setenv("PHYSMOTION_OUTPUT_DIR", str(tmp_path))
+    monkeypatch.setenv("PHYSMOTION_TEMP_DIR", str(tmp_path / "temp"))
+    install_fake_comfy(monkeypatch)
+    classes = node_classes()
+    VC = sys.modules[classes["PhysMotionPointTracks"].__module__]
+    calls = []
+    real = C.render_clip
+    monkeypatch.setattr(C, "render_clip", lambda *a, **k: calls.append(k.get("flow")) or real(*a, **k))
+    sim, cam = cube_sim(frames=12), camera(300, 200)
+    clip = dict(width=160, height=96, fps=16.0, length=9)
+    links = {"simulation": ["7", 0], "camera": ["3", 1]}
+    prompt = {"20": {"class_type": "PhysMotionPointTracks", "inputs": {**links, **clip, "num_points": 8}},
+              "21": {"class_type": "PhysMotionControlVideos", "inputs": {**links, **clip, "grow_mask": 0}}}
+    tracks = dict(simulation=sim, camera=cam, **clip, num_points=8, background_points=0, occlusion="keep")
+    classes["PhysMotionPointTracks"]().run(**tracks, prompt=prompt, unique_id="20")
+    classes["PhysMotionControlVideos"]().run(simulation=sim, camera=cam, **clip, grow_mask=0, prompt=prompt,
+                                             unique_id="21")
+    assert calls == [None]  # one render, shared, without flow channels
+    flow_node = {"class_type": "PhysMotionExactFlow", "inputs": {**links, **clip, "direction": "backward"}}
+    assert VC._flow_follows({**prompt, "22": flow_node}, "20") == "backward"
+    other_size = {**flow_node, "inputs": {**flow_node["inputs"], "width": 176}}
+    assert VC._flow_follows({**prompt, "22": other_size}, "20") is None
+    other_sim = {**flow_node, "inputs": {**flow_node["inputs"], "simulation": ["8", 0]}}
+    assert VC._flow_follows({**prompt, "22": other_sim}, "20") is None
+    assert VC._flow_follows(None, None) == "forward"  # called without a prompt: as before
+    sim2 = cube_sim(frames=12)
+    classes["PhysMotionPointTracks"]().run(**{**tracks, "simulation": sim2}, prompt={**prompt, "22": flow_node},
+                                           unique_id="20")
+    out = classes["PhysMotionExactFlow"]().run(simulation=sim2, camera=cam, **clip, direction="backward",
+                                              max_flow=0.0, filename_prefix="f")
+    assert calls == [None, "backward"]  # the flow came with the tracks' render
+    assert out["result"][0].direction == "backward"
+
+
 # ---------------------------------------------------------------------------------------------
 # Templates
 # ---------------------------------------------------------------------------------------------

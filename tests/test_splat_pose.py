@@ -94,3 +94,37 @@ def test_the_cached_rest_state_is_not_pickled_and_is_rebuilt():
     assert "_rest_cache" not in copy.__dict__
     again = copy.gaussians_at(1)
     assert torch.equal(first.means, again.means) and torch.equal(first.covars, again.covars)
+
+
+def test_compiled_and_pytorch_posing_agree_and_threads_do_not_matter():
+    """gaussians_at poses float32 CPU frames with the compiled kernel (sim/pose.py); the PyTorch formula
+    (``_pose_torch``) serves every other device and dtype. Both meet the direct formula (above for the
+    compiled one), on a scene with neighbours and on one where each Gaussian follows its own particle only;
+    the kernel's result is the same for any number of threads (each Gaussian is one thread's work)."""
+    from physmotion_core.sim.pose import pose_gaussians
+    from physmotion_core.types.results import pose_on_cpu
+
+    sim = _sim(torch.Generator().manual_seed(4), N=9000)
+    assert pose_on_cpu(sim.x[0], sim.F[0], sim.rest.means, sim.rest.means.dtype)
+    for frame in range(sim.num_frames):
+        F = splat_deformation(sim.F[frame], MAX_SPLAT_STRETCH, sim.rotation_free)
+        rest = sim._rest_state()
+        m_t, c_t = sim._pose_torch(sim.x[frame], F, rest)
+        means, covars = _reference_pose(sim, frame)
+        assert (m_t.double() - means).abs().max() < 1e-6
+        assert (c_t.double() - covars).abs().max() < 1e-5 * covars.abs().max()
+        args = (sim.x[frame], sim.rest_particles, F, sim.neighbours, sim.weights, rest["rest_d"], 0.01,
+                rest["centre"], sim.rest.means, rest["cov"])
+        one, three = pose_gaussians(*args, threads=1), pose_gaussians(*args, threads=3)
+        assert torch.equal(one[0], three[0]) and torch.equal(one[1], three[1])
+    solo = _sim(torch.Generator().manual_seed(5))
+    solo.neighbours, solo.weights = None, None
+    g = solo.gaussians_at(1)
+    F = splat_deformation(solo.F[1], MAX_SPLAT_STRETCH, solo.rotation_free)
+    m_t, c_t = solo._pose_torch(solo.x[1], F, solo._rest_state())
+    assert (g.means - m_t).abs().max() < 1e-6
+    assert (g.covars - c_t).abs().max() <= 1e-5 * c_t.abs().max()
+    # x_g = x_k + F_k (X_g - X_k) for the Gaussian's own particle k, written out.
+    k = solo.binding
+    direct = solo.x[1][k].double() + (F[k].double() @ (solo.rest.means.double() - solo.rest_particles[k].double())[..., None])[..., 0]
+    assert (g.means.double() - direct).abs().max() < 1e-6

@@ -42,6 +42,30 @@ def splat_deformation(F: torch.Tensor, limit: float, rotation_free: Optional[tor
     return out.to(F.dtype)
 
 
+def pose_on_cpu(x: torch.Tensor, F: torch.Tensor, means: torch.Tensor, dtype: torch.dtype) -> bool:
+    """Whether a frame is posed by the compiled CPU kernel (sim/pose.py): float32 CPU tensors, Warp
+    importable, and not under autograd (nothing here is differentiated, but a caller may ask)."""
+    if dtype != torch.float32 or any(t.device.type != "cpu" for t in (x, F, means)):
+        return False
+    if torch.is_grad_enabled() and any(t.requires_grad for t in (x, F, means)):
+        return False
+    return _warp_importable()
+
+
+_WARP: list = []
+
+
+def _warp_importable() -> bool:
+    if not _WARP:
+        try:
+            import warp  # noqa: F401
+
+            _WARP.append(True)
+        except Exception:  # noqa: BLE001 - a broken Warp install: the PyTorch formula still works
+            _WARP.append(False)
+    return _WARP[0]
+
+
 @dataclass
 class SimResult:
     """The simulated trajectory.
@@ -93,8 +117,24 @@ class SimResult:
             raise InputError(f"frame {frame} is out of range: the simulation has {self.num_frames} frames")
         dtype = self.rest.means.dtype
         F = splat_deformation(self.F[frame], MAX_SPLAT_STRETCH, self.rotation_free)
-        x, X, Xg = self.x[frame], self.rest_particles, self.rest.means
+        x = self.x[frame]
         rest = self._rest_state()
+        if pose_on_cpu(x, F, self.rest.means, dtype):
+            from ..sim.pose import pose_gaussians  # compiled (Warp): several times faster than the formula below
+
+            nb, w = ((self.binding[:, None], torch.ones(self.binding.shape[0], 1)) if self.neighbours is None
+                     else (self.neighbours, self.weights))
+            means, covars = pose_gaussians(x, self.rest_particles, F, nb, w, rest.get("rest_d"),
+                                           float(self.stats.get("particle_spacing", 0.0)), rest["centre"],
+                                           self.rest.means, rest["cov"])
+        else:
+            means, covars = self._pose_torch(x, F, rest)
+        return dataclasses.replace(self.rest, means=means, covars=covars)
+
+    def _pose_torch(self, x: torch.Tensor, F: torch.Tensor, rest: dict) -> tuple[torch.Tensor, torch.Tensor]:
+        """The posing rule in PyTorch (any device and dtype): means and covariances of every Gaussian."""
+        dtype = self.rest.means.dtype
+        X, Xg = self.rest_particles, self.rest.means
         if self.neighbours is None:
             nb = self.binding[:, None]
             w = torch.ones(nb.shape, dtype=dtype)
@@ -117,7 +157,7 @@ class SimResult:
         means = ((w.double()[..., None] * b[nb]).sum(dim=1)
                  + torch.einsum("nij,nj->ni", Fg.double(), Xg.double() - c)).to(dtype)
         covars = torch.einsum("nij,njk,nlk->nil", Fg, rest["cov"], Fg)
-        return dataclasses.replace(self.rest, means=means, covars=covars)
+        return means, covars
 
     def __getstate__(self) -> dict:
         state = dict(self.__dict__)
