@@ -73,6 +73,29 @@ def _flow_follows(prompt, unique_id) -> Optional[str]:
     return None
 
 
+def _clip_shared(prompt, unique_id) -> bool:
+    """Whether another PhysMotion control node of the running prompt (controls or flow) may reuse the clip node
+    ``unique_id`` renders: same simulation and camera links and the same size, clock and length (or linked
+    ones). True without the prompt (the library's or an old caller's use)."""
+    if not isinstance(prompt, dict) or unique_id is None or str(unique_id) not in prompt:
+        return True
+    me = prompt[str(unique_id)].get("inputs", {})
+    for nid, node in prompt.items():
+        if str(nid) == str(unique_id) or not isinstance(node, dict) or node.get("class_type") not in (
+                "PhysMotionControlVideos", "PhysMotionExactFlow", "PhysMotionPointTracks"):
+            continue
+        other = node.get("inputs", {})
+        if (other.get("simulation") == me.get("simulation") and other.get("camera") == me.get("camera")
+                and all(isinstance(other.get(k), list) or isinstance(me.get(k), list) or other.get(k) == me.get(k)
+                        for k in _SETTINGS)):
+            return True
+    return False
+
+
+#: The tracks node renders its clip at 1/TRACKS_RENDER_DIVISOR of the size when no other node shares it.
+TRACKS_RENDER_DIVISOR = 2
+
+
 def _render(sim, cam, source=None, settings=(), flow=None, share=None):
     """The frames of the resampled clip and, when ``flow`` names a direction, its flow: from the last clip
     when it is the same (simulation, clock, size), else rendered once (``render_clip``). A render for the
@@ -142,7 +165,8 @@ class PhysMotionPointTracks:
     RETURN_TYPES = ("STRING", "IMAGE", "INT", "INT", "INT")
     RETURN_NAMES = ("tracks", "preview", "width", "height", "length")
     OUTPUT_TOOLTIPS = ("The tracks JSON for WanTrackToVideo's tracks input.",
-                       "The coarse video with the tracks drawn (dot = visible, ring = hidden).",
+                       "The coarse video with the tracks drawn (dot = visible, ring = hidden). Rendered at half the "
+                       "size and scaled up when no other control node of the workflow renders the same clip.",
                        "Frame width: link to WanTrackToVideo's width.", "Frame height: link to its height.",
                        "Frame count: link to its length.")
     FUNCTION = "run"
@@ -153,12 +177,22 @@ class PhysMotionPointTracks:
         from physmotion_core import controls as C
 
         sim, cam = _at_model_clock(simulation, camera, width, height, fps, length)
-        frames, _ = _render(sim, cam, simulation, (fps, length), share=_flow_follows(prompt, unique_id))
-        tracks = C.point_tracks(sim, frames, cam, int(num_points), background_points=int(background_points))
-        text = C.wan_tracks_json(tracks, occlusion="end" if occlusion == "end track" else "keep")
+        # The tracks are the particles projected through the camera (exact at any render size); the render
+        # only decides which points show and draws the preview. So when no other node of the prompt shares
+        # this clip, it is rendered at half the size (a quarter of the pixels) and the tracks and preview are
+        # scaled back: visibility is read over 3x3 pixels with a depth tolerance of 1.5 particle spacings.
+        small = not _clip_shared(prompt, unique_id) and min(cam.width, cam.height) >= 16 * TRACKS_RENDER_DIVISOR
+        rcam = cam.resized(cam.width // TRACKS_RENDER_DIVISOR, cam.height // TRACKS_RENDER_DIVISOR) if small else cam
+        frames, _ = _render(sim, rcam, simulation, (fps, length), share=_flow_follows(prompt, unique_id))
+        tracks = C.point_tracks(sim, frames, rcam, int(num_points), background_points=int(background_points))
+        text_tracks = C.scaled_tracks(tracks, cam.width, cam.height) if small else tracks
+        text = C.wan_tracks_json(text_tracks, occlusion="end" if occlusion == "end track" else "keep")
+        rgb = C.upscale_frames(frames.rgb, cam.width, cam.height)
         bg = _fit_background(background, cam.width, cam.height, sim.num_frames)
-        base = C.over_background(frames.rgb, frames.alpha, bg) if bg is not None else frames.rgb
-        preview = C.draw_tracks(base, tracks)
+        if bg is not None:
+            alpha = C.upscale_frames(frames.alpha[..., None], cam.width, cam.height)[..., 0]
+            rgb = C.over_background(rgb, alpha, bg)
+        preview = C.draw_tracks(rgb, text_tracks)
         return {"ui": preview_video(preview, float(fps), "PhysMotion_tracks"),
                 "result": (text, preview, cam.width, cam.height, sim.num_frames)}
 

@@ -561,6 +561,47 @@ def test_the_flow_channels_are_rendered_only_when_a_flow_node_follows(tmp_path, 
     assert out["result"][0].direction == "backward"
 
 
+def test_tracks_alone_render_at_half_size_and_stay_exact(tmp_path, monkeypatch):
+    """A tracks node no other control node shares its clip with (the Wan tracks template) renders the clip at
+    half the size: the tracks are still the particles projected through the full-size camera (to round-off),
+    their visibility agrees with a full-size render's for the same particles, and the preview is full size."""
+    import json as _json
+
+    from comfy_harness import node_classes
+    from fake_comfy import install_fake_comfy
+
+    monkeypatch.setenv("PHYSMOTION_OUTPUT_DIR", str(tmp_path))
+    monkeypatch.setenv("PHYSMOTION_TEMP_DIR", str(tmp_path / "temp"))
+    install_fake_comfy(monkeypatch)
+    classes = node_classes()
+    sizes = []
+    real = C.render_clip
+    monkeypatch.setattr(C, "render_clip", lambda s, cam, **k: sizes.append((cam.width, cam.height)) or real(s, cam, **k))
+    sim, cam = cube_sim(frames=12), camera(300, 200)
+    clip = dict(width=160, height=96, fps=16.0, length=9)
+    prompt = {"20": {"class_type": "PhysMotionPointTracks",
+                     "inputs": {"simulation": ["7", 0], "camera": ["3", 1], **clip, "num_points": 24}}}
+    args = dict(simulation=sim, camera=cam, **clip, num_points=24, background_points=0, occlusion="keep")
+    text, preview, w, h, n = classes["PhysMotionPointTracks"]().run(**args, prompt=prompt, unique_id="20")["result"]
+    assert sizes == [(80, 48)] and preview.shape == (9, 96, 160, 3) and (w, h) == (160, 96)
+    # The JSON holds 121 samples per track over the clip; its first and last are frames 0 and 8 exactly.
+    data = np.array([[[p["x"], p["y"]] for p in track] for track in _json.loads(text)])
+    rs = C.resample_simulation(sim, 16.0, 9)
+    full_cam = C.fit_camera(cam, 160, 96)
+    small = C.point_tracks(rs, C.render_clip(rs, full_cam.resized(80, 48))[0], full_cam.resized(80, 48), 24)
+    uv, _ = full_cam.project(rs.x[:, small.particle].reshape(-1, 3).double())
+    uv = uv.reshape(9, -1, 2).numpy()
+    assert np.abs(data[:, 0] - uv[0]).max() < 0.01 and np.abs(data[:, -1] - uv[-1]).max() < 0.01  # 2 decimals
+    # Visibility at half size against a full-size render of the same particles' points.
+    frames = C.render_clip(rs, full_cam)[0]
+    x = rs.x[:, small.particle].reshape(-1, 3).double()
+    uvf, z = full_cam.project(x)
+    tol = 1.5 * float(rs.stats["particle_spacing"])
+    full_vis = C.visibility(uvf.reshape(9, -1, 2), z.reshape(9, -1), frames, tol)
+    agree = (full_vis == small.visible).float().mean().item()
+    assert agree >= 0.95, agree
+
+
 # ---------------------------------------------------------------------------------------------
 # Templates
 # ---------------------------------------------------------------------------------------------
