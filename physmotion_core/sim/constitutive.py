@@ -8,7 +8,7 @@ speed the CFL step must respect:
 
   model             rule                        return mapping (plasticity)
   fixed_corotated   barrier_corotated (jelly)   none; the volume stops at MIN_J
-  neo_hookean       neo_hookean (rubber)        none
+  neo_hookean       neo_hookean (rubber)        none; the volume stops at MIN_J
   von_mises         Hencky StVK                 von Mises radial return, linear hardening (metal)
   plasticine        Hencky StVK                 von Mises, linear softening (plasticine, clay)
   viscoplastic      Hencky StVK                 von Mises with a Perzyna rate (honey, toothpaste)
@@ -252,13 +252,31 @@ def barrier_corotated(mat: MaterialParams, F: wp.mat33, Cp: wp.mat33, q_in: wp.q
 
 
 @wp.func
+def nearest_rotation(F: wp.mat33) -> wp.mat33:
+    """The rotation nearest F (its polar factor; for an inverted F, the proper rotation with the axis of the
+    smallest singular value flipped). Only for the rare crushed particle: it costs an SVD."""
+    U, sig, V = svd(F)
+    R = U * wp.transpose(V)
+    if wp.determinant(R) < 0.0:
+        R = U * wp.diag(wp.vec3(1.0, 1.0, -1.0)) * wp.transpose(V)
+    return R
+
+
+@wp.func
 def neo_hookean(mat: MaterialParams, F: wp.mat33, p: int, Fout: wp.array(dtype=wp.mat33),
                 tau: wp.array(dtype=wp.mat33)) -> float:
     """Neo-Hookean elasticity (rubber): τ = μ (F Fᵀ − I) + λ log J I. The stress (and wave speed,
-    ~1/J) grows without bound as J → 0; below MIN_J it stops growing, so a Mach-10 impact costs
-    bounded substeps instead of stalling the run (docs/stability.md)."""
+    ~1/J) grows without bound as J → 0. A particle crushed past MIN_J of its volume, or inverted, by a
+    hit no grid resolves keeps its rotation and MIN_J of its volume, isotropically (as the jelly's
+    barrier does: energy can only be lost), and the pressure λ log MIN_J pushes it back out; the
+    stress and wave speed stay bounded, so a Mach-10 impact costs bounded substeps (docs/stability.md)."""
     I = wp.identity(n=3, dtype=float)
-    J = wp.max(wp.determinant(F), MIN_J)
+    J = wp.determinant(F)
+    if J < MIN_J:
+        Fe = wp.pow(MIN_J, 1.0 / 3.0) * nearest_rotation(F)
+        Fout[p] = Fe
+        tau[p] = mat.mu * (Fe * wp.transpose(Fe) - I) + mat.lam * wp.log(MIN_J) * I
+        return wave_speed_sq(mat.mu, mat.lam, mat.density, MIN_J) * wp.max(1.0, 1.0 / MIN_J)
     Fout[p] = F
     tau[p] = mat.mu * (F * wp.transpose(F) - I) + mat.lam * wp.log(J) * I
     return wave_speed_sq(mat.mu, mat.lam, mat.density, J) * wp.max(1.0, 1.0 / J)
