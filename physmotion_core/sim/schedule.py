@@ -102,6 +102,27 @@ class LoadSchedule:
         """Every force and torque at once: a bound on the acceleration they give any particle."""
         return sum(f.peak_accel(mass) for f in self.forces) + sum(t.accel_bound for t in self.torques)
 
+    def impulse_speed(self, x: np.ndarray, mass: np.ndarray) -> float:
+        """The speed the forces and torques would give the whole scene if nothing stopped them (m/s): each
+        force's impulse over the scene's mass, each torque's angular impulse through the scene's inertia
+        times its largest radius; summed. An estimate from below of the speeds the run must resolve (a load
+        on part of a body moves that part faster), which the cost check turns into substeps per frame."""
+        m = mass.astype(np.float64)
+        if not (self.forces or self.torques) or m.sum() <= 0:
+            return 0.0
+        v = sum(float(np.linalg.norm(f.field.sum(0))) * max(f.t_end - f.t_start, 0.0) for f in self.forces) / m.sum()
+        if self.torques:
+            r = x - (x * m[:, None]).sum(0) / m.sum()
+            inertia = np.eye(3) * (m * (r * r).sum(1)).sum() - (r.T * m) @ r
+            reach = float(np.linalg.norm(r, axis=1).max())
+            for t in self.torques:
+                try:
+                    omega = np.linalg.norm(np.linalg.solve(inertia, np.asarray(t.vector, float)))
+                except np.linalg.LinAlgError:  # a line of particles: no bound from below
+                    continue
+                v += float(omega) * max(t.t_end - t.t_start, 0.0) * reach
+        return v if math.isfinite(v) else 0.0
+
     def peak_anchor_speed(self) -> float:
         return max([float(np.linalg.norm(a.velocity)) for a in self.anchors], default=0.0)
 

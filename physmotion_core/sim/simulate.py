@@ -48,15 +48,25 @@ def _as_materials(material, n_objects: int) -> list[Material]:
 
 
 def _check_cost(solver: MPMSolver, settings: SimSettings, materials: Sequence[Material], frame_dt: float,
-                peak_accel: float, peak_speed: float) -> None:
+                peak_accel: float, peak_speed: float, load_speed: float = 0.0, start_speed: float = 0.0) -> None:
     """Refuse, before the first substep, a run whose step would be above the stability limit or
-    whose substep count per frame would exceed ``settings.max_substeps_per_frame``."""
-    dt0, why = solver.estimate_dt(peak_accel, peak_speed)
+    whose substep count per frame would exceed ``settings.max_substeps_per_frame``. ``peak_speed``: what
+    anchors drive; ``load_speed``: what the forces and torques would reach (``LoadSchedule.impulse_speed``);
+    ``start_speed``: the fastest initial velocity (the solver starts from it too)."""
+    dt0, why = solver.estimate_dt(peak_accel, max(peak_speed, load_speed))
     stiff = max(materials, key=lambda m: m.wave_speed())
+    speeds = {"moving at": start_speed, "driven by an anchor at": peak_speed,
+              "pushed by the forces and torques (their impulse over the mass, if nothing stopped them) to": load_speed}
+    how, fastest = max(speeds.items(), key=lambda kv: kv[1])
     cause = {"wave speed": f"material '{stiff.name}' (E={stiff.E:.3g} Pa, ρ={stiff.density:.3g} kg/m³) carries waves at "
                            f"{stiff.wave_speed():.3g} m/s",
              "acceleration": f"the forces and torques accelerate it at up to {peak_accel:.3g} m/s²",
              "viscosity": "a fluid's viscosity limits the explicit step"}[why]
+    fix = "Lower E or the force, raise the density, lower grid_res"
+    if why == "wave speed" and fastest > stiff.wave_speed():
+        cause = f"the bodies are {how} about {fastest:.3g} m/s"
+        fix = ("Lower the speeds, the forces or torques, or their duration, lower grid_res" if "forces" in how
+               else "Lower the speeds, lower grid_res")
     if settings.fixed_dt and settings.fixed_dt > dt0 * (1 + 1e-6):
         raise InputError(f"fixed_dt={settings.fixed_dt:.3g} s is above the stable step {dt0:.3g} s for this scene: "
                          f"{cause} on a grid of dx={solver.domain.dx:.3g} m (CFL {solver.cfl}). Use fixed_dt <= "
@@ -66,8 +76,7 @@ def _check_cost(solver: MPMSolver, settings: SimSettings, materials: Sequence[Ma
     if per_frame > settings.max_substeps_per_frame:
         raise InputError(f"This run would need about {per_frame} substeps per frame (step {step:.3g} s), more than "
                          f"max_substeps_per_frame={settings.max_substeps_per_frame}: {cause} on a grid of "
-                         f"dx={solver.domain.dx:.3g} m. Lower E or the force, raise the density, lower grid_res, or "
-                         "raise max_substeps_per_frame if you mean to wait.")
+                         f"dx={solver.domain.dx:.3g} m. {fix}, or raise max_substeps_per_frame if you mean to wait.")
 
 
 def _object_ids(gaussians: Gaussians) -> tuple[np.ndarray, np.ndarray]:
@@ -310,7 +319,8 @@ def simulate(
     schedule = LoadSchedule.compile(conditions, x0, solver.mass_np, init.torque_mask, init.anchor_sel, region)
     frame_dt = 1.0 / settings.fps
     _check_cost(solver, settings, materials, frame_dt, schedule.peak_accel(solver.mass_np),
-                schedule.peak_anchor_speed())
+                schedule.peak_anchor_speed(), schedule.impulse_speed(x0, solver.mass_np),
+                float(np.linalg.norm(np.asarray(init.v0), axis=1).max()) if init.v0 is not None and len(x0) else 0.0)
     solver.set_limits(max_dt=min(frame_dt / settings.min_substeps, settings.fixed_dt or math.inf),
                       max_frame_substeps=settings.max_substeps_per_frame)
 
