@@ -163,3 +163,36 @@ def test_cancel_stops_a_running_simulation_within_a_second(comfy_server):
         client.wait(pid, on_event, timeout=600)
     latency = time.monotonic() - sent["t"]
     assert latency < 1.0, f"Cancel took {latency:.2f}s"
+
+
+def test_wan_control_nodes_get_the_prompt_and_run_alone_and_together(comfy_server, tmp_path):
+    """The tracks and controls nodes read ComfyUI's hidden PROMPT and UNIQUE_ID (to render the flow's channels
+    only for a flow node that follows, and the tracks alone at half size): in a real ComfyUI the tracks node
+    alone, and with Exact Flow after it, run and give full-size previews."""
+    from PIL import Image
+
+    sys.path.insert(0, str(ROOT / "scripts"))
+    from make_wan_thumbnails import upstream
+
+    full = shrink(json.loads((ROOT / "example_workflows/api/push_a_jelly.json").read_text()), "wanctl")
+    sim_id = next(nid for nid, n in full.items() if n["class_type"] == "PhysMotionMPMSimulate")
+    base = upstream(full, sim_id)
+    clip = {"simulation": [sim_id, 0], "camera": full[sim_id]["inputs"]["camera"], "width": 160, "height": 96,
+            "fps": 16.0, "length": 5}
+    tracks = {"class_type": "PhysMotionPointTracks",
+              "inputs": {**clip, "num_points": 8, "background_points": 2, "occlusion": "end track"}}
+    preview = {"class_type": "PreviewImage", "inputs": {"images": ["90", 1]}}
+    flow = {"class_type": "PhysMotionExactFlow",
+            "inputs": {**clip, "direction": "forward", "max_flow": 0.0, "filename_prefix": "live/wanflow"}}
+    client = ComfyClient(comfy_server.url)
+    client.connect()
+    for extra in ({}, {"92": flow}):
+        prompt = {**base, "90": tracks, "91": preview, **extra}
+        outputs = client.wait(client.queue(prompt), timeout=600)["outputs"]
+        item = outputs["91"]["images"][0]
+        data = comfy_server.get_bytes(f"/view?filename={item['filename']}&subfolder={item['subfolder']}"
+                                      f"&type={item['type']}")
+        (tmp_path / "p.png").write_bytes(data)
+        assert Image.open(tmp_path / "p.png").size == (160, 96)
+        if extra:
+            assert outputs["92"]["animated"] == [True]
