@@ -44,11 +44,16 @@ def _at_model_clock(simulation, camera, width, height, fps, length):
     return sim, C.fit_camera(camera, W, H)
 
 
-#: The last clip rendered here: (weak reference to the simulation it came from, settings, frames, flows by
-#: direction). The three nodes on the same simulation at the same clock and size share one render.
+#: The last clips rendered here (the newest last, at most ``_KEEP``): (weak reference to the simulation each came
+#: from, settings, frames, flows by direction). Nodes on the same simulation at the same clock and size share a
+#: render: the controls node and the flow node share one; the tracks node keeps its own, half the size.
 _last_render: list = []
+_KEEP = 2
 
 _SETTINGS = ("width", "height", "fps", "length")
+
+#: The tracks node renders its clip at 1/TRACKS_RENDER_DIVISOR of the size (see PhysMotionPointTracks.run).
+TRACKS_RENDER_DIVISOR = 2
 
 
 def _flow_follows(prompt, unique_id) -> Optional[str]:
@@ -73,49 +78,28 @@ def _flow_follows(prompt, unique_id) -> Optional[str]:
     return None
 
 
-def _clip_shared(prompt, unique_id) -> bool:
-    """Whether another PhysMotion control node of the running prompt (controls or flow) may reuse the clip node
-    ``unique_id`` renders: same simulation and camera links and the same size, clock and length (or linked
-    ones). True without the prompt (the library's or an old caller's use)."""
-    if not isinstance(prompt, dict) or unique_id is None or str(unique_id) not in prompt:
-        return True
-    me = prompt[str(unique_id)].get("inputs", {})
-    for nid, node in prompt.items():
-        if str(nid) == str(unique_id) or not isinstance(node, dict) or node.get("class_type") not in (
-                "PhysMotionControlVideos", "PhysMotionExactFlow", "PhysMotionPointTracks"):
-            continue
-        other = node.get("inputs", {})
-        if (other.get("simulation") == me.get("simulation") and other.get("camera") == me.get("camera")
-                and all(isinstance(other.get(k), list) or isinstance(me.get(k), list) or other.get(k) == me.get(k)
-                        for k in _SETTINGS)):
-            return True
-    return False
-
-
-#: The tracks node renders its clip at 1/TRACKS_RENDER_DIVISOR of the size when no other node shares it.
-TRACKS_RENDER_DIVISOR = 2
-
-
 def _render(sim, cam, source=None, settings=(), flow=None, share=None):
-    """The frames of the resampled clip and, when ``flow`` names a direction, its flow: from the last clip
-    when it is the same (simulation, clock, size), else rendered once (``render_clip``). A render for the
-    tracks or controls carries the channels of the flow ``share`` names (a flow node that follows in the
-    same prompt, see ``_flow_follows``: a fifth more than colour and depth alone), so that node then costs
-    nothing more; with no flow node after it, none are rendered."""
+    """The frames of the resampled clip and, when ``flow`` names a direction, its flow: from a kept clip when
+    it is the same (simulation, clock, size), else rendered once (``render_clip``). A render for the controls
+    carries the channels of the flow ``share`` names (a flow node that follows in the same prompt, see
+    ``_flow_follows``: a fifth more than colour and depth alone), so that node then costs nothing more; with
+    no flow node after it, none are rendered. The channels change no other output."""
     import weakref
 
     from physmotion_core import controls as C
 
     key = (tuple(settings), repr(cam.to_dict()))
-    if source is not None and _last_render:
-        ref, k, frames, flows = _last_render[0]
-        if ref() is source and k == key and (flow is None or flow in flows):
-            return frames, flows.get(flow)
+    if source is not None:
+        for i in range(len(_last_render) - 1, -1, -1):
+            ref, k, frames, flows = _last_render[i]
+            if ref() is source and k == key and (flow is None or flow in flows):
+                _last_render.append(_last_render.pop(i))  # the most recently used is kept longest
+                return frames, flows.get(flow)
     dev = torch_device()
     direction = flow or share
     frames, fl = C.render_clip(sim, cam, flow=direction if sim.num_frames > 1 else None,
                                device=dev if dev.type == "cuda" else "cpu", progress=progress_callback())
-    _last_render.clear()
+    _last_render[:] = [e for e in _last_render if e[0]() is not None and e[1] != key][-(_KEEP - 1):]
     if source is not None:
         _last_render.append((weakref.ref(source), key, frames, {direction: fl} if fl is not None else {}))
     return frames, (fl if flow else None)
@@ -156,7 +140,7 @@ class PhysMotionPointTracks:
         }, "optional": {
             "background": ("IMAGE", {"tooltip": "The (inpainted) background, to draw the preview over the coarse "
                                                 "video; without it the preview shows the render over black."}),
-        }, "hidden": {"prompt": "PROMPT", "unique_id": "UNIQUE_ID"}}
+        }}
 
     DESCRIPTION = ("Tracks physics particles on the object's surface through the photo's camera, at the video model's "
                    "frame rate and 4k+1 frame count, as the tracks JSON WanTrackToVideo reads (pixel coordinates of "
@@ -165,27 +149,27 @@ class PhysMotionPointTracks:
     RETURN_TYPES = ("STRING", "IMAGE", "INT", "INT", "INT")
     RETURN_NAMES = ("tracks", "preview", "width", "height", "length")
     OUTPUT_TOOLTIPS = ("The tracks JSON for WanTrackToVideo's tracks input.",
-                       "The coarse video with the tracks drawn (dot = visible, ring = hidden). Rendered at half the "
-                       "size and scaled up when no other control node of the workflow renders the same clip.",
+                       "The coarse video with the tracks drawn (dot = visible, ring = hidden), rendered at half the "
+                       "size and scaled up.",
                        "Frame width: link to WanTrackToVideo's width.", "Frame height: link to its height.",
                        "Frame count: link to its length.")
     FUNCTION = "run"
     CATEGORY = _STAGE
 
     def run(self, simulation, camera, width, height, fps, length, num_points, background_points, occlusion,
-            background=None, prompt=None, unique_id=None):
+            background=None):
         from physmotion_core import controls as C
 
         sim, cam = _at_model_clock(simulation, camera, width, height, fps, length)
         # The tracks are the particles projected through the camera (exact at any render size); the render
-        # only decides which points show and draws the preview. So when no other node of the prompt shares
-        # this clip, it is rendered at half the size (a quarter of the pixels) and the tracks and preview are
-        # scaled back: visibility is read over 3x3 pixels with a depth tolerance of 1.5 particle spacings.
-        small = not _clip_shared(prompt, unique_id) and min(cam.width, cam.height) >= 16 * TRACKS_RENDER_DIVISOR
-        rcam = cam.resized(cam.width // TRACKS_RENDER_DIVISOR, cam.height // TRACKS_RENDER_DIVISOR) if small else cam
-        frames, _ = _render(sim, rcam, simulation, (fps, length), share=_flow_follows(prompt, unique_id))
+        # only decides which points are sampled and show, and draws the preview. So the clip is rendered at half
+        # the size (a quarter of the pixels) and the tracks and preview are scaled back (visibility is read over
+        # 3x3 pixels with a depth tolerance of 1.5 particle spacings), always, so the tracks do not depend on
+        # which other nodes the workflow holds.
+        rcam = cam.resized(cam.width // TRACKS_RENDER_DIVISOR, cam.height // TRACKS_RENDER_DIVISOR)
+        frames, _ = _render(sim, rcam, simulation, (fps, length))
         tracks = C.point_tracks(sim, frames, rcam, int(num_points), background_points=int(background_points))
-        text_tracks = C.scaled_tracks(tracks, cam.width, cam.height) if small else tracks
+        text_tracks = C.scaled_tracks(tracks, cam.width, cam.height)
         text = C.wan_tracks_json(text_tracks, occlusion="end" if occlusion == "end track" else "keep")
         rgb = C.upscale_frames(frames.rgb, cam.width, cam.height)
         bg = _fit_background(background, cam.width, cam.height, sim.num_frames)

@@ -166,9 +166,10 @@ def test_cancel_stops_a_running_simulation_within_a_second(comfy_server):
 
 
 def test_wan_control_nodes_get_the_prompt_and_run_alone_and_together(comfy_server, tmp_path):
-    """The tracks and controls nodes read ComfyUI's hidden PROMPT and UNIQUE_ID (to render the flow's channels
-    only for a flow node that follows, and the tracks alone at half size): in a real ComfyUI the tracks node
-    alone, and with Exact Flow after it, run and give full-size previews."""
+    """The controls node reads ComfyUI's hidden PROMPT and UNIQUE_ID (to render the flow's channels only for a
+    flow node that follows); the tracks node renders its own half-size clip. In a real ComfyUI the tracks
+    node, the controls node alone and the controls node with Exact Flow after it run and give full-size
+    images."""
     from PIL import Image
 
     sys.path.insert(0, str(ROOT / "scripts"))
@@ -181,18 +182,19 @@ def test_wan_control_nodes_get_the_prompt_and_run_alone_and_together(comfy_serve
             "fps": 16.0, "length": 5}
     tracks = {"class_type": "PhysMotionPointTracks",
               "inputs": {**clip, "num_points": 8, "background_points": 2, "occlusion": "end track"}}
-    preview = {"class_type": "PreviewImage", "inputs": {"images": ["90", 1]}}
+    controls = {"class_type": "PhysMotionControlVideos", "inputs": {**clip, "grow_mask": 4}}
     flow = {"class_type": "PhysMotionExactFlow",
             "inputs": {**clip, "direction": "forward", "max_flow": 0.0, "filename_prefix": "live/wanflow"}}
     client = ComfyClient(comfy_server.url)
     client.connect()
-    for extra in ({}, {"92": flow}):
-        prompt = {**base, "90": tracks, "91": preview, **extra}
-        outputs = client.wait(client.queue(prompt), timeout=600)["outputs"]
+    for nodes in ({"90": tracks, "91": {"class_type": "PreviewImage", "inputs": {"images": ["90", 1]}}},
+                  {"90": controls, "91": {"class_type": "PreviewImage", "inputs": {"images": ["90", 0]}}},
+                  {"90": controls, "91": {"class_type": "PreviewImage", "inputs": {"images": ["90", 4]}}, "92": flow}):
+        outputs = client.wait(client.queue({**base, **nodes}), timeout=600)["outputs"]
         item = outputs["91"]["images"][0]
         data = comfy_server.get_bytes(f"/view?filename={item['filename']}&subfolder={item['subfolder']}"
                                       f"&type={item['type']}")
         (tmp_path / "p.png").write_bytes(data)
         assert Image.open(tmp_path / "p.png").size == (160, 96)
-        if extra:
+        if "92" in nodes:
             assert outputs["92"]["animated"] == [True]

@@ -486,11 +486,12 @@ def test_nodes_run_report_progress_and_cancel(tmp_path, monkeypatch):
     assert 10 <= len(data) <= 18 and all(set(p) == {"x", "y"} for p in data[0])
     assert all(0 <= p["x"] < 160 and 0 <= p["y"] < 96 for p in data[0])
     assert state.updates and state.updates[-1] == (9, 9)  # the render's progress bar
-    rendered = len(state.updates)
     out = classes["PhysMotionControlVideos"]().run(**common, grow_mask=2)
     depth, render, mask, blended, vace, w, h, n = out["result"]
     assert depth.shape == (9, 96, 160, 3) and mask.shape == (9, 96, 160) and (w, h, n) == (160, 96, 9)
-    assert len(state.updates) == rendered  # the same simulation, clock and size: the tracks' render is reused
+    rendered = len(state.updates)
+    classes["PhysMotionControlVideos"]().run(**common, grow_mask=0)
+    assert len(state.updates) == rendered  # the same simulation, clock and size: the render is reused
     classes["PhysMotionControlVideos"]().run(**{**common, "width": 176}, grow_mask=2)
     assert len(state.updates) > rendered  # another size renders again
     out = classes["PhysMotionExactFlow"]().run(**common, direction="forward", max_flow=0.0,
@@ -500,11 +501,15 @@ def test_nodes_run_report_progress_and_cancel(tmp_path, monkeypatch):
     assert np.load(path)["flow"].shape == (8, 96, 160, 2) and str(tmp_path / "flows") in path
     with pytest.raises(InputError, match="4k\\+1"):
         classes["PhysMotionControlVideos"]().run(**{**common, "length": 10}, grow_mask=0)
-    # The flow of the clip just rendered comes from that render; the tracks of it too.
+    # The flow of the clip just rendered comes from that render; two clips are kept (the tracks' half-size one
+    # beside the controls' full-size one).
     rendered = len(state.updates)
     out = classes["PhysMotionExactFlow"]().run(**common, direction="forward", max_flow=0.0, filename_prefix="x")
     assert torch.equal(out["result"][0].flow, flow.flow)
     classes["PhysMotionPointTracks"]().run(**common, num_points=16, background_points=2, occlusion="keep")
+    rendered = len(state.updates)
+    classes["PhysMotionPointTracks"]().run(**common, num_points=8, background_points=0, occlusion="keep")
+    classes["PhysMotionExactFlow"]().run(**common, direction="forward", max_flow=0.0, filename_prefix="y")
     assert len(state.updates) == rendered
     # A backward flow renders again, and Cancel stops that render at the next frame (a new simulation object
     # here, so nothing is reused).
@@ -518,10 +523,11 @@ def test_nodes_run_report_progress_and_cancel(tmp_path, monkeypatch):
 
 
 def test_the_flow_channels_are_rendered_only_when_a_flow_node_follows(tmp_path, monkeypatch):
-    """Run as ComfyUI runs them (hidden PROMPT and UNIQUE_ID), the tracks and controls nodes render the exact
-    flow's nine channels with the clip only when a PhysMotion Exact Flow node of the same prompt asks for the
-    same clip (same simulation and camera links, size, clock and length), in the direction it asks; then the
-    flow node renders nothing. Alone (the Wan tracks and VACE templates), they render colour and depth only."""
+    """Run as ComfyUI runs it (hidden PROMPT and UNIQUE_ID), the controls node renders the exact flow's nine
+    channels with the clip only when a PhysMotion Exact Flow node of the same prompt asks for the same clip
+    (same simulation and camera links, size, clock and length), in the direction it asks; then the flow node
+    renders nothing. Alone (the Wan VACE template), it renders colour and depth only. The tracks node renders
+    its own half-size clip, whatever else the prompt holds."""
     import sys
 
     from comfy_harness import node_classes
@@ -534,37 +540,44 @@ def test_the_flow_channels_are_rendered_only_when_a_flow_node_follows(tmp_path, 
     VC = sys.modules[classes["PhysMotionPointTracks"].__module__]
     calls = []
     real = C.render_clip
-    monkeypatch.setattr(C, "render_clip", lambda *a, **k: calls.append(k.get("flow")) or real(*a, **k))
+    monkeypatch.setattr(C, "render_clip", lambda s, cam, **k: calls.append((cam.width, k.get("flow"))) or real(s, cam, **k))
     sim, cam = cube_sim(frames=12), camera(300, 200)
     clip = dict(width=160, height=96, fps=16.0, length=9)
     links = {"simulation": ["7", 0], "camera": ["3", 1]}
     prompt = {"20": {"class_type": "PhysMotionPointTracks", "inputs": {**links, **clip, "num_points": 8}},
               "21": {"class_type": "PhysMotionControlVideos", "inputs": {**links, **clip, "grow_mask": 0}}}
     tracks = dict(simulation=sim, camera=cam, **clip, num_points=8, background_points=0, occlusion="keep")
-    classes["PhysMotionPointTracks"]().run(**tracks, prompt=prompt, unique_id="20")
+    classes["PhysMotionPointTracks"]().run(**tracks)
     classes["PhysMotionControlVideos"]().run(simulation=sim, camera=cam, **clip, grow_mask=0, prompt=prompt,
                                              unique_id="21")
-    assert calls == [None]  # one render, shared, without flow channels
+    assert calls == [(80, None), (160, None)]  # the tracks' half-size clip; the controls' without flow channels
     flow_node = {"class_type": "PhysMotionExactFlow", "inputs": {**links, **clip, "direction": "backward"}}
-    assert VC._flow_follows({**prompt, "22": flow_node}, "20") == "backward"
+    assert VC._flow_follows({**prompt, "22": flow_node}, "21") == "backward"
     other_size = {**flow_node, "inputs": {**flow_node["inputs"], "width": 176}}
-    assert VC._flow_follows({**prompt, "22": other_size}, "20") is None
+    assert VC._flow_follows({**prompt, "22": other_size}, "21") is None
     other_sim = {**flow_node, "inputs": {**flow_node["inputs"], "simulation": ["8", 0]}}
-    assert VC._flow_follows({**prompt, "22": other_sim}, "20") is None
+    assert VC._flow_follows({**prompt, "22": other_sim}, "21") is None
+    linked = {**flow_node, "inputs": {**flow_node["inputs"], "width": ["5", 0]}}
+    assert VC._flow_follows({**prompt, "22": linked}, "21") == "backward"  # may match at run time
     assert VC._flow_follows(None, None) == "forward"  # called without a prompt: as before
     sim2 = cube_sim(frames=12)
-    classes["PhysMotionPointTracks"]().run(**{**tracks, "simulation": sim2}, prompt={**prompt, "22": flow_node},
-                                           unique_id="20")
+    out_c = classes["PhysMotionControlVideos"]().run(simulation=sim2, camera=cam, **clip, grow_mask=0,
+                                                     prompt={**prompt, "22": flow_node}, unique_id="21")
     out = classes["PhysMotionExactFlow"]().run(simulation=sim2, camera=cam, **clip, direction="backward",
                                               max_flow=0.0, filename_prefix="f")
-    assert calls == [None, "backward"]  # the flow came with the tracks' render
+    assert calls[2:] == [(160, "backward")]  # the flow came with the controls' render
     assert out["result"][0].direction == "backward"
+    # The flow's channels change none of the control videos.
+    plain = classes["PhysMotionControlVideos"]().run(simulation=cube_sim(frames=12), camera=cam, **clip, grow_mask=0,
+                                                     prompt=prompt, unique_id="21")
+    for a, b in zip(out_c["result"][:5], plain["result"][:5]):
+        torch.testing.assert_close(a, b, atol=1e-6, rtol=0)
 
 
 def test_tracks_alone_render_at_half_size_and_stay_exact(tmp_path, monkeypatch):
-    """A tracks node no other control node shares its clip with (the Wan tracks template) renders the clip at
-    half the size: the tracks are still the particles projected through the full-size camera (to round-off),
-    their visibility agrees with a full-size render's for the same particles, and the preview is full size."""
+    """The tracks node renders its clip at half the size: the tracks are still the particles projected through
+    the full-size camera (to round-off), their visibility agrees with a full-size render's for the same
+    particles, and the preview is full size."""
     import json as _json
 
     from comfy_harness import node_classes
@@ -579,10 +592,8 @@ def test_tracks_alone_render_at_half_size_and_stay_exact(tmp_path, monkeypatch):
     monkeypatch.setattr(C, "render_clip", lambda s, cam, **k: sizes.append((cam.width, cam.height)) or real(s, cam, **k))
     sim, cam = cube_sim(frames=12), camera(300, 200)
     clip = dict(width=160, height=96, fps=16.0, length=9)
-    prompt = {"20": {"class_type": "PhysMotionPointTracks",
-                     "inputs": {"simulation": ["7", 0], "camera": ["3", 1], **clip, "num_points": 24}}}
     args = dict(simulation=sim, camera=cam, **clip, num_points=24, background_points=0, occlusion="keep")
-    text, preview, w, h, n = classes["PhysMotionPointTracks"]().run(**args, prompt=prompt, unique_id="20")["result"]
+    text, preview, w, h, n = classes["PhysMotionPointTracks"]().run(**args)["result"]
     assert sizes == [(80, 48)] and preview.shape == (9, 96, 160, 3) and (w, h) == (160, 96)
     # The JSON holds 121 samples per track over the clip; its first and last are frames 0 and 8 exactly.
     data = np.array([[[p["x"], p["y"]] for p in track] for track in _json.loads(text)])
