@@ -1,10 +1,15 @@
-"""Anchors hold exactly the region asked for (issue 22), through ``simulate()``.
+"""Anchors hold the region asked for and add no energy; damping keeps positions and F consistent
+(issue 22). Everything runs through ``simulate()``, the user's path.
 
-A bar hanging from an Anchor (ν = 0, E = 1e5 Pa, ρ = 1000 kg/m³: c = 10 m/s), released from rest
-under gravity, oscillates about its static stretch with the fixed-free period 4 L / c, L the free
-length below the anchor's box. Every grid node an anchored particle touched used to be held,
-1.5 cells past the region, and the period came out 8.5 % short at 10 cells."""
+Hanging bar: a bar hanging from an Anchor (ν = 0, E = 1e5 Pa, ρ = 1000 kg/m³: c = 10 m/s),
+released from rest under gravity, oscillates about its static stretch with the fixed-free period
+4 L / c, L the free length from the anchor's box down to the bar's bottom face.
 
+Cantilever: a horizontal beam (L/h = 4, ν = 0) clamped by an Anchor over one thickness, sagging
+under its own weight (E sets the Euler–Bernoulli sag of the nominal beam, ≤ 2 % of L).
+"""
+
+import functools
 import math
 
 import numpy as np
@@ -14,6 +19,16 @@ from physmotion_core.types import Anchor, Conditions, Gravity, Material, Region,
 from physmotion_core.sim.simulate import simulate
 from physmotion_core.validate.stress import gaussian_box
 
+G = 9.81
+
+# -- hanging bar -------------------------------------------------------------------------------
+
+BAR_L, BAR_H, BAR_E, BAR_RHO = 1.0, 0.2, 1e5, 1000.0
+BAR_OMEGA1 = math.pi * math.sqrt(BAR_E / BAR_RHO) / (2 * BAR_L)
+# Ten offsets of the grid against the bar, a tenth of a cell apart: domain_margin moves the grid's
+# origin by (margin step) · (object size) = 0.01 · 1.1 m = 0.1 dx at grid_res 10 (dx = 0.11 m).
+OFFSETS = tuple(0.30 + 0.01 * k for k in range(10))
+
 
 def _crossings(t, u):
     s = np.sign(u)
@@ -21,51 +36,186 @@ def _crossings(t, u):
     return t[i] - u[i] * (t[i + 1] - t[i]) / (u[i + 1] - u[i])
 
 
-@pytest.mark.xfail(strict=True, reason="issue 22, open: the anchor holds every node its particles touch, "
-                   "1.5 cells past the region; through simulate() the period is 3.5 % short at 10 cells")
-def test_hanging_bar_period_at_10_cells():
-    L, h, E, rho = 1.0, 0.2, 1e5, 1000.0
-    hold = 0.1  # the anchor's box covers the top 10 cm
-    g = gaussian_box((-h / 2, 0.0, -h / 2), (h / 2, L + hold, h / 2), (9, 45, 9))
-    mat = Material(name="elastic", model="fixed_corotated", E=E, nu=0.0, density=rho)
-    top = Region("box", lo=(-1.0, L, -1.0), hi=(1.0, 5.0, 1.0))
-    fps, frames = 120.0, 100
-    res = simulate(g, mat, Conditions([Anchor(top), Gravity((0.0, -9.81, 0.0))]),
-                   SimSettings(frames=frames, fps=fps, grid_res=10, domain_margin=0.3, device="cpu", rest_speed=0.0),
-                   record_all=True)
-    x = res.x.numpy()
+@functools.lru_cache(maxsize=None)
+def _hanging_bar(margin: float, damping: float = 0.0):
+    """Positions and F of the hanging bar, every frame (damping: in units of ω1; damped runs last 1 s
+    at 24 fps, undamped ones 100 frames at 120 fps); the free length; the bottom layer."""
+    g = gaussian_box((-BAR_H / 2, 0.0, -BAR_H / 2), (BAR_H / 2, BAR_L + 0.1, BAR_H / 2), (9, 45, 9))
+    mat = Material(name="elastic", model="fixed_corotated", E=BAR_E, nu=0.0, density=BAR_RHO,
+                   damping=damping * BAR_OMEGA1)
+    top = Region("box", lo=(-1.0, BAR_L, -1.0), hi=(1.0, 5.0, 1.0))  # holds the top 10 cm
+    fps, frames = (24.0, 24) if damping > 0 else (120.0, 100)
+    res = simulate(g, mat, Conditions([Anchor(top), Gravity((0.0, -G, 0.0))]),
+                   SimSettings(frames=frames, fps=fps, grid_res=10, domain_margin=margin, device="cpu",
+                               rest_speed=0.0), record_all=True)
+    x, F = res.x.numpy().astype(np.float64), res.F.numpy().astype(np.float64)
     y0 = x[0, :, 1]
-    spacing = float(np.median(np.diff(np.unique(np.round(y0, 6)))))
-    L_free = L - (y0.min() - 0.5 * spacing)  # from the anchor's edge to the bar's bottom face
-    bottom = y0 < y0.min() + 0.5 * spacing
-    u = x[:, bottom, 1].mean(1) - y0[bottom].mean()
-    t = np.arange(frames) / fps
-    c = _crossings(t, u - u.mean())
+    s = res.stats["particle_spacing"]
+    bottom = y0 < y0.min() + 0.5 * s  # the bottom layer of particles (they are jittered in their cells)
+    bottom_face = y0[bottom].mean() - 0.5 * s
+    top_face = y0[y0 > y0.max() - 0.5 * s].mean() + 0.5 * s
+    return x, F, fps, BAR_L - bottom_face, top_face - bottom_face, bottom
+
+
+def _period_error(margin: float) -> float:
+    x, _, fps, L_free, _, bottom = _hanging_bar(margin)
+    u = x[:, bottom, 1].mean(1) - x[0, bottom, 1].mean()
+    c = _crossings(np.arange(len(u)) / fps, u - u.mean())
     assert len(c) >= 3
     period = 2.0 * np.polyfit(np.arange(len(c)), c, 1)[0]
-    expected = 4.0 * L_free / math.sqrt(E / rho)
-    assert abs(period / expected - 1.0) < 0.03, (period, expected, L_free)
+    return period / (4.0 * L_free / math.sqrt(BAR_E / BAR_RHO)) - 1.0
 
 
-def test_damped_hanging_bar_strain_from_positions_and_from_F_agree():
-    """Damping (mass-proportional, ratio ~1 on the fundamental) must damp the velocity gradient that
-    updates F as it damps the velocities: settled, the elongation measured from the positions and the
-    one integrated from F agree. They differed by 12 % when only the velocities were damped; 2.3 %
-    remains (measured; the issue asks for 1 %, still open), so the tolerance is 3 %."""
-    L, h, E, rho = 1.0, 0.2, 1e5, 1000.0
-    omega1 = math.pi * math.sqrt(E / rho) / (2 * L)
-    g = gaussian_box((-h / 2, 0.0, -h / 2), (h / 2, L + 0.1, h / 2), (9, 45, 9))
-    mat = Material(name="elastic", model="fixed_corotated", E=E, nu=0.0, density=rho, damping=2.0 * omega1)
-    top = Region("box", lo=(-1.0, L, -1.0), hi=(1.0, 5.0, 1.0))
-    res = simulate(g, mat, Conditions([Anchor(top), Gravity((0.0, -9.81, 0.0))]),
-                   SimSettings(frames=16, fps=24.0, grid_res=10, domain_margin=0.3, device="cpu", rest_speed=0.0),
-                   record_all=True)
-    x, F = res.x.numpy(), res.F.numpy()
+def test_hanging_bar_period_at_10_cells():
+    """The period at 10 cells, with the anchor's edge swept across a cell (10 grid offsets, ~10 s).
+
+    Every grid node an anchored particle touched used to be held, 1.5 cells past the region, with
+    stress-free held particles: the period came out −14 … −4 % (mean −8 %) over these offsets. Now a
+    node is held when the anchored particles carry ≥ 15 % of its mass and the held particles keep
+    their stress: measured −3.9 … +3.6 %, mean 0.0 %. A rule that holds whole nodes moves the clamp
+    by about 0.8 cell when the grid slides past the edge, hence the spread (±4 % at 10 cells, half
+    that at 20); the issue's 3 % at every offset is the strict xfail below."""
+    errs = np.array([_period_error(m) for m in OFFSETS])
+    assert abs(errs.mean()) < 0.015, errs
+    assert np.abs(errs).max() < 0.045, errs
+
+
+@pytest.mark.xfail(strict=True, reason="issue 22, open: whole grid nodes are held, so the clamp jumps by ~0.8 "
+                   "cell as the grid slides past the anchor's edge; the period is −3.9 … +3.6 % over a cell "
+                   "of offsets at 10 cells (3 of 10 offsets beyond 3 %); 3 % everywhere needs a sub-cell "
+                   "boundary treatment")
+def test_hanging_bar_period_within_3_percent_at_every_grid_offset():
+    """The issue's tolerance at every offset of the grid (the runs are shared with the test above)."""
+    errs = np.array([_period_error(m) for m in OFFSETS])
+    assert np.abs(errs).max() < 0.03, errs
+
+
+def _strain_ratio(x, F, dx, frame):
+    """Strain from F over strain from the positions, away from the clamp (y0 < L − 1.5 dx): the mean
+    of F_yy − 1 against the mean of du/dy0, u(y0) fitted by a cubic through every particle's
+    displacement. Local, so it needs no estimate of where the bar's faces are."""
     y0 = x[0, :, 1]
-    spacing = float(np.median(np.diff(np.unique(np.round(y0, 6)))))
-    L_free = L - (y0.min() - 0.5 * spacing)
-    bottom = y0 < y0.min() + 0.5 * spacing
-    free = y0 < L
-    from_x = -(x[-1, bottom, 1].mean() - y0[bottom].mean())
-    from_F = float((F[-1, free, 1, 1] - 1.0).mean()) * L_free
-    assert abs(from_F / from_x - 1.0) < 0.03, (from_x, from_F)
+    sel = y0 < BAR_L - 1.5 * dx
+    p = np.polyfit(y0[sel], x[frame, sel, 1] - y0[sel], 3)
+    return float((F[frame, sel, 1, 1] - 1.0).mean() / np.polyval(np.polyder(p), y0[sel]).mean())
+
+
+def test_damping_does_not_move_the_static_answer():
+    """Mass-proportional damping scales the velocity gradient that updates F as it scales the
+    velocities, so it only takes energy out: the settled bar is the same whatever the damping, hence
+    the undamped static answer (the limit of vanishing damping). With c = ω1 and c = 2 ω1 (ζ ≈ 0.5
+    and 1 on the fundamental, 1 s; ~2 s of CPU for three grid offsets), the bottom's displacement
+    agrees within 1 % (measured 0.1-0.4 %, what c = 2 ω1 has still to creep) and so does the strain
+    from F relative to the positions' (measured 0.1-0.25 %). Damping only the velocities, as before
+    issue 22, made F and the positions differ by 12 %."""
+    dx = 1.1 / 10
+    for margin in OFFSETS[::4]:
+        settled = []
+        for damping in (1.0, 2.0):
+            x, F, _, _, _, bottom = _hanging_bar(margin, damping)
+            settled.append((-(x[-1, bottom, 1].mean() - x[0, bottom, 1].mean()), _strain_ratio(x, F, dx, -1)))
+        (u1, r1), (u2, r2) = settled
+        assert abs(u2 / u1 - 1.0) < 0.01, (margin, u1, u2)
+        assert abs(r2 / r1 - 1.0) < 0.01, (margin, r1, r2)
+
+
+@pytest.mark.xfail(strict=True, reason="issue 22, open and not damping: at 10 cells the strain from F is "
+                   "2.1-3.3 % below the strain from the positions (fitted du/dy) in the settled damped bar "
+                   "over ten grid offsets, and as much in the undamped motion, with the old anchor too")
+def test_damped_strain_from_positions_and_from_F_agree_within_1_percent():
+    """The issue's 1 % between the strain from the positions and from F, damped (c = ω1) and settled
+    (``_strain_ratio``: away from the clamp, no estimate of the faces needed)."""
+    for margin in OFFSETS[::4]:
+        x, F, _, _, _, _ = _hanging_bar(margin, 1.0)
+        ratio = _strain_ratio(x, F, 1.1 / 10, -1)
+        assert abs(ratio - 1.0) < 0.01, (margin, ratio)
+
+
+# -- cantilever --------------------------------------------------------------------------------
+
+
+def _cantilever(cells: int, periods: float, frames_per_period: int, damping: float, sag: float):
+    """Tip deflection (m) every frame of the anchored cantilever, with its Euler–Bernoulli and
+    Timoshenko static deflections for the beam the particles make (the fill sets the faces: its
+    thickness, width and free length are measured from the particle layers, the free length from
+    the anchor's edge x = 0). E is set so that the nominal beam's EB tip deflection is ``sag`` · L."""
+    L, h, rho = 0.2, 0.05, 1000.0
+    W = 0.5 * h  # width along z: with ν = 0 it scales the load and the stiffness together
+    E = 3 * rho * G * L**3 / (2 * sag * h**2)
+    clamp = h  # the anchored length
+    dx = (L + clamp) / round((L + clamp) / (h / cells))
+    n = lambda ext: max(2, int(round(ext / (dx / 4))) + 1)  # noqa: E731 - Gaussians a quarter cell apart
+    g = gaussian_box((-clamp, 0.0, 0.0), (L, h, W), (n(L + clamp), n(h), n(W)))
+    T1 = 2 * math.pi / (1.875**2 * math.sqrt(E * h**2 / 12 / rho) / L**2)  # nominal EB first period
+    mat = Material(name="beam", model="fixed_corotated", E=E, nu=0.0, density=rho, damping=damping * 2 * math.pi / T1)
+    held = Region("box", lo=(-10.0, -10.0, -10.0), hi=(0.0, 10.0, 10.0))  # everything left of x = 0
+    fps = frames_per_period / T1
+    res = simulate(g, mat, Conditions([Anchor(held), Gravity((0.0, -G, 0.0))]),
+                   SimSettings(frames=int(periods * frames_per_period) + 1, fps=fps, grid_res=round((L + clamp) / dx),
+                               domain_margin=0.2, device="cpu", rest_speed=0.0), record_all=True)
+    x = res.x.numpy().astype(np.float64)
+    s = res.stats["particle_spacing"]
+
+    def faces(a):
+        v = x[0, :, a]
+        return v[v < v.min() + 0.5 * s].mean() - 0.5 * s, v[v > v.max() - 0.5 * s].mean() + 0.5 * s
+
+    (_, L), (y_lo, y_hi), (z_lo, z_hi) = faces(0), faces(1), faces(2)
+    h, W = y_hi - y_lo, z_hi - z_lo
+    tip = x[0, :, 0] > x[0, :, 0].max() - s
+    d = -(x[:, tip, 1].mean(1) - x[0, tip, 1].mean())
+    q, I = rho * G * h * W, W * h**3 / 12
+    eb = q * L**4 / (8 * E * I)
+    timoshenko = eb + q * L**2 / (2 * (5 / 6) * (E / 2) * h * W)  # shear: κ = 5/6, G = E/2 (ν = 0)
+    return d, fps, eb, timoshenko
+
+
+def _period_means(d, fps):
+    """The mean of d over each whole period of its oscillation (between alternate crossings of its mean)."""
+    t = np.arange(len(d)) / fps
+    c = _crossings(t, d - d.mean())
+    means = []
+    for k in range(0, len(c) - 2, 2):
+        m = (t >= c[k]) & (t < c[k + 2])
+        means.append(np.trapezoid(d[m], t[m]) / (t[m][-1] - t[m][0]))
+    return np.array(means)
+
+
+def test_anchored_cantilever_does_not_creep():
+    """Undamped, 4 cells through the thickness, tip sag 2 % of L, 6 bending periods (~15 s): the
+    mean tip deflection over each whole period stays within 2 % of the first period's (measured
+    +0.8 % at most). What crept was not the anchor (the old and the new anchor creep alike) but F's
+    float32 update, worse the smaller the strain: see the xfail below. The first period's mean is
+    1.045 of Euler–Bernoulli and 0.974 of Timoshenko (within 5 %, asserted)."""
+    d, fps, eb, timoshenko = _cantilever(cells=4, periods=6, frames_per_period=24, damping=0.0, sag=0.02)
+    means = _period_means(d, fps)
+    assert len(means) >= 5
+    drift = means / means[0] - 1.0
+    assert np.abs(drift).max() < 0.02, drift
+    assert abs(means[0] / timoshenko - 1.0) < 0.05, (means[0], timoshenko, eb)
+
+
+@pytest.mark.xfail(strict=True, reason="issue 22, open and not the anchor: F = (I + dt C) F forms I + dt C in "
+                   "float32, whose diagonal 1 + dt C_ii keeps dt C (a few 1e-7 per substep at this strain) only "
+                   "to float32's step of 1.2e-7 at 1; the mean deflection creeps +9.2 % over 6 periods at a "
+                   "0.2 % sag (+1.8 % at 1 %, +0.8 % at 2 %; doubled at half the CFL; the same with neo-Hookean "
+                   "and with the old anchor); F + dt (C F) measured +0.5 %, but that changes every scene's results")
+def test_anchored_cantilever_does_not_creep_at_small_strain():
+    """The same beam with a 0.2 % sag (~15 s): within 2 % over 6 periods. (The issue's beam sagged 1 %
+    of its length: +1.8 % measured there, inside 2 % but by little.)"""
+    d, fps, _, _ = _cantilever(cells=4, periods=6, frames_per_period=24, damping=0.0, sag=0.002)
+    means = _period_means(d, fps)
+    drift = means / means[0] - 1.0
+    assert np.abs(drift).max() < 0.02, drift
+
+
+def test_damped_anchored_cantilever_settles_at_the_static_deflection():
+    """Damped (mass-proportional, c = ω1), 4 cells through the thickness, tip sag 1 % of L, settled
+    over 2 bending periods (~5 s): measured 1.044 of Euler–Bernoulli and 0.972 of Timoshenko (the
+    reference that counts here: the filled beam is 0.0625 m thick, L/h = 3.3, and shear adds 7 %).
+    Measured against the beam the particles make: the fill makes it thicker than the Gaussians
+    (0.0625 m for 0.05 m, 0.037 m wide for 0.025 m, 0.206 m free for 0.2 m), which read as 0.75 of EB,
+    "locking", against the nominal beam."""
+    d, _, eb, timoshenko = _cantilever(cells=4, periods=2, frames_per_period=12, damping=1.0, sag=0.01)
+    assert abs(d[-1] / eb - 1.0) < 0.05, (d[-1], eb)
+    assert abs(d[-1] / timoshenko - 1.0) < 0.05, (d[-1], timoshenko)

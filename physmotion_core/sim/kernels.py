@@ -55,6 +55,20 @@ CONTACT_FRICTION = wp.constant(2)
 FLAG_ANCHORED = wp.constant(1)
 FLAG_RIGID = wp.constant(2)
 
+# An anchor holds a grid node (sets it to the anchor's velocity) when its particles carry at least
+# this fraction of the node's mass. For a node at distance d·dx outside the held material's edge
+# (material on both sides) that fraction is (1.5 − d)³ / 6, so 0.15 holds the nodes up to about half
+# a cell outside the region; the anchored particles keep their stress (see g2p), which stiffens the
+# material up to about half a cell beyond the last held node, and the two put the clamp at the
+# region's edge on average over how the grid lines up with it (hanging bar at 10 cells: period
+# error −3.9 … +3.6 %, mean 0.0 %, over ten offsets of the grid across a cell; holding every node an
+# anchored particle touched, as before, gave −14 … −4 %, mean −8 %).
+ANCHOR_HOLD = wp.constant(0.15)
+# Weight added to an anchored particle's nearest node, so that node is held even where the anchor
+# has too little of the mass (a region smaller than a cell). Those nodes lie within half a cell of
+# the held particles, where ANCHOR_HOLD holds nodes anyway when the region is larger.
+ANCHOR_NEAREST = wp.constant(1.0e4)
+
 
 @wp.struct
 class GridInfo:
@@ -272,7 +286,7 @@ def p2g(
     dt_arr: wp.array(dtype=float),
     grid_m: wp.array4d(dtype=float),
     grid_mv: wp.array4d(dtype=wp.vec3),
-    grid_fix: wp.array4d(dtype=int),
+    grid_fix: wp.array4d(dtype=float),
     grid_fix_v: wp.array4d(dtype=wp.vec3),
     apic: float,
     offset: int,
@@ -316,8 +330,13 @@ def p2g(
                 wp.atomic_add(grid_m, layer, ix, iy, iz, w * m)
                 wp.atomic_add(grid_mv, layer, ix, iy, iz, w * (mv + affine * dpos))
                 if anchored:
-                    grid_fix[layer, ix, iy, iz] = 1
-                    grid_fix_v[layer, ix, iy, iz] = ps.anchor_v[p]
+                    # The node nearest the particle (the stencil's centre) is held whatever the mass
+                    # fractions, so an anchor smaller than a cell still holds its particles.
+                    wf = w
+                    if i == 1 and j == 1 and k == 1:
+                        wf = w + ANCHOR_NEAREST
+                    wp.atomic_add(grid_fix, layer, ix, iy, iz, wf * m)
+                    wp.atomic_add(grid_fix_v, layer, ix, iy, iz, (wf * m) * ps.anchor_v[p])
 
 
 @wp.func
@@ -346,7 +365,7 @@ def update_node(
     grid_m: wp.array4d(dtype=float),
     grid_mv: wp.array4d(dtype=wp.vec3),
     grid_v: wp.array3d(dtype=wp.vec3),
-    grid_fix: wp.array4d(dtype=int),
+    grid_fix: wp.array4d(dtype=float),
     grid_fix_v: wp.array4d(dtype=wp.vec3),
     grid: GridInfo,
     bc: Boundary,
@@ -357,8 +376,8 @@ def update_node(
 ):
     m = float(0.0)
     mv = wp.vec3(0.0, 0.0, 0.0)
-    fix = int(0)
-    fix_v = wp.vec3(0.0, 0.0, 0.0)
+    fix_m = float(0.0)
+    fix_mv = wp.vec3(0.0, 0.0, 0.0)
     layers = grid_m.shape[0]
     for l in range(layers):
         if layers > 1:
@@ -371,17 +390,16 @@ def update_node(
         lk = k - layer_lo[2]
         m += grid_m[l, li, lj, lk]
         mv += grid_mv[l, li, lj, lk]
-        if grid_fix[l, li, lj, lk] != 0:
-            fix = 1
-            fix_v = grid_fix_v[l, li, lj, lk]  # the last chunk's anchor, as a single pass would leave it
+        fix_m += grid_fix[l, li, lj, lk]
+        fix_mv += grid_fix_v[l, li, lj, lk]
         # Leave the accumulators clean for the next substep's p2g.
         grid_m[l, li, lj, lk] = 0.0
         grid_mv[l, li, lj, lk] = wp.vec3(0.0, 0.0, 0.0)
-        grid_fix[l, li, lj, lk] = 0
+        grid_fix[l, li, lj, lk] = 0.0
         grid_fix_v[l, li, lj, lk] = wp.vec3(0.0, 0.0, 0.0)
     v = wp.vec3(0.0, 0.0, 0.0)
-    if fix != 0:
-        v = fix_v  # held by an anchor: fixed or moved at its prescribed velocity
+    if fix_m > 0.0 and fix_m >= ANCHOR_HOLD * m:
+        v = fix_mv / fix_m  # held by an anchor: fixed or moved at its particles' prescribed velocity
     elif m > 0.0:
         v = mv / m + dt * gravity
         # Domain walls (x, z sides and the top; the bottom too when there is no ground).
@@ -408,7 +426,7 @@ def grid_update(
     grid_m: wp.array4d(dtype=float),
     grid_mv: wp.array4d(dtype=wp.vec3),
     grid_v: wp.array3d(dtype=wp.vec3),
-    grid_fix: wp.array4d(dtype=int),
+    grid_fix: wp.array4d(dtype=float),
     grid_fix_v: wp.array4d(dtype=wp.vec3),
     lo: wp.vec3i,
     grid: GridInfo,
@@ -475,7 +493,8 @@ def g2p(
                 new_C += (4.0 * grid.inv_dx * w) * wp.outer(gv, dpos)
 
     fl = ps.flags[p]
-    if (fl & FLAG_ANCHORED) != 0:
+    anchored = (fl & FLAG_ANCHORED) != 0
+    if anchored and (fl & FLAG_RIGID) != 0:
         va = ps.anchor_v[p]
         ps.v[p] = va
         ps.C[p] = wp.mat33(0.0)
@@ -493,13 +512,19 @@ def g2p(
         new_v = new_v * decay
         new_C = new_C * decay
     fp = f_ext[p]
-    if fp[0] != 0.0 or fp[1] != 0.0 or fp[2] != 0.0:
+    if not anchored and (fp[0] != 0.0 or fp[1] != 0.0 or fp[2] != 0.0):
         wp.atomic_add(stats, S_WORK, dt * wp.dot(fp, new_v))  # work done by the external forces
     ps.v[p] = new_v
     ps.C[p] = new_C
     if (fl & FLAG_RIGID) != 0:
         return  # rigid particles move with their body (rigid_apply)
     new_x = ps.x[p] + dt * new_v
+    if anchored:
+        # A held particle moves with its anchor but otherwise stays material: it takes the grid's
+        # velocity and velocity gradient, so F and the stress follow the free material next to it
+        # (a stress-free held layer made the clamp compliant), and it hands that velocity back to
+        # the nodes it shares with free material instead of draining their momentum every substep.
+        new_x = ps.x[p] + dt * ps.anchor_v[p]
     ps.x[p] = new_x
     Ftrial = (wp.identity(n=3, dtype=float) + dt * new_C) * ps.F[p]
     c2 = update_material(mat, Ftrial, new_C, ps.rot[p], ps.plastic[p], dt, p, ps.rot, ps.plastic, ps.F, ps.tau)
@@ -510,7 +535,8 @@ def g2p(
         stats[S_NAN] = 1.0
     wp.atomic_max(stats, S_VMAX, speed)
     wp.atomic_max(stats, S_C2, c2)
-    wp.atomic_add(stats, S_MV2, ps.mass[p] * wp.dot(new_v, new_v))
+    if not anchored:
+        wp.atomic_add(stats, S_MV2, ps.mass[p] * wp.dot(new_v, new_v))
     track_position(new_x, grid, span_lo, span_hi, stats, status)
 
 

@@ -41,7 +41,7 @@ MAX_GRAPHS = 8  # captured launch graphs kept per solver (one per grid span and 
 # one unsplit pass computes), while g2p stays parallel.
 MIN_CHUNK_PARTICLES = 4096
 MAX_CPU_CHUNKS = 16
-LAYER_BYTES = 32  # per grid node and chunk: mass (4) + momentum (12) + anchor flag (4) + anchor velocity (12)
+LAYER_BYTES = 32  # per grid node and chunk: mass (4) + momentum (12) + anchored mass (4) + anchored momentum (12)
 CHUNK_GRID_BUDGET = 256 * 2 ** 20  # bytes all chunks' accumulator layers may take together
 LAYER_SLACK = 8  # nodes of room the layers get around a span, so a growing scene reallocates rarely
 ROW_PAD = 32  # 4-byte values per row of chunk-private reductions: no false sharing between threads
@@ -427,7 +427,7 @@ class MPMSolver:
         with wp.ScopedDevice(self.device):
             self.grid_m = wp.zeros(shape, dtype=float)
             self.grid_mv = wp.zeros(shape, dtype=wp.vec3)
-            self.grid_fix = wp.zeros(shape, dtype=int)
+            self.grid_fix = wp.zeros(shape, dtype=float)
             self.grid_fix_v = wp.zeros(shape, dtype=wp.vec3)
         self.layers, self._layer_lo, self._layer_hi = layers, tuple(lo), tuple(hi)
         self._layer_lo_w = wp.vec3i(*self._layer_lo)
