@@ -5,13 +5,15 @@ behave as a solid, so the volume inside is filled with particles that drive the 
 not rendered. Steps, all vectorised numpy/torch with bounded cost:
 
 1. Each Gaussian (opacity >= ``min_opacity``) stands for a solid (``_boxes``):
-   * a volume Gaussian (its thinnest σ at least FLAT_RATIO of the middle one): the box |q_i| <= h_i
-     along its principal axes, h_i = 2σ_i but at most half the distance to the third nearest
-     Gaussian centre, and at least BOX_FLOOR voxels. Boxes tile: Gaussians on a lattice of step h
-     (any σ from about h/4 up) mark the cube [first - h/2, last + h/2], the n³ cells they stand for
-     (where their summed density falls to half), with flat faces and sharp edges. The union of
-     kσ ellipsoids used before is scalloped between the centres, so a cube's face layers were
-     speckled (the emptiest 0.1-0.7 of a full one) and its volume off by -8..+11 % (issue 22);
+   * a volume Gaussian (its thinnest σ at least FLAT_RATIO of the middle one): the box |q_i| <= w_i
+     along its principal axes (a round Gaussian's, whose rotation says nothing, from the directions
+     to its neighbours: ``_lattice_frames``), w_i = 2σ_i but at most half the step to its nearest
+     neighbour along that axis (half the third-nearest distance if none lies along it), and at least
+     BOX_FLOOR voxels. Boxes tile: Gaussians on a lattice of step h (any σ from about h/4 up, turned
+     any way) mark the cube [first - h/2, last + h/2], the n³ cells they stand for (where their
+     summed density falls to half), with flat faces and sharp edges. The union of 1.5σ ellipsoids
+     used before is scalloped between the centres, so a cube's face layers were speckled (the
+     emptiest 0.1-0.7 of a full one) and its volume off by -8..+11 % (issue 22; docs/accuracy.md);
    * a flat (surface) splat: the ellipsoid of 1.5σ with the covariance widened by (s/2)², so a
      thin sheet still marks a voxel-thick layer and a bent surface does not stick out at box corners.
 2. Occupancy on a voxel grid of spacing ``s``: a voxel is occupied when its centre lies in a solid.
@@ -60,15 +62,17 @@ class ParticleSet:
     weights: np.ndarray  # (N, NEIGHBOURS) float32, rows sum to 1
 
 
-def _neighbour_distance(pts: np.ndarray, k: int, query: np.ndarray | None = None) -> np.ndarray:
-    """Distance from each point (of ``query``, a mask; all by default, inf for the others) to its
-    k-th nearest other point (inf when it has fewer than k within reach), by a hash grid: cells
-    about the typical spacing, candidates in the 27 cells around each point, at most MAX_PER_CELL
-    points per cell (a denser cell contributes only its first MAX_PER_CELL points)."""
+def _neighbours(pts: np.ndarray, k: int, query: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """For each point (of ``query``, a mask; all by default): the distance to its k-th nearest other
+    point (inf when it has fewer than k within reach, and for the points not queried) and the
+    indices of its NEAREST_KEPT nearest (-1 where fewer), by a hash grid: cells about the typical
+    spacing, candidates in the 27 cells around each point, at most MAX_PER_CELL points per cell (a
+    denser cell contributes only its first MAX_PER_CELL points)."""
     n = pts.shape[0]
     out = np.full(n, np.inf)
+    nearest = np.full((n, NEAREST_KEPT), -1, np.int64)
     if n <= k:
-        return out
+        return out, nearest
     lo = pts.min(0)
     ext = pts.max(0) - lo
     # Cells of about two points each if the points filled their box (a flat or thin box counted
@@ -102,10 +106,38 @@ def _neighbour_distance(pts: np.ndarray, k: int, query: np.ndarray | None = None
         dist = (pts_t[np.maximum(cand, 0)] - pts_t[q][:, None, :]).norm(dim=-1)
         dist = torch.where(torch.from_numpy(cand >= 0), dist, torch.full_like(dist, float("inf")))
         out[q] = torch.kthvalue(dist, k, dim=1).values.double().numpy()
-    return out
+        near_d, near_i = torch.topk(dist, min(NEAREST_KEPT, dist.shape[1]), dim=1, largest=False)
+        idx = np.take_along_axis(cand, near_i.numpy(), 1)
+        nearest[q, :idx.shape[1]] = np.where(torch.isfinite(near_d).numpy(), idx, -1)
+    return out, nearest
 
 
-MAX_PER_CELL = 8  # candidates per hash cell in _neighbour_distance
+NEAREST_KEPT = 6
+
+
+def _lattice_frames(pts: np.ndarray, nearest: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Axes from the neighbours (for round Gaussians, whose rotation says nothing): the first along
+    the nearest neighbour, the second towards the nearest one at least 60° off it. On a lattice
+    these are its axes, however it is turned, so the boxes keep tiling it. Returns (n,3,3) frames
+    (columns) and which points got one (two such neighbours)."""
+    valid = nearest >= 0
+    d = pts[np.maximum(nearest, 0)] - pts[:, None, :]
+    length = np.linalg.norm(d, axis=-1)
+    valid &= length > 0
+    u = d / np.where(valid, length, 1.0)[..., None]
+    first = np.argmax(valid, axis=1)
+    e1 = np.take_along_axis(u, first[:, None, None], 1)[:, 0]
+    cos = np.abs((u * e1[:, None, :]).sum(-1))
+    off = valid & (cos < 0.5)
+    second = np.argmax(off, axis=1)
+    ok = valid.any(1) & off.any(1)
+    e2 = np.take_along_axis(u, second[:, None, None], 1)[:, 0]
+    e2 = e2 - (e2 * e1).sum(-1, keepdims=True) * e1
+    e2 /= np.maximum(np.linalg.norm(e2, axis=-1, keepdims=True), 1e-30)
+    return np.stack([e1, e2, np.cross(e1, e2)], axis=-1), ok
+
+
+MAX_PER_CELL = 8  # candidates per hash cell in _neighbours
 
 
 @dataclass
@@ -121,14 +153,14 @@ class _Boxes:
 
 @dataclass
 class _Shapes:
-    """The kept Gaussians (opacity >= min_opacity): centres, principal axes, σ along them, and the
-    half distance to the third nearest centre (the cell a Gaussian of a lattice stands for)."""
+    """The kept Gaussians (opacity >= min_opacity): centres, principal axes, σ along them, and half
+    the step to the neighbours along each axis (the cell a Gaussian of a lattice stands for)."""
 
     means: torch.Tensor  # (n,3)
     unit: torch.Tensor  # (n,3,3) columns: unit principal axes
     sigma: torch.Tensor  # (n,3)
     flat: torch.Tensor  # (n,) bool: a surface splat (thinnest σ under FLAT_RATIO of the middle one)
-    cell: torch.Tensor  # (n,1) (inf for the flat ones)
+    cell: torch.Tensor  # (n,3) half the neighbour step along each axis (inf for the flat ones)
 
 
 def _shapes(g: Gaussians, min_opacity: float) -> _Shapes:
@@ -143,14 +175,32 @@ def _shapes(g: Gaussians, min_opacity: float) -> _Shapes:
     sigma = torch.nan_to_num(sigma, nan=0.0)
     srt = sigma.sort(dim=1).values
     flat = srt[:, 0] < FLAT_RATIO * srt[:, 1]
-    cell = _neighbour_distance(means.numpy().astype(np.float64), 3, ~flat.numpy())  # (flat ones do not use it)
-    return _Shapes(means, unit, sigma, flat, torch.from_numpy(cell).float()[:, None] / 2)
+    pts = means.numpy().astype(np.float64)
+    cell, nearest = _neighbours(pts, 3, ~flat.numpy())  # (flat ones do not use them)
+    round_ = (srt[:, 2] <= ROUND_RATIO * srt[:, 0]).numpy()
+    if round_.any():
+        frames, ok = _lattice_frames(pts[round_], nearest[round_])
+        turn = np.nonzero(round_)[0][ok]
+        unit = unit.clone()
+        unit[torch.from_numpy(turn)] = torch.from_numpy(frames[ok]).float()
+    # Along each axis, half the distance to the nearest neighbour lying along it (within ~25°), so a
+    # lattice with different steps along its axes is tiled too; half the third-nearest distance
+    # where no neighbour lies along that axis.
+    valid = nearest >= 0
+    d = pts[np.maximum(nearest, 0)] - pts[:, None, :]
+    length = np.where(valid, np.linalg.norm(d, axis=-1), np.inf)
+    u = d / np.where(np.isfinite(length) & (length > 0), length, 1.0)[..., None]
+    along = np.abs(np.einsum("nkj,nji->nki", u, unit.numpy().astype(np.float64))) > 0.9  # (n, k, 3 axes)
+    step = np.where(along, length[..., None], np.inf).min(axis=1)  # (n, 3)
+    half_cell = np.where(np.isfinite(step), step, cell[:, None]) / 2
+    return _Shapes(means, unit, sigma, flat, torch.from_numpy(half_cell).float())
 
 
 def _boxes(sh: _Shapes, spacing: float) -> _Boxes:
     """Each Gaussian's solid. A volume Gaussian (no axis under FLAT_RATIO of the middle one): the box
-    |q_i| <= half_i along its principal axes, half_i = 2σ_i but at most the half distance to the
-    third nearest centre (so a lattice's boxes tile it, whatever σ) and at least BOX_FLOOR voxels.
+    |q_i| <= half_i along its principal axes (a round one's from its neighbours), half_i = 2σ_i but
+    at most half the step to the nearest neighbour along that axis (else half the distance to the
+    third nearest), so a lattice's boxes tile it whatever σ, and at least BOX_FLOOR voxels.
     A flat (surface) splat: the ellipsoid of 1.5σ with the covariance widened by (s/2)², which
     marks a voxel-thick sheet whatever its thickness and does not stick out at its corners where a
     surface bends (a tilted box would)."""
@@ -169,6 +219,8 @@ def _boxes(sh: _Shapes, spacing: float) -> _Boxes:
 
 
 FLAT_RATIO = 0.5  # a Gaussian whose thinnest σ is under this times the middle one is a surface splat
+ROUND_RATIO = 1.05  # one whose largest σ is within this of its smallest is round: its box takes its
+#                     axes from its neighbours (_lattice_frames)
 BOX_FLOOR = 0.75  # voxels: the least half width of a box (a small or flat splat still marks its voxel and its
 #                   neighbours' gaps, so a sparse shell of small splats stays closed)
 MAX_STAMP_RADIUS = 4  # voxels: a Gaussian larger than most of its cloud stamps at most 9³ voxels
