@@ -15,8 +15,8 @@ import math
 import numpy as np
 import pytest
 
-from physmotion_core.types import Anchor, Conditions, Gravity, Material, Region, SimSettings
 from physmotion_core.sim.simulate import simulate
+from physmotion_core.types import Anchor, Conditions, Gravity, Material, Region, SimSettings
 from physmotion_core.validate.stress import gaussian_box
 
 G = 9.81
@@ -144,7 +144,10 @@ def _cantilever(cells: int, periods: float, frames_per_period: int, damping: flo
     E = 3 * rho * G * L**3 / (2 * sag * h**2)
     clamp = h  # the anchored length
     dx = (L + clamp) / round((L + clamp) / (h / cells))
-    n = lambda ext: max(2, int(round(ext / (dx / 4))) + 1)  # noqa: E731 - Gaussians a quarter cell apart
+
+    def n(extent):  # Gaussians a quarter cell apart
+        return max(2, round(extent / (dx / 4)) + 1)
+
     g = gaussian_box((-clamp, 0.0, 0.0), (L, h, W), (n(L + clamp), n(h), n(W)))
     T1 = 2 * math.pi / (1.875**2 * math.sqrt(E * h**2 / 12 / rho) / L**2)  # nominal EB first period
     mat = Material(name="beam", model="fixed_corotated", E=E, nu=0.0, density=rho, damping=damping * 2 * math.pi / T1)
