@@ -61,7 +61,7 @@ FLAG_RIGID = wp.constant(2)
 # a cell outside the region; the anchored particles keep their stress (see g2p), which stiffens the
 # material up to about half a cell beyond the last held node, and the two put the clamp at the
 # region's edge on average over how the grid lines up with it (hanging bar at 10 cells: period
-# error −3.9 … +3.6 %, mean 0.0 %, over ten offsets of the grid across a cell; holding every node an
+# error −4.1 … +3.5 %, mean +0.1 %, over ten offsets of the grid across a cell; holding every node an
 # anchored particle touched, as before, gave −14 … −4 %, mean −8 %).
 ANCHOR_HOLD = wp.constant(0.15)
 # Weight added to an anchored particle's nearest node, so that node is held even where the anchor
