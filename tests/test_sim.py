@@ -124,12 +124,14 @@ def test_object_lands_on_ground_without_penetrating():
     assert float(res.x[:, :, 1].min()) >= 0.0, "penetrated the ground"
     # Free fall of `gap` takes sqrt(2 gap / g); afterwards the soft jelly jiggles on the ground
     # (grid contact constrains the nodes at and below the ground plane, so the elastic rebound can
-    # lift the bottom layer by up to about a cell) but stays there: one gap lower than it started.
+    # lift the bottom layer by a cell or two) but stays there: one gap lower than it started. The
+    # highest rebound was 1.94 dx with the old fill and is 2.27 dx with the uniform fill of issue 22
+    # (its solid starts 5 mm higher, so it lands faster): the bound is 2.5 dx.
     t_land = math.sqrt(2 * gap / 9.81)
     landed = res.times.numpy() > t_land + 0.05
     assert landed.sum() >= 3
     rest_level = float(low[0]) - gap
-    assert float(low[landed].max()) <= rest_level + 2 * dx
+    assert float(low[landed].max()) <= rest_level + 2.5 * dx
     assert abs(float(low[landed].mean()) - rest_level) <= 1.5 * dx
 
 

@@ -19,13 +19,16 @@ def _cube():
 
 
 def _check_volume(res, first_frame):
-    """After the impact: no particle inverted, the mean det F of every frame within 8 % of 1 (the
+    """After the impact: no particle inverted, the mean det F of every frame within 12 % of 1 (the
     undamped jelly still rings) and its average over those frames, the volume it rings about,
-    within 5 %; the body's core (10th-90th percentile extent) never thinner than half its size."""
+    within 5 % (the issue's tolerance); the body's core (10th-90th percentile extent) never thinner than
+    half its size. The ringing bound was 8 % until the uniform fill of issue 22 gave the cube its true
+    volume, about 9 % less mass than before, so the same 500 N shoves it harder: one frame dips to 0.895
+    (0.942 with the old fill's mass; measured)."""
     J = np.linalg.det(res.F.numpy().astype(np.float64))
     mean_j = J[first_frame:].mean(axis=1)
     assert J.min() > 0.0
-    assert np.all(np.abs(mean_j - 1.0) < 0.08), mean_j
+    assert np.all(np.abs(mean_j - 1.0) < 0.12), mean_j
     assert abs(mean_j.mean() - 1.0) < VOLUME_TOL, mean_j
     x = res.x.numpy()[first_frame:]
     core = np.percentile(x, 90, axis=1) - np.percentile(x, 10, axis=1)
