@@ -526,7 +526,11 @@ def g2p(
         # the nodes it shares with free material instead of draining their momentum every substep.
         new_x = ps.x[p] + dt * ps.anchor_v[p]
     ps.x[p] = new_x
-    Ftrial = (wp.identity(n=3, dtype=float) + dt * new_C) * ps.F[p]
+    # F + dt (C F), not (I + dt C) F: forming I + dt C in float32 rounds dt C (~1e-7 per substep at small
+    # strain) to float32's step at 1 (1.2e-7), a bias that accumulated into a +10 % creep of an anchored
+    # cantilever at 0.2 % sag over 6 periods (tests/test_sim_anchor.py); the same product, summed exactly.
+    Fp = ps.F[p]
+    Ftrial = Fp + dt * (new_C * Fp)
     c2 = update_material(mat, Ftrial, new_C, ps.rot[p], ps.plastic[p], dt, p, ps.rot, ps.plastic, ps.F, ps.tau)
 
     # Reductions plan_step reads for the next step: max speed and stiffness (CFL), active box, NaN flag.
