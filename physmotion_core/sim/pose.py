@@ -11,8 +11,10 @@ on one core, as much as rasterizing the frame); one compiled loop per Gaussian c
 that. Same arithmetic as the PyTorch formula it replaces (kept in ``SimResult._pose_torch``, which the
 tests compare against): F̄ in float32, the means in float64 about the rest centre c, written in float32.
 
-Gaussians are split between ``PHYSMOTION_CPU_THREADS`` threads (Warp releases the GIL while a CPU kernel
-runs), like the simulator's kernels.
+One thread by default: a frame takes ~13 ms for 56k Gaussians on one core of the 2-core test machine and
+two threads measured no faster (it is memory-bound), while a thread pool launched between torch's
+rendering calls competed with torch's spinning OpenMP workers (87 ms a frame inside render_clip). ``threads``
+splits the Gaussians between that many threads (Warp releases the GIL while a CPU kernel runs).
 """
 
 # No "from __future__ import annotations": Warp reads the kernel's annotations, which name the local `wp`.
@@ -96,7 +98,7 @@ def _wp_view(wp, t: torch.Tensor, dtype):
 
 def pose_gaussians(x: torch.Tensor, X: torch.Tensor, F: torch.Tensor, neighbours: torch.Tensor,
                    weights: torch.Tensor, rest_d, spacing: float, centre: torch.Tensor, Xg: torch.Tensor,
-                   rest_cov: torch.Tensor, threads: int = 0) -> tuple[torch.Tensor, torch.Tensor]:
+                   rest_cov: torch.Tensor, threads: int = 1) -> tuple[torch.Tensor, torch.Tensor]:
     """Means (N,3) and covariances (N,3,3), float32, of the Gaussians posed by the particles' positions ``x``
     (P,3) and splat deformations ``F`` (P,3,3); ``X`` (P,3) the particles' rest positions, ``neighbours``
     (N,K) and ``weights`` (N,K) each Gaussian's particles, ``rest_d`` (N,K) their rest distances to its own
@@ -123,7 +125,7 @@ def pose_gaussians(x: torch.Tensor, X: torch.Tensor, F: torch.Tensor, neighbours
     covars = torch.empty(N, 3, 3, dtype=f32)
     ma, ca = view(means, wp.vec3), view(covars, wp.mat33)
     c = wp.vec3d(*[float(v) for v in centre.double().tolist()])
-    n_threads = max(1, min(threads or _threads(), N // 4096 or 1))
+    n_threads = max(1, min(int(threads) if threads else _threads(), N // 4096 or 1))
     bounds = np.linspace(0, N, n_threads + 1).astype(int)
 
     def launch(i: int) -> None:
