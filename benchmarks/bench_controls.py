@@ -50,8 +50,8 @@ _NODES = {"tracks": "PhysMotionPointTracks", "controls": "PhysMotionControlVideo
 
 def _scenario(classes, common, background, which) -> float:
     """Seconds the nodes ``which`` take on one simulation, run in that order as ComfyUI runs a prompt that
-    holds just them (hidden PROMPT and UNIQUE_ID, so the first render carries the flow's channels only when
-    a flow node follows). Nothing is shared with an earlier scenario."""
+    holds just them (the controls node gets the hidden PROMPT and UNIQUE_ID, so its render carries the flow's
+    channels only when a flow node follows). Nothing is shared with an earlier scenario."""
     import sys as _sys
 
     vc = _sys.modules[classes["PhysMotionPointTracks"].__module__]
@@ -66,7 +66,7 @@ def _scenario(classes, common, background, which) -> float:
               for i, w in enumerate(which)}
     t0 = time.perf_counter()
     for i, w in enumerate(which):
-        hidden = dict(prompt=prompt, unique_id=str(20 + i)) if w != "flow" else {}
+        hidden = {"prompt": prompt, "unique_id": str(20 + i)} if w == "controls" else {}
         classes[_NODES[w]]().run(**common, **extra[w], **hidden)
     return time.perf_counter() - t0
 
@@ -131,10 +131,11 @@ The three video-control nodes (`PhysMotionPointTracks`, `PhysMotionControlVideos
 on the simulation of each CPU template, at {WIDTH}x{HEIGHT}, {FPS:g} fps and the 4k+1 frame count the
 simulated duration fills, as the Wan templates use them: the tracks node alone (64 points + 8 background
 anchors; the `wan_tracks_*` template), the controls node alone (8 px grown mask; the `wan_vace_*` template),
-and all three in one prompt (tracks, controls, forward flow). Each scenario starts from nothing: the first
-node resamples the simulation and renders the clip once (`render_clip`: colour and depth, plus the flow's 9
-channels only when a flow node of the same prompt asks for the same clip), and the others reuse that
-render. The "render" column is a plain render of the same clip (`render_frames`), what any coarse video of
+and all three in one prompt (tracks, controls, forward flow). Each scenario starts from nothing. The
+tracks node renders its own clip at half the size (the tracks are the particles projected at full size;
+the render only picks the points and tests visibility); the controls node renders the full-size clip once
+(`render_clip`: colour and depth, plus the flow's 9 channels only when a flow node of the same prompt asks
+for that clip), and the flow node reuses it. The "render" column is a plain render of the same clip (`render_frames`), what any coarse video of
 it costs. Percentages are of the simulation's time. Simulation: the template's own settings, Warp kernels
 already compiled, its thread count in brackets; torch ran with {torch.get_num_threads()} thread(s).
 Templates: {"a representative subset (" + ", ".join(names) + ")" if names else "every CPU template"}. Machine:
