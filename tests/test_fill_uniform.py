@@ -93,3 +93,31 @@ def test_gaussian_cube_fill_is_uniform_through_simulate(seed, monkeypatch):
             share = np.clip(np.minimum(b, (k + 1) * thick) - np.maximum(a, k * thick), 0.0, None) / s
             ratio = float((vol * share).sum() / (edge**2 * thick))
             assert abs(ratio - 1.0) <= SLAB_TOL, f"axis {ax} slab {k}: volume {ratio:.4f} of the slab's"
+
+
+def test_a_mix_of_round_and_flat_gaussians_fills():
+    """Round Gaussians take their box axes from their neighbours, whose indices count every Gaussian: with
+    flat splats among them (a lifted shell over a solid core, as the learned front end gives) the round
+    ones' neighbours were looked up in the round ones only, out of bounds (IndexError in the pipeline).
+    The mixed set fills, and its round core's particles match the core filled alone."""
+    import torch
+
+    from physmotion_core.sim.fill import fill_particles
+    from physmotion_core.types.gaussians import Gaussians
+    from physmotion_core.validate.stress import gaussian_box
+
+    core = gaussian_box((-0.05, 0.0, -0.05), (0.05, 0.1, 0.05), (6, 6, 6))
+    n = 40
+    ang = torch.linspace(0, 6.283, n)
+    flat_means = torch.stack([0.2 + 0.02 * torch.cos(ang), 0.05 + 0.0 * ang, 0.02 * torch.sin(ang)], 1)
+    flat = Gaussians.from_rgb(flat_means, torch.rand(n, 3), torch.tensor([[0.004, 0.004, 0.0002]]).repeat(n, 1),
+                              torch.full((n,), 0.9))
+    # The flat splats first, so that every round Gaussian's index is past the round ones' count.
+    both = Gaussians.from_rgb(torch.cat([flat.means, core.means]), torch.rand(len(core.means) + n, 3),
+                              torch.cat([flat.scales, core.scales]), torch.cat([flat.opacities, core.opacities]),
+                              quats=torch.cat([flat.quats, core.quats]))
+    s = 0.01
+    mixed = fill_particles(both, s)
+    alone = fill_particles(core, s)
+    in_core = np.all(np.abs(mixed.x - np.array([0.0, 0.05, 0.0])) < 0.08, axis=1)
+    assert in_core.sum() == len(alone.x)

@@ -179,7 +179,9 @@ def _shapes(g: Gaussians, min_opacity: float) -> _Shapes:
     cell, nearest = _neighbours(pts, 3, ~flat.numpy())  # (flat ones do not use them)
     round_ = (srt[:, 2] <= ROUND_RATIO * srt[:, 0]).numpy()
     if round_.any():
-        frames, ok = _lattice_frames(pts[round_], nearest[round_])
+        # ``nearest`` indexes all the points: the frames are taken over all of them, the round ones kept.
+        frames, ok = _lattice_frames(pts, nearest)
+        frames, ok = frames[round_], ok[round_]
         turn = np.nonzero(round_)[0][ok]
         unit = unit.clone()
         unit[torch.from_numpy(turn)] = torch.from_numpy(frames[ok]).float()
