@@ -171,10 +171,10 @@ class PhysMotionPointTracks:
         tracks = C.point_tracks(sim, frames, rcam, int(num_points), background_points=int(background_points))
         text_tracks = C.scaled_tracks(tracks, cam.width, cam.height)
         text = C.wan_tracks_json(text_tracks, occlusion="end" if occlusion == "end track" else "keep")
-        rgb = C.upscale_frames(frames.rgb, cam.width, cam.height)
+        rgb = C.fit_images(frames.rgb, cam.width, cam.height)  # the same view: a plain bilinear upscale
         bg = _fit_background(background, cam.width, cam.height, sim.num_frames)
         if bg is not None:
-            alpha = C.upscale_frames(frames.alpha[..., None], cam.width, cam.height)[..., 0]
+            alpha = C.fit_images(frames.alpha, cam.width, cam.height)
             rgb = C.over_background(rgb, alpha, bg)
         preview = C.draw_tracks(rgb, text_tracks)
         return {"ui": preview_video(preview, float(fps), "PhysMotion_tracks"),

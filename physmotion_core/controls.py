@@ -361,15 +361,6 @@ def scaled_tracks(tracks: Tracks, width: int, height: int) -> Tracks:
     return dataclasses.replace(tracks, uv=uv, width=int(width), height=int(height))
 
 
-def upscale_frames(images: torch.Tensor, width: int, height: int) -> torch.Tensor:
-    """(T,h,w,C) frames bilinearly scaled to (T,height,width,C) (a preview rendered at a smaller size)."""
-    if images.shape[1:3] == (height, width):
-        return images
-    t = torch.nn.functional.interpolate(images.permute(0, 3, 1, 2), size=(int(height), int(width)),
-                                        mode="bilinear", align_corners=False)
-    return t.permute(0, 2, 3, 1).contiguous()
-
-
 def wan_sample_frames(length: int) -> tuple[np.ndarray, np.ndarray]:
     """For a WanTrackToVideo clip of ``length`` frames: the output frame (fractional where the node
     skips the sample) each of the 121 track samples stands for, and which samples the node reads

@@ -19,7 +19,6 @@ splits the Gaussians between that many threads (Warp releases the GIL while a CP
 
 # No "from __future__ import annotations": Warp reads the kernel's annotations, which name the local `wp`.
 
-import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
@@ -40,6 +39,20 @@ def _build():
         wp.config.quiet = True
         wp.init()
 
+        @wp.func
+        def weight(x: wp.array(dtype=wp.vec3), nb: wp.array2d(dtype=int), w: wp.array2d(dtype=float),
+                   rest_d: wp.array2d(dtype=float), spacing: float, crack: int, xo: wp.vec3, n: int, k: int):
+            # Neighbour k's weight before normalising: 0 once torn away from the Gaussian's own particle
+            # (NaN counts as torn); the own particle's never below 1e-6.
+            wk = w[n, k]
+            if crack != 0:
+                d = wp.length(x[nb[n, k]] - xo)
+                if not (d <= 2.0 * rest_d[n, k] + spacing):
+                    wk = 0.0
+            if k == 0:
+                wk = wp.max(wk, 1.0e-6)
+            return wk
+
         @wp.kernel(enable_backward=False)
         def pose(x: wp.array(dtype=wp.vec3), X: wp.array(dtype=wp.vec3), F: wp.array(dtype=wp.mat33),
                  nb: wp.array2d(dtype=int), w: wp.array2d(dtype=float), rest_d: wp.array2d(dtype=float),
@@ -51,43 +64,21 @@ def _build():
             xo = x[nb[n, 0]]
             total = float(0.0)
             for k in range(K):
-                wk = w[n, k]
-                if crack != 0:
-                    d = wp.length(x[nb[n, k]] - xo)
-                    if not (d <= 2.0 * rest_d[n, k] + spacing):  # torn away (NaN counts as torn)
-                        wk = 0.0
-                if k == 0:
-                    wk = wp.max(wk, 1.0e-6)
-                total += wk
+                total += weight(x, nb, w, rest_d, spacing, crack, xo, n, k)
             Fg = wp.mat33(0.0)
             m = wp.vec3d(0.0, 0.0, 0.0)
             for k in range(K):
-                wk = w[n, k]
+                wk = weight(x, nb, w, rest_d, spacing, crack, xo, n, k) / total
                 p = nb[n, k]
-                if crack != 0:
-                    d = wp.length(x[p] - xo)
-                    if not (d <= 2.0 * rest_d[n, k] + spacing):
-                        wk = 0.0
-                if k == 0:
-                    wk = wp.max(wk, 1.0e-6)
-                wk = wk / total
                 Fp = F[p]
                 Fg += wk * Fp
-                Fd = wp.mat33d(Fp)
-                b = wp.vec3d(x[p]) - Fd * (wp.vec3d(X[p]) - centre)
+                b = wp.vec3d(x[p]) - wp.mat33d(Fp) * (wp.vec3d(X[p]) - centre)
                 m += wp.float64(wk) * b
             means[n] = wp.vec3(m + wp.mat33d(Fg) * (wp.vec3d(Xg[n]) - centre))
             covars[n] = Fg * cov[n] * wp.transpose(Fg)
 
         _built = (wp, pose)
         return _built
-
-
-def _threads() -> int:
-    try:
-        return max(1, int(os.environ.get("PHYSMOTION_CPU_THREADS", "") or (os.cpu_count() or 1)))
-    except ValueError:
-        return 1
 
 
 def _wp_view(wp, t: torch.Tensor, dtype):
@@ -125,7 +116,7 @@ def pose_gaussians(x: torch.Tensor, X: torch.Tensor, F: torch.Tensor, neighbours
     covars = torch.empty(N, 3, 3, dtype=f32)
     ma, ca = view(means, wp.vec3), view(covars, wp.mat33)
     c = wp.vec3d(*[float(v) for v in centre.double().tolist()])
-    n_threads = max(1, min(int(threads) if threads else _threads(), N // 4096 or 1))
+    n_threads = max(1, min(int(threads), N // 4096 or 1))
     bounds = np.linspace(0, N, n_threads + 1).astype(int)
 
     def launch(i: int) -> None:
