@@ -58,7 +58,8 @@ def _scenario(classes, common, background, which) -> float:
     vc._last_render.clear()
     clip = {k: common[k] for k in ("width", "height", "fps", "length")}
     links = {"simulation": ["7", 0], "camera": ["3", 1]}
-    extra = {"tracks": dict(num_points=64, background_points=8, occlusion="end track", background=background),
+    extra = {"tracks": dict(num_points=64, background_points=8, occlusion="end track", preview="first frame",
+                            background=background),
              "controls": dict(grow_mask=8, background=background),
              "flow": dict(direction="forward", max_flow=0.0, filename_prefix="bench/flow")}
     prompt = {str(20 + i): {"class_type": _NODES[w], "inputs": {**links, **clip,
@@ -132,8 +133,9 @@ on the simulation of each CPU template, at {WIDTH}x{HEIGHT}, {FPS:g} fps and the
 simulated duration fills, as the Wan templates use them: the tracks node alone (64 points + 8 background
 anchors; the `wan_tracks_*` template), the controls node alone (8 px grown mask; the `wan_vace_*` template),
 and all three in one prompt (tracks, controls, forward flow). Each scenario starts from nothing. The
-tracks node renders its own clip at half the size (the tracks are the particles projected at full size;
-the render only picks the points and tests visibility); the controls node renders the full-size clip once
+tracks node renders no clip (`track_points`: frame 0 whole, to pick the points, then in every other frame
+only the 3x3 pixels around each point, for its visibility; preview over the first frame, the template's
+setting); the controls node renders the full-size clip once
 (`render_clip`: colour and depth, plus the flow's 9 channels only when a flow node of the same prompt asks
 for that clip), and the flow node reuses it. The "render" column is a plain render of the same clip (`render_frames`), what any coarse video of
 it costs. Percentages are of the simulation's time. Simulation: the template's own settings, Warp kernels

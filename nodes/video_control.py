@@ -52,8 +52,8 @@ _KEEP = 2
 
 _SETTINGS = ("width", "height", "fps", "length")
 
-#: The tracks node renders its clip at 1/TRACKS_RENDER_DIVISOR of the size (see PhysMotionPointTracks.run).
-TRACKS_RENDER_DIVISOR = 2
+#: The tracks node's "coarse video" preview renders the clip at 1/PREVIEW_DIVISOR of the size, scaled up.
+PREVIEW_DIVISOR = 2
 
 
 def _flow_follows(prompt, unique_id) -> Optional[str]:
@@ -137,9 +137,14 @@ class PhysMotionPointTracks:
                 "tooltip": "WanTrackToVideo's format has no per-point visibility: a track shorter than the clip is "
                            "read as invisible after its end. 'end track' ends a point's track when it goes behind "
                            "the object or off-screen; 'keep' lists every position anyway."}),
+            "preview": (["first frame", "coarse video"], {
+                "default": "first frame",
+                "tooltip": "What the tracks are drawn over. 'first frame': the first frame (what the video model "
+                           "starts from), costing no more render. 'coarse video': the simulation rendered at half "
+                           "the size and scaled up (costs about half a render of the clip)."}),
         }, "optional": {
             "background": ("IMAGE", {"tooltip": "The (inpainted) background, to draw the preview over the coarse "
-                                                "video; without it the preview shows the render over black."}),
+                                                "render; without it the preview shows the render over black."}),
         }}
 
     DESCRIPTION = ("Tracks physics particles on the object's surface through the photo's camera, at the video model's "
@@ -149,36 +154,40 @@ class PhysMotionPointTracks:
     RETURN_TYPES = ("STRING", "IMAGE", "INT", "INT", "INT")
     RETURN_NAMES = ("tracks", "preview", "width", "height", "length")
     OUTPUT_TOOLTIPS = ("The tracks JSON for WanTrackToVideo's tracks input.",
-                       "The coarse video with the tracks drawn (dot = visible, ring = hidden), rendered at half the "
-                       "size and scaled up.",
+                       "The tracks drawn (dot = visible, ring = hidden, with a trail) over the first frame or the "
+                       "coarse video (the preview input).",
                        "Frame width: link to WanTrackToVideo's width.", "Frame height: link to its height.",
                        "Frame count: link to its length.")
     FUNCTION = "run"
     CATEGORY = _STAGE
 
     def run(self, simulation, camera, width, height, fps, length, num_points, background_points, occlusion,
-            background=None):
+            preview="first frame", background=None):
         from physmotion_core import controls as C
+        from physmotion_core.errors import InputError
 
+        if preview not in ("first frame", "coarse video"):
+            raise InputError(f"preview must be 'first frame' or 'coarse video'; got {preview!r}")
         sim, cam = _at_model_clock(simulation, camera, width, height, fps, length)
-        # The tracks are the particles projected through the camera (exact at any render size); the render
-        # only decides which points are sampled and show, and draws the preview. So the clip is rendered at half
-        # the size (a quarter of the pixels) and the tracks and preview are scaled back (visibility is read over
-        # 3x3 pixels with a depth tolerance of 1.5 particle spacings), always, so the tracks do not depend on
-        # which other nodes the workflow holds.
-        rcam = cam.resized(cam.width // TRACKS_RENDER_DIVISOR, cam.height // TRACKS_RENDER_DIVISOR)
-        frames, _ = _render(sim, rcam, simulation, (fps, length))
-        tracks = C.point_tracks(sim, frames, rcam, int(num_points), background_points=int(background_points))
-        text_tracks = C.scaled_tracks(tracks, cam.width, cam.height)
-        text = C.wan_tracks_json(text_tracks, occlusion="end" if occlusion == "end track" else "keep")
-        rgb = C.fit_images(frames.rgb, cam.width, cam.height)  # the same view: a plain bilinear upscale
-        bg = _fit_background(background, cam.width, cam.height, sim.num_frames)
-        if bg is not None:
+        # The tracks are the particles projected through the camera; frame 0 is rendered to pick the points,
+        # and in the other frames only the pixels around the points, for their visibility (C.track_points).
+        tracks, first = C.track_points(sim, cam, int(num_points), background_points=int(background_points),
+                                       progress=progress_callback())
+        text = C.wan_tracks_json(tracks, occlusion="end" if occlusion == "end track" else "keep")
+        if preview == "coarse video":
+            rcam = cam.resized(cam.width // PREVIEW_DIVISOR, cam.height // PREVIEW_DIVISOR)
+            frames, _ = _render(sim, rcam, simulation, (fps, length))
+            rgb = C.fit_images(frames.rgb, cam.width, cam.height)  # the same view: a plain bilinear upscale
             alpha = C.fit_images(frames.alpha, cam.width, cam.height)
-            rgb = C.over_background(rgb, alpha, bg)
-        preview = C.draw_tracks(rgb, text_tracks)
-        return {"ui": preview_video(preview, float(fps), "PhysMotion_tracks"),
-                "result": (text, preview, cam.width, cam.height, sim.num_frames)}
+        else:
+            rgb, alpha = first.rgb, first.alpha
+        bg = _fit_background(background, cam.width, cam.height, sim.num_frames)
+        if bg is not None and rgb.shape[0] == 1 and bg.ndim == 4:
+            bg = bg[:1]  # the first frame over the first background frame
+        rgb = C.over_background(rgb, alpha, bg) if bg is not None else rgb.clamp(0, 1)
+        drawn = C.draw_tracks(rgb.expand(sim.num_frames, -1, -1, -1), tracks)
+        return {"ui": preview_video(drawn, float(fps), "PhysMotion_tracks"),
+                "result": (text, drawn, cam.width, cam.height, sim.num_frames)}
 
 
 class PhysMotionControlVideos:

@@ -280,31 +280,99 @@ def visibility(uv: torch.Tensor, z: torch.Tensor, frames: FrameSet, tolerance: f
     object covers the pixel (alpha > 0.5). Both are taken leniently over the point's 3x3 pixels (the
     farthest covered depth, any covered pixel), so a surface seen at a grazing angle, whose depth
     changes fast from pixel to pixel, still shows its points; a point behind the object is many
-    tolerances behind every pixel around it. Only the 3x3 pixels under each point are read."""
-    T, H, W = frames.alpha.shape
+    tolerances behind every pixel around it. Only the 3x3 pixels under each point are read
+    (``around_points`` marks them)."""
+    return _visible(uv, z, frames.alpha, frames.depth, tolerance)
+
+
+def _visible(uv: torch.Tensor, z: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor,
+             tolerance: float) -> torch.Tensor:
+    T, H, W = alpha.shape
     ix = torch.floor(uv[..., 0]).long()
     iy = torch.floor(uv[..., 1]).long()
     inside = (ix >= 0) & (ix < W) & (iy >= 0) & (iy < H) & (z > 0)
     cx, cy = ix.clamp(0, W - 1), iy.clamp(0, H - 1)
     t = torch.arange(T)[:, None].expand_as(cx)
-    near = torch.full(cx.shape, -float("inf"), dtype=frames.depth.dtype)
+    near = torch.full(cx.shape, -float("inf"), dtype=depth.dtype)
     on_object = torch.zeros(cx.shape, dtype=torch.bool)
     for dy in (-1, 0, 1):
         for dx in (-1, 0, 1):
             x, y = cx + dx, cy + dy
             ok = (x >= 0) & (x < W) & (y >= 0) & (y < H)  # pixels off the image do not count
             x, y = x.clamp(0, W - 1), y.clamp(0, H - 1)
-            covered = ok & (frames.alpha[t, y, x] > 0.5)
+            covered = ok & (alpha[t, y, x] > 0.5)
             on_object |= covered
-            near = torch.where(covered, torch.maximum(near, frames.depth[t, y, x]), near)
+            near = torch.where(covered, torch.maximum(near, depth[t, y, x]), near)
     front = z <= near + tolerance
     return inside & on_object & front
+
+
+def around_points(uv: torch.Tensor, width: int, height: int) -> torch.Tensor:
+    """(H,W) bool: the pixels ``visibility`` reads for the points uv (N,2): the 3x3 pixels around each."""
+    mask = torch.zeros(int(height), int(width), dtype=torch.bool)
+    ix = torch.floor(uv[:, 0]).long()
+    iy = torch.floor(uv[:, 1]).long()
+    for dy in (-1, 0, 1):
+        for dx in (-1, 0, 1):
+            x, y = ix + dx, iy + dy
+            ok = (x >= 0) & (x < width) & (y >= 0) & (y < height)
+            mask[y[ok], x[ok]] = True
+    return mask
+
+
+def _check_track_counts(num_points: int, background_points: int) -> None:
+    if not (1 <= int(num_points) <= 4096):
+        raise InputError(f"num_points must be between 1 and 4096; got {num_points}")
+    if not (0 <= int(background_points) <= 1024):
+        raise InputError(f"background_points must be between 0 and 1024; got {background_points}")
+
+
+def _pick_particles(sim: SimResult, alpha0: torch.Tensor, depth0: torch.Tensor, camera: Camera, num_points: int,
+                    edge_px: int) -> torch.Tensor:
+    """The particles under ``num_points`` pixels spread evenly over the silhouette of frame 0 (its alpha and
+    depth), each once, in sampling order."""
+    mask0 = alpha0 > 0.5
+    if not bool(mask0.any()):
+        raise InputError("The object is not visible in the first frame through this camera (no pixel with alpha > "
+                         "0.5), so there is nothing to track. Check the camera and the control size.")
+    inner = _erode(mask0, edge_px)  # silhouette edges carry blended depth; sample inside them
+    px = sample_even(inner if bool(inner.any()) else mask0, int(num_points))
+    ix, iy = px[:, 0].long(), px[:, 1].long()
+    surface = camera.unproject(px.double(), depth0[iy, ix].double())
+    k = _nearest_particles(surface, sim.x[0])
+    _, first = np.unique(k.numpy(), return_index=True)
+    return k[torch.from_numpy(np.sort(first))]  # two pixels on one particle: keep it once, in sampling order
+
+
+def _depth_tolerance(sim: SimResult, depth_tolerance: float) -> float:
+    """``depth_tolerance`` when given, else 1.5 particle spacings: the particle under a surface point lies up to
+    about one spacing inside the surface."""
+    if depth_tolerance > 0:
+        return float(depth_tolerance)
+    spacing = float(sim.stats.get("particle_spacing", 0.0)) or 0.01 * float(
+        (sim.rest_particles.max(0).values - sim.rest_particles.min(0).values).max())
+    return 1.5 * spacing
+
+
+def _with_background(tracks_uv, vis, k, never: torch.Tensor, background_points: int, alpha=None):
+    """Adds ``background_points`` still anchors sampled evenly over ``never`` (pixels the object never covers,
+    shrunk by 4 px); visible wherever ``alpha`` (T,H,W), when given, is below 0.5, else always."""
+    T = tracks_uv.shape[0]
+    bg = sample_even(_erode(never, 4), int(background_points))
+    if not bg.shape[0]:
+        return tracks_uv, vis, k
+    bix, biy = bg[:, 0].long(), bg[:, 1].long()
+    bvis = alpha[:, biy, bix] < 0.5 if alpha is not None else torch.ones(T, bg.shape[0], dtype=torch.bool)
+    return (torch.cat([tracks_uv, bg[None].expand(T, -1, -1).double()], dim=1), torch.cat([vis, bvis], dim=1),
+            torch.cat([k, torch.full((bg.shape[0],), -1, dtype=torch.int64)]))
 
 
 def point_tracks(sim: SimResult, frames: FrameSet, camera: Camera, num_points: int = 64, *,
                  background_points: int = 0, depth_tolerance: float = 0.0, edge_px: int = 2) -> Tracks:
     """Tracks of ``num_points`` object points spread evenly over the object's silhouette in frame 0,
-    plus ``background_points`` still anchors on background pixels the object never covers.
+    plus ``background_points`` still anchors on background pixels the object never covers, from a rendered
+    clip (``track_points`` does the same from the simulation alone, rendering only frame 0 and the pixels
+    the points need).
 
     ``sim`` and ``frames`` must hold the same frames (render the resampled simulation). Each object
     point is the physics particle nearest the surface point seen at a sampled pixel (the pixel
@@ -318,39 +386,55 @@ def point_tracks(sim: SimResult, frames: FrameSet, camera: Camera, num_points: i
                          "(resampled) simulation the tracks follow.")
     if (W, H) != (camera.width, camera.height):
         raise InputError(f"The frames are {W}x{H} but the camera is {camera.width}x{camera.height}")
-    if not (1 <= int(num_points) <= 4096):
-        raise InputError(f"num_points must be between 1 and 4096; got {num_points}")
-    if not (0 <= int(background_points) <= 1024):
-        raise InputError(f"background_points must be between 0 and 1024; got {background_points}")
-    mask0 = frames.alpha[0] > 0.5
-    if not bool(mask0.any()):
-        raise InputError("The object is not visible in the first frame through this camera (no pixel with alpha > "
-                         "0.5), so there is nothing to track. Check the camera and the control size.")
-    inner = _erode(mask0, edge_px)  # silhouette edges carry blended depth; sample inside them
-    px = sample_even(inner if bool(inner.any()) else mask0, int(num_points))
-    ix, iy = px[:, 0].long(), px[:, 1].long()
-    surface = camera.unproject(px.double(), frames.depth[0][iy, ix].double())
-    k = _nearest_particles(surface, sim.x[0])
-    _, first = np.unique(k.numpy(), return_index=True)
-    k = k[torch.from_numpy(np.sort(first))]  # two pixels on one particle: keep it once, in sampling order
-    x = sim.x[:, k].reshape(-1, 3).double()
-    uv, z = camera.project(x)
+    _check_track_counts(num_points, background_points)
+    k = _pick_particles(sim, frames.alpha[0], frames.depth[0], camera, num_points, edge_px)
+    uv, z = camera.project(sim.x[:, k].reshape(-1, 3).double())
     uv, z = uv.reshape(T, -1, 2), z.reshape(T, -1)
-    spacing = float(sim.stats.get("particle_spacing", 0.0)) or 0.01 * float(
-        (sim.rest_particles.max(0).values - sim.rest_particles.min(0).values).max())
-    tol = float(depth_tolerance) if depth_tolerance > 0 else 1.5 * spacing
-    vis = visibility(uv, z, frames, tol)
+    vis = visibility(uv, z, frames, _depth_tolerance(sim, depth_tolerance))
     particle = k
     if background_points:
         never = ~_dilate(frames.alpha.amax(0) > 0.05, 4)
-        bg = sample_even(_erode(never, 4), int(background_points))
-        if bg.shape[0]:
-            bix, biy = bg[:, 0].long(), bg[:, 1].long()
-            bvis = frames.alpha[:, biy, bix] < 0.5
-            uv = torch.cat([uv, bg[None].expand(T, -1, -1).double()], dim=1)
-            vis = torch.cat([vis, bvis], dim=1)
-            particle = torch.cat([k, torch.full((bg.shape[0],), -1, dtype=torch.int64)])
+        uv, vis, particle = _with_background(uv, vis, k, never, background_points, frames.alpha)
     return Tracks(uv=uv.float(), visible=vis, particle=particle, width=W, height=H, fps=float(frames.fps))
+
+
+def track_points(sim: SimResult, camera: Camera, num_points: int = 64, *, background_points: int = 0,
+                 depth_tolerance: float = 0.0, edge_px: int = 2, backend: str = "auto",
+                 progress: Optional[ProgressFn] = None) -> tuple[Tracks, FrameSet]:
+    """``point_tracks`` without rendering the clip: the same tracks (the same points, positions and
+    visibility), and frame 0's render (for a preview).
+
+    Frame 0 is rendered whole (its silhouette and depth pick the points). In every later frame only the
+    3x3 pixels around each point are rendered (``render.rasterize.probe``: the rasterizer's own projection,
+    order and compositing over the tiles that hold them, so the depth and alpha there are the whole frame's
+    to round-off). The background anchors go where no splat's box ever reaches (a conservative "never
+    covered", so they need no visibility test)."""
+    from .render.rasterize import probe, rasterize
+
+    _check_track_counts(num_points, background_points)
+    T, H, W = sim.num_frames, int(camera.height), int(camera.width)
+    with torch.no_grad():
+        out = rasterize(sim.gaussians_at(0), camera, backend=backend)
+    first = FrameSet(rgb=out.rgb.cpu()[None], alpha=out.alpha.cpu()[None], depth=out.depth.cpu()[None],
+                     fps=sim_fps(sim))
+    k = _pick_particles(sim, first.alpha[0], first.depth[0], camera, num_points, edge_px)
+    uv, z = camera.project(sim.x[:, k].reshape(-1, 3).double())
+    uv, z = uv.reshape(T, -1, 2), z.reshape(T, -1)
+    tol = _depth_tolerance(sim, depth_tolerance)
+    vis = torch.zeros(T, k.numel(), dtype=torch.bool)
+    vis[0] = _visible(uv[:1], z[:1], first.alpha, first.depth, tol)[0]
+    covered = first.alpha[0] > 0
+    report(progress, 1, T)
+    for t in range(1, T):
+        p = probe(sim.gaussians_at(t), camera, around_points(uv[t], W, H))
+        vis[t] = _visible(uv[t:t + 1], z[t:t + 1], p.alpha.cpu()[None], p.depth.cpu()[None], tol)[0]
+        covered |= p.footprint.cpu()
+        report(progress, t + 1, T)
+    particle = k
+    if background_points:
+        uv, vis, particle = _with_background(uv, vis, k, ~_dilate(covered, 4), background_points)
+    tracks = Tracks(uv=uv.float(), visible=vis, particle=particle, width=W, height=H, fps=sim_fps(sim))
+    return tracks, first
 
 
 def scaled_tracks(tracks: Tracks, width: int, height: int) -> Tracks:

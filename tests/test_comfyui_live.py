@@ -167,9 +167,9 @@ def test_cancel_stops_a_running_simulation_within_a_second(comfy_server):
 
 def test_wan_control_nodes_get_the_prompt_and_run_alone_and_together(comfy_server, tmp_path):
     """The controls node reads ComfyUI's hidden PROMPT and UNIQUE_ID (to render the flow's channels only for a
-    flow node that follows); the tracks node renders its own half-size clip. In a real ComfyUI the tracks
-    node, the controls node alone and the controls node with Exact Flow after it run and give full-size
-    images."""
+    flow node that follows); the tracks node renders no clip (its preview over the first frame, or over a
+    half-size clip). In a real ComfyUI the tracks node with either preview, the controls node alone and the
+    controls node with Exact Flow after it run and give full-size images."""
     from PIL import Image
 
     sys.path.insert(0, str(ROOT / "scripts"))
@@ -181,13 +181,16 @@ def test_wan_control_nodes_get_the_prompt_and_run_alone_and_together(comfy_serve
     clip = {"simulation": [sim_id, 0], "camera": full[sim_id]["inputs"]["camera"], "width": 160, "height": 96,
             "fps": 16.0, "length": 5}
     tracks = {"class_type": "PhysMotionPointTracks",
-              "inputs": {**clip, "num_points": 8, "background_points": 2, "occlusion": "end track"}}
+              "inputs": {**clip, "num_points": 8, "background_points": 2, "occlusion": "end track",
+                         "preview": "first frame"}}
+    coarse = {**tracks, "inputs": {**tracks["inputs"], "preview": "coarse video"}}
     controls = {"class_type": "PhysMotionControlVideos", "inputs": {**clip, "grow_mask": 4}}
     flow = {"class_type": "PhysMotionExactFlow",
             "inputs": {**clip, "direction": "forward", "max_flow": 0.0, "filename_prefix": "live/wanflow"}}
     client = ComfyClient(comfy_server.url)
     client.connect()
     for nodes in ({"90": tracks, "91": {"class_type": "PreviewImage", "inputs": {"images": ["90", 1]}}},
+                  {"90": coarse, "91": {"class_type": "PreviewImage", "inputs": {"images": ["90", 1]}}},
                   {"90": controls, "91": {"class_type": "PreviewImage", "inputs": {"images": ["90", 0]}}},
                   {"90": controls, "91": {"class_type": "PreviewImage", "inputs": {"images": ["90", 4]}}, "92": flow}):
         outputs = client.wait(client.queue({**base, **nodes}), timeout=600)["outputs"]

@@ -501,14 +501,19 @@ def test_nodes_run_report_progress_and_cancel(tmp_path, monkeypatch):
     assert np.load(path)["flow"].shape == (8, 96, 160, 2) and str(tmp_path / "flows") in path
     with pytest.raises(InputError, match="4k\\+1"):
         classes["PhysMotionControlVideos"]().run(**{**common, "length": 10}, grow_mask=0)
-    # The flow of the clip just rendered comes from that render; two clips are kept (the tracks' half-size one
-    # beside the controls' full-size one).
+    # The flow of the clip just rendered comes from that render; two clips are kept (the tracks' half-size
+    # preview clip beside the controls' full-size one).
     rendered = len(state.updates)
     out = classes["PhysMotionExactFlow"]().run(**common, direction="forward", max_flow=0.0, filename_prefix="x")
     assert torch.equal(out["result"][0].flow, flow.flow)
-    classes["PhysMotionPointTracks"]().run(**common, num_points=16, background_points=2, occlusion="keep")
+    assert len(state.updates) == rendered
+    classes["PhysMotionPointTracks"]().run(**common, num_points=16, background_points=2, occlusion="keep",
+                                           preview="coarse video")
     rendered = len(state.updates)
-    classes["PhysMotionPointTracks"]().run(**common, num_points=8, background_points=0, occlusion="keep")
+    classes["PhysMotionPointTracks"]().run(**common, num_points=8, background_points=0, occlusion="keep",
+                                           preview="coarse video")
+    assert len(state.updates) == rendered + 9  # the tracks' own progress (one step a frame); the clip is kept
+    rendered = len(state.updates)
     classes["PhysMotionExactFlow"]().run(**common, direction="forward", max_flow=0.0, filename_prefix="y")
     assert len(state.updates) == rendered
     # A backward flow renders again, and Cancel stops that render at the next frame (a new simulation object
@@ -527,7 +532,7 @@ def test_the_flow_channels_are_rendered_only_when_a_flow_node_follows(tmp_path, 
     channels with the clip only when a PhysMotion Exact Flow node of the same prompt asks for the same clip
     (same simulation and camera links, size, clock and length), in the direction it asks; then the flow node
     renders nothing. Alone (the Wan VACE template), it renders colour and depth only. The tracks node renders
-    its own half-size clip, whatever else the prompt holds."""
+    no clip (``track_points``), whatever else the prompt holds."""
     import sys
 
     from comfy_harness import node_classes
@@ -550,7 +555,7 @@ def test_the_flow_channels_are_rendered_only_when_a_flow_node_follows(tmp_path, 
     classes["PhysMotionPointTracks"]().run(**tracks)
     classes["PhysMotionControlVideos"]().run(simulation=sim, camera=cam, **clip, grow_mask=0, prompt=prompt,
                                              unique_id="21")
-    assert calls == [(80, None), (160, None)]  # the tracks' half-size clip; the controls' without flow channels
+    assert calls == [(160, None)]  # no clip for the tracks; the controls' without flow channels
     flow_node = {"class_type": "PhysMotionExactFlow", "inputs": {**links, **clip, "direction": "backward"}}
     assert VC._flow_follows({**prompt, "22": flow_node}, "21") == "backward"
     other_size = {**flow_node, "inputs": {**flow_node["inputs"], "width": 176}}
@@ -565,7 +570,7 @@ def test_the_flow_channels_are_rendered_only_when_a_flow_node_follows(tmp_path, 
                                                      prompt={**prompt, "22": flow_node}, unique_id="21")
     out = classes["PhysMotionExactFlow"]().run(simulation=sim2, camera=cam, **clip, direction="backward",
                                               max_flow=0.0, filename_prefix="f")
-    assert calls[2:] == [(160, "backward")]  # the flow came with the controls' render
+    assert calls[1:] == [(160, "backward")]  # the flow came with the controls' render
     assert out["result"][0].direction == "backward"
     # The flow's channels change none of the control videos.
     plain = classes["PhysMotionControlVideos"]().run(simulation=cube_sim(frames=12), camera=cam, **clip, grow_mask=0,
@@ -574,10 +579,11 @@ def test_the_flow_channels_are_rendered_only_when_a_flow_node_follows(tmp_path, 
         torch.testing.assert_close(a, b, atol=1e-6, rtol=0)
 
 
-def test_tracks_alone_render_at_half_size_and_stay_exact(tmp_path, monkeypatch):
-    """The tracks node renders its clip at half the size: the tracks are still the particles projected through
-    the full-size camera (to round-off), their visibility agrees with a full-size render's for the same
-    particles, and the preview is full size."""
+def test_tracks_node_renders_no_clip_and_stays_exact(tmp_path, monkeypatch):
+    """The tracks node renders no clip (``track_points``: frame 0, then only the pixels around the points):
+    the tracks are the particles projected through the camera (to the JSON's 2 decimals), and the points
+    and their visibility are exactly those of ``point_tracks`` on a full-size render of the clip. The
+    preview is full size; "coarse video" renders a half-size clip for it."""
     import json as _json
 
     from comfy_harness import node_classes
@@ -594,23 +600,63 @@ def test_tracks_alone_render_at_half_size_and_stay_exact(tmp_path, monkeypatch):
     clip = dict(width=160, height=96, fps=16.0, length=9)
     args = dict(simulation=sim, camera=cam, **clip, num_points=24, background_points=0, occlusion="keep")
     text, preview, w, h, n = classes["PhysMotionPointTracks"]().run(**args)["result"]
-    assert sizes == [(80, 48)] and preview.shape == (9, 96, 160, 3) and (w, h) == (160, 96)
-    # The JSON holds 121 samples per track over the clip; its first and last are frames 0 and 8 exactly.
+    assert sizes == [] and preview.shape == (9, 96, 160, 3) and (w, h) == (160, 96)
     data = np.array([[[p["x"], p["y"]] for p in track] for track in _json.loads(text)])
     rs = C.resample_simulation(sim, 16.0, 9)
     full_cam = C.fit_camera(cam, 160, 96)
-    small = C.point_tracks(rs, C.render_clip(rs, full_cam.resized(80, 48))[0], full_cam.resized(80, 48), 24)
-    uv, _ = full_cam.project(rs.x[:, small.particle].reshape(-1, 3).double())
+    frames = real(rs, full_cam)[0]
+    ref = C.point_tracks(rs, frames, full_cam, 24)
+    uv, _ = full_cam.project(rs.x[:, ref.particle].reshape(-1, 3).double())
     uv = uv.reshape(9, -1, 2).numpy()
+    assert data.shape[0] == ref.num_points
     assert np.abs(data[:, 0] - uv[0]).max() < 0.01 and np.abs(data[:, -1] - uv[-1]).max() < 0.01  # 2 decimals
-    # Visibility at half size against a full-size render of the same particles' points.
-    frames = C.render_clip(rs, full_cam)[0]
-    x = rs.x[:, small.particle].reshape(-1, 3).double()
-    uvf, z = full_cam.project(x)
-    tol = 1.5 * float(rs.stats["particle_spacing"])
-    full_vis = C.visibility(uvf.reshape(9, -1, 2), z.reshape(9, -1), frames, tol)
-    agree = (full_vis == small.visible).float().mean().item()
-    assert agree >= 0.95, agree
+    got, first = C.track_points(rs, full_cam, 24)
+    assert torch.equal(got.particle, ref.particle) and torch.equal(got.visible, ref.visible)
+    assert torch.equal(got.uv, ref.uv)
+    torch.testing.assert_close(first.rgb[0], frames.rgb[0], atol=1e-6, rtol=0)
+    # The first frame of the preview is the first frame's render, the tracks drawn on it.
+    assert float((preview[0] - C.draw_tracks(frames.rgb[:1].clamp(0, 1), dataclasses.replace(
+        ref, uv=ref.uv[:1], visible=ref.visible[:1]))[0]).abs().max()) < 1e-5
+    classes["PhysMotionPointTracks"]().run(**args, preview="coarse video")
+    assert sizes == [(80, 48)]
+    with pytest.raises(InputError, match="preview"):
+        classes["PhysMotionPointTracks"]().run(**args, preview="video")
+
+
+def test_probe_reads_the_pixels_a_whole_render_shows(clip):
+    """``probe`` gives the alpha and depth of ``rasterize`` at the asked pixels (to float round-off), 0 at the
+    others, and a footprint that holds every pixel the render reaches."""
+    from physmotion_core.render.rasterize import probe, rasterize
+
+    _, rs, cam, _, _ = clip
+    gen = torch.Generator().manual_seed(1)
+    for t in (0, 16, 32):
+        g = rs.gaussians_at(t)
+        full = rasterize(g, cam)
+        asked = torch.rand(cam.height, cam.width, generator=gen) < 0.03
+        asked[60:70, 90:100] = True  # a block on the cube, beside scattered pixels on and off it
+        p = probe(g, cam, asked)
+        assert float((p.alpha - full.alpha)[asked].abs().max()) < 1e-5
+        assert float((p.depth - full.depth)[asked].abs().max()) < 1e-5
+        assert float(p.alpha[~asked].abs().max()) == 0.0 and bool((full.alpha[asked] > 0.5).any())
+        assert bool(p.footprint[full.alpha > 0].all()) and not bool(p.footprint.all())
+    with pytest.raises(InputError, match="mask"):
+        probe(g, cam, asked[:-1])
+
+
+def test_track_points_match_point_tracks_on_the_rendered_clip(clip):
+    """The library's render-free tracks: the same points, positions and visibility as ``point_tracks`` on the
+    rendered clip; background anchors only where no splat ever reaches."""
+    _, rs, cam, frames, tracks = clip
+    got, first = C.track_points(rs, cam, 48, background_points=4)
+    obj = tracks.particle >= 0
+    assert torch.equal(got.particle[:int(obj.sum())], tracks.particle[obj])
+    assert torch.equal(got.uv[:, :int(obj.sum())], tracks.uv[:, obj])
+    assert torch.equal(got.visible[:, :int(obj.sum())], tracks.visible[:, obj])
+    bg = got.particle < 0
+    assert int(bg.sum()) == 4 and bool(got.visible[:, bg].all())
+    bx, by = got.uv[0, bg, 0].long(), got.uv[0, bg, 1].long()
+    assert float(frames.alpha[:, by, bx].max()) == 0.0
 
 
 # ---------------------------------------------------------------------------------------------

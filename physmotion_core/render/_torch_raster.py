@@ -387,7 +387,8 @@ def _tile_runs(proj: Projected, ts: int, cull: bool):
 
 def composite_tiles(proj: Projected, features: torch.Tensor, width: int, height: int, *,
                     tile_size: int = 8, chunk: int = 16,
-                    max_elements: Optional[int] = None, cull: bool = True) -> torch.Tensor:
+                    max_elements: Optional[int] = None, cull: bool = True,
+                    pixels: Optional[torch.Tensor] = None) -> torch.Tensor:
     """Front-to-back alpha compositing of the projected Gaussians.
 
     ``features`` (M, C) are per-Gaussian values in the same (sorted) order as ``proj``. Returns
@@ -396,6 +397,10 @@ def composite_tiles(proj: Projected, features: torch.Tensor, width: int, height:
     (Gaussian, pixel) entries per step (default 2M on CPU, 16M on CUDA). ``cull``: list a Gaussian
     only in the tiles its ellipse reaches (``_tile_runs``), not in every tile of its bounding box; the
     entries dropped are exact zeros, so the result is the same up to the order of float sums.
+    ``pixels`` (H, W) bool: composite only these pixels (the others stay 0), to read a few of them: only
+    the tiles holding one are visited, and a tile stops once its asked pixels saturate. Each pixel's
+    value is the one a whole-frame render gives it, to float round-off (the same splats in the same
+    order; only the grouping of the sums differs).
     """
     device, dtype = features.device, features.dtype
     if max_elements is None:
@@ -434,7 +439,16 @@ def composite_tiles(proj: Projected, features: torch.Tensor, width: int, height:
         tile_count = torch.bincount(tile, minlength=n_tiles)
         del gauss, tile, perm
         tile_start = torch.cumsum(tile_count, 0) - tile_count
-        active = (tile_count > 0).nonzero().squeeze(1)
+        wanted = tile_count > 0
+        if pixels is not None:
+            if tuple(pixels.shape) != (height, width):
+                raise InputError(f"composite_tiles: pixels must be a ({height}, {width}) mask; got "
+                                 f"{tuple(pixels.shape)}")
+            asked = torch.zeros(TY * ts, TX * ts, dtype=torch.bool, device=device)
+            asked[:height, :width] = pixels.to(device=device, dtype=torch.bool)
+            asked = asked.reshape(TY, ts, TX, ts).permute(0, 2, 1, 3).reshape(n_tiles, P)  # per tile, row-major
+            wanted &= asked.any(1)
+        active = wanted.nonzero().squeeze(1)
         # Busy tiles first: batches then hold tiles of similar list lengths.
         active = active[torch.argsort(tile_count[active], descending=True, stable=True)]
         # Constant pixel basis of a tile, in coordinates relative to the tile centre.
@@ -447,7 +461,10 @@ def composite_tiles(proj: Projected, features: torch.Tensor, width: int, height:
         trow = torch.div(active, TX, rounding_mode="floor")
         pix_x = tcol[:, None] * ts + torch.arange(ts, device=device).repeat(ts)[None, :]
         pix_y = trow[:, None] * ts + torch.arange(ts, device=device).repeat_interleave(ts)[None, :]
-        inside = ((pix_x < width) & (pix_y < height)).to(dtype)  # (n_active, P)
+        inside = (pix_x < width) & (pix_y < height)  # (n_active, P)
+        if pixels is not None:
+            inside &= asked.index_select(0, active)  # pixels not asked start saturated
+        inside = inside.to(dtype)
         centres = torch.stack([tcol.to(dtype) * ts + 0.5 * ts, trow.to(dtype) * ts + 0.5 * ts], -1)
 
     # One per-Gaussian table (u, v, ½a, b, ½c, log o, features..., 1) so each chunk is one gather;

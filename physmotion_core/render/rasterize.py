@@ -36,7 +36,7 @@ import torch
 from ..errors import InputError
 from ..types.camera import Camera
 from ..types.gaussians import Gaussians
-from ._torch_raster import rasterize_torch
+from ._torch_raster import MAX_EXTENT, Projected, composite_tiles, project_gaussians, rasterize_torch
 
 log = logging.getLogger(__name__)
 
@@ -218,6 +218,109 @@ def _finish(rgb, alpha, depth_acc, extra, *, backend: str, anchor: torch.Tensor,
     depth = torch.where(has, depth_ref + depth_acc / torch.where(has, alpha, torch.ones_like(alpha)),
                         torch.zeros_like(alpha))
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, extra=extra, backend=backend)
+
+
+# ----------------------------------------------------------------------------------------------
+# Probing a few pixels
+# ----------------------------------------------------------------------------------------------
+
+
+#: Splats per compositing step in ``probe`` (a whole frame uses 16).
+PROBE_CHUNK = 64
+
+
+@dataclass
+class Probe:
+    """What ``probe`` returns (H,W each): ``alpha`` and ``depth`` as ``rasterize`` renders them at the asked
+    pixels (0 at the others), and ``footprint``: pixels inside a bound on some splat's box, a superset of the
+    pixels where any splat reaches alpha 1/255 (so a whole render's alpha is exactly 0 outside it)."""
+
+    alpha: torch.Tensor
+    depth: torch.Tensor
+    footprint: torch.Tensor
+
+
+def probe(gaussians: Gaussians, camera: Camera, pixels: torch.Tensor, *, depth_mode: str = "z",
+          eps2d: float = 0.3) -> Probe:
+    """Alpha and expected depth at a few pixels (``pixels``: (H,W) bool), without rendering the frame.
+
+    The PyTorch rasterizer's own projection, culling, depth order and compositing, run only over the
+    8x8 tiles that hold an asked pixel and the splats whose boxes reach them, for the asked pixels: each
+    is composited as in a whole-frame render (the same splats in the same order, the same early
+    termination), so the values equal ``rasterize``'s to float round-off. Splats are culled before the
+    projection by a bound on their boxes, whose union is returned as the frame's footprint. Not differentiable (no gradients are needed to test visibility), any device.
+    """
+    if depth_mode not in DEPTH_MODES:
+        raise InputError(f"probe: depth_mode must be one of {DEPTH_MODES}; got '{depth_mode}'")
+    H, W = int(camera.height), int(camera.width)
+    if tuple(pixels.shape) != (H, W):
+        raise InputError(f"probe: pixels must be a ({H}, {W}) mask for this camera; got {tuple(pixels.shape)}")
+    means = gaussians.means
+    work = means.dtype if means.dtype in (torch.float32, torch.float64) else torch.float32
+    device = means.device
+    ts = 8  # composite_tiles' default tile
+    TY, TX = -(-H // ts), -(-W // ts)
+    with torch.no_grad():
+        means = means.to(work)
+        w2c = camera.w2c_opencv().to(device, work)
+        cov, opac = gaussians.covariance().to(work), gaussians.opacities.to(work)
+        # The tiles holding an asked pixel, and a summed-area table of them: a box reaches one when its sum > 0.
+        tiles = torch.zeros(TY, TX, dtype=torch.bool, device=device)
+        py, px = pixels.to(device).nonzero(as_tuple=True)
+        tiles[py // ts, px // ts] = True
+        sat = torch.zeros(TY + 1, TX + 1, dtype=torch.int32, device=device)
+        sat[1:, 1:] = tiles.int().cumsum(0).cumsum(1)
+
+        def reaches(x0, y0, x1, y1):  # pixel boxes (inclusive, inside the frame) that overlap an asked tile
+            tx0, ty0 = torch.div(x0, ts, rounding_mode="floor"), torch.div(y0, ts, rounding_mode="floor")
+            tx1, ty1 = torch.div(x1, ts, rounding_mode="floor") + 1, torch.div(y1, ts, rounding_mode="floor") + 1
+            return (sat[ty1, tx1] - sat[ty0, tx1] - sat[ty1, tx0] + sat[ty0, tx0]) > 0
+
+        # Splats that cannot reach an asked tile are dropped before the projection, by a bound on their boxes:
+        # the half-width is extent·√(Σ₂ᴰ₀₀ + eps2d) ≤ MAX_EXTENT·√(‖J‖²_F tr Σ + eps2d) (‖J R‖₂ ≤ ‖J‖_F and
+        # λmax ≤ tr Σ), J the projection's Jacobian at the same clamped x/z, y/z as project_gaussians'; plus 2 px.
+        mc = torch.addmm(w2c[:3, 3], means, w2c[:3, :3].T)
+        x, y, z = mc.unbind(-1)
+        front = z > camera.near
+        rz = 1.0 / torch.where(front, z, torch.ones_like(z))
+        tan_x, tan_y = 0.5 * W / camera.fx, 0.5 * H / camera.fy
+        qx = (x * rz).clamp(-(camera.cx / camera.fx + 0.3 * tan_x), (W - camera.cx) / camera.fx + 0.3 * tan_x)
+        qy = (y * rz).clamp(-(camera.cy / camera.fy + 0.3 * tan_y), (H - camera.cy) / camera.fy + 0.3 * tan_y)
+        j2 = (camera.fx ** 2 * (1 + qx * qx) + camera.fy ** 2 * (1 + qy * qy)) * rz * rz
+        r = MAX_EXTENT * torch.sqrt(j2 * cov.diagonal(dim1=-2, dim2=-1).sum(-1).clamp_min(0) + eps2d) + 2.0
+        u, v = camera.fx * x * rz + camera.cx, camera.fy * y * rz + camera.cy
+        big = float(4 * max(W, H))
+        x0, x1 = torch.floor((u - r).clamp(-big, big)).long(), torch.floor((u + r).clamp(-big, big)).long()
+        y0, y1 = torch.floor((v - r).clamp(-big, big)).long(), torch.floor((v + r).clamp(-big, big)).long()
+        on = front & torch.isfinite(r) & torch.isfinite(u) & torch.isfinite(v) & (x1 >= 0) & (y1 >= 0)
+        on &= (x0 <= W - 1) & (y0 <= H - 1)
+        # Footprint: the union of those (larger) boxes of every splat, by a 2D difference array.
+        b = on.nonzero().squeeze(1)
+        bx0, bx1 = x0[b].clamp(0, W - 1), x1[b].clamp(0, W - 1)
+        by0, by1 = y0[b].clamp(0, H - 1), y1[b].clamp(0, H - 1)
+        diff = torch.zeros(H + 1, W + 1, dtype=torch.int32, device=device)
+        one = torch.ones(b.shape[0], dtype=torch.int32, device=device)
+        for ys, xs, sign in ((by0, bx0, 1), (by0, bx1 + 1, -1), (by1 + 1, bx0, -1), (by1 + 1, bx1 + 1, 1)):
+            diff.index_put_((ys, xs), one * sign, accumulate=True)
+        footprint = diff.cumsum(0).cumsum(1)[:H, :W] > 0
+        cand = b[reaches(bx0, by0, bx1, by1)]
+        proj, mc = project_gaussians(means[cand], cov[cand], opac[cand], w2c, camera.fx, camera.fy, camera.cx,
+                                     camera.cy, W, H, camera.near, camera.far, eps2d)
+        mcv = mc[proj.index]
+        depth = mcv[:, 2] if depth_mode == "z" else torch.linalg.vector_norm(mcv, dim=-1)
+        ref = float(depth.mean()) if depth.numel() else 0.0  # the reference rasterize_torch takes
+        lo, hi = proj.pix_lo, proj.pix_hi  # (M,2) inclusive pixel boxes, clipped to the frame
+        keep = reaches(lo[:, 0], lo[:, 1], hi[:, 0], hi[:, 1]).nonzero().squeeze(1)  # still front to back
+        sub = Projected(index=proj.index[keep], uv=proj.uv[keep], conic=proj.conic[keep],
+                        log_opacity=proj.log_opacity[keep], pix_lo=lo[keep], pix_hi=hi[keep])
+        # Longer chunks than a whole frame's: few tiles, so the per-step overhead, not the work, dominates.
+        img = composite_tiles(sub, (depth[keep] - ref)[:, None], W, H, tile_size=ts, chunk=PROBE_CHUNK,
+                              pixels=pixels.to(device))
+        alpha = img[..., 1].contiguous()
+        has = alpha > ALPHA_EPS
+        z = torch.where(has, ref + img[..., 0] / torch.where(has, alpha, torch.ones_like(alpha)),
+                        torch.zeros_like(alpha))
+    return Probe(alpha=alpha, depth=z, footprint=footprint)
 
 
 # ----------------------------------------------------------------------------------------------
