@@ -133,7 +133,7 @@ on the simulation of each CPU template, at {WIDTH}x{HEIGHT}, {FPS:g} fps and the
 simulated duration fills, as the Wan templates use them: the tracks node alone (64 points + 8 background
 anchors; the `wan_tracks_*` template), the controls node alone (8 px grown mask; the `wan_vace_*` template),
 and all three in one prompt (tracks, controls, forward flow). Each scenario starts from nothing. The
-tracks node renders no clip (`track_points`: frame 0 whole, to pick the points, then in every other frame
+tracks node renders no clip (`probe_tracks`: frame 0 whole, to pick the points, then in every other frame
 only the 3x3 pixels around each point, for its visibility; preview over the first frame, the template's
 setting); the controls node renders the full-size clip once
 (`render_clip`: colour and depth, plus the flow's 9 channels only when a flow node of the same prompt asks

@@ -170,8 +170,8 @@ class PhysMotionPointTracks:
             raise InputError(f"preview must be 'first frame' or 'coarse video'; got {preview!r}")
         sim, cam = _at_model_clock(simulation, camera, width, height, fps, length)
         # The tracks are the particles projected through the camera; frame 0 is rendered to pick the points,
-        # and in the other frames only the pixels around the points, for their visibility (C.track_points).
-        tracks, first = C.track_points(sim, cam, int(num_points), background_points=int(background_points),
+        # and in the other frames only the pixels around the points, for their visibility (C.probe_tracks).
+        tracks, first = C.probe_tracks(sim, cam, int(num_points), background_points=int(background_points),
                                        progress=progress_callback())
         text = C.wan_tracks_json(tracks, occlusion="end" if occlusion == "end track" else "keep")
         if preview == "coarse video":

@@ -371,7 +371,7 @@ def point_tracks(sim: SimResult, frames: FrameSet, camera: Camera, num_points: i
                  background_points: int = 0, depth_tolerance: float = 0.0, edge_px: int = 2) -> Tracks:
     """Tracks of ``num_points`` object points spread evenly over the object's silhouette in frame 0,
     plus ``background_points`` still anchors on background pixels the object never covers, from a rendered
-    clip (``track_points`` does the same from the simulation alone, rendering only frame 0 and the pixels
+    clip (``probe_tracks`` does the same from the simulation alone, rendering only frame 0 and the pixels
     the points need).
 
     ``sim`` and ``frames`` must hold the same frames (render the resampled simulation). Each object
@@ -398,7 +398,7 @@ def point_tracks(sim: SimResult, frames: FrameSet, camera: Camera, num_points: i
     return Tracks(uv=uv.float(), visible=vis, particle=particle, width=W, height=H, fps=float(frames.fps))
 
 
-def track_points(sim: SimResult, camera: Camera, num_points: int = 64, *, background_points: int = 0,
+def probe_tracks(sim: SimResult, camera: Camera, num_points: int = 64, *, background_points: int = 0,
                  depth_tolerance: float = 0.0, edge_px: int = 2, backend: str = "auto",
                  progress: Optional[ProgressFn] = None) -> tuple[Tracks, FrameSet]:
     """``point_tracks`` without rendering the clip: the same tracks (the same points, positions and

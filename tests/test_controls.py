@@ -532,7 +532,7 @@ def test_the_flow_channels_are_rendered_only_when_a_flow_node_follows(tmp_path, 
     channels with the clip only when a PhysMotion Exact Flow node of the same prompt asks for the same clip
     (same simulation and camera links, size, clock and length), in the direction it asks; then the flow node
     renders nothing. Alone (the Wan VACE template), it renders colour and depth only. The tracks node renders
-    no clip (``track_points``), whatever else the prompt holds."""
+    no clip (``probe_tracks``), whatever else the prompt holds."""
     import sys
 
     from comfy_harness import node_classes
@@ -580,7 +580,7 @@ def test_the_flow_channels_are_rendered_only_when_a_flow_node_follows(tmp_path, 
 
 
 def test_tracks_node_renders_no_clip_and_stays_exact(tmp_path, monkeypatch):
-    """The tracks node renders no clip (``track_points``: frame 0, then only the pixels around the points):
+    """The tracks node renders no clip (``probe_tracks``: frame 0, then only the pixels around the points):
     the tracks are the particles projected through the camera (to the JSON's 2 decimals), and the points
     and their visibility are exactly those of ``point_tracks`` on a full-size render of the clip. The
     preview is full size; "coarse video" renders a half-size clip for it."""
@@ -610,7 +610,7 @@ def test_tracks_node_renders_no_clip_and_stays_exact(tmp_path, monkeypatch):
     uv = uv.reshape(9, -1, 2).numpy()
     assert data.shape[0] == ref.num_points
     assert np.abs(data[:, 0] - uv[0]).max() < 0.01 and np.abs(data[:, -1] - uv[-1]).max() < 0.01  # 2 decimals
-    got, first = C.track_points(rs, full_cam, 24)
+    got, first = C.probe_tracks(rs, full_cam, 24)
     assert torch.equal(got.particle, ref.particle) and torch.equal(got.visible, ref.visible)
     assert torch.equal(got.uv, ref.uv)
     torch.testing.assert_close(first.rgb[0], frames.rgb[0], atol=1e-6, rtol=0)
@@ -648,7 +648,7 @@ def test_track_points_match_point_tracks_on_the_rendered_clip(clip):
     """The library's render-free tracks: the same points, positions and visibility as ``point_tracks`` on the
     rendered clip; background anchors only where no splat ever reaches."""
     _, rs, cam, frames, tracks = clip
-    got, first = C.track_points(rs, cam, 48, background_points=4)
+    got, first = C.probe_tracks(rs, cam, 48, background_points=4)
     obj = tracks.particle >= 0
     assert torch.equal(got.particle[:int(obj.sum())], tracks.particle[obj])
     assert torch.equal(got.uv[:, :int(obj.sum())], tracks.uv[:, obj])
