@@ -46,7 +46,8 @@ def _at_model_clock(simulation, camera, width, height, fps, length):
 
 #: The last clips rendered here (the newest last, at most ``_KEEP``): (weak reference to the simulation each came
 #: from, settings, frames, flows by direction). Nodes on the same simulation at the same clock and size share a
-#: render: the controls node and the flow node share one; the tracks node keeps its own, half the size.
+#: render: the controls node and the flow node share one; the tracks node's "coarse video" preview keeps its own,
+#: half the size.
 _last_render: list = []
 _KEEP = 2
 

@@ -2,9 +2,9 @@
 
 The Wan nodes need the Wan weights and a GPU, so only the PhysMotion part of each template runs here
 (in-process, tests/comfy_harness.py): everything upstream of the PhysMotion video-control node, and
-that node. The thumbnail is its preview at 40 % of the clip: the point tracks drawn over the coarse
-video (PhysMotionPointTracks), or the VACE control, depth inside the object's mask over the coarse
-video (PhysMotionControlVideos). Usage:
+that node. The thumbnail is its preview at 40 % of the clip: the point tracks drawn over the first
+frame (PhysMotionPointTracks, as the template sets its preview), or the VACE control, depth inside the
+object's mask over the coarse video (PhysMotionControlVideos). Usage:
     .venv/bin/python scripts/make_wan_thumbnails.py [name ...]
 """
 

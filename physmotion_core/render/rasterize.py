@@ -248,7 +248,8 @@ def probe(gaussians: Gaussians, camera: Camera, pixels: torch.Tensor, *, depth_m
     8x8 tiles that hold an asked pixel and the splats whose boxes reach them, for the asked pixels: each
     is composited as in a whole-frame render (the same splats in the same order, the same early
     termination), so the values equal ``rasterize``'s to float round-off. Splats are culled before the
-    projection by a bound on their boxes, whose union is returned as the frame's footprint. Not differentiable (no gradients are needed to test visibility), any device.
+    projection by a bound on their boxes, whose union is returned as the frame's footprint. Not
+    differentiable (visibility tests need no gradients); any device.
     """
     if depth_mode not in DEPTH_MODES:
         raise InputError(f"probe: depth_mode must be one of {DEPTH_MODES}; got '{depth_mode}'")
