@@ -446,9 +446,11 @@ def composite_tiles(proj: Projected, features: torch.Tensor, width: int, height:
             if tuple(pixels.shape) != (height, width):
                 raise InputError(f"composite_tiles: pixels must be a ({height}, {width}) mask; got "
                                  f"{tuple(pixels.shape)}")
-            asked = torch.zeros(TY * ts, TX * ts, dtype=torch.bool, device=device)
-            asked[:height, :width] = pixels.to(device=device, dtype=torch.bool)
-            asked = asked.reshape(TY, ts, TX, ts).permute(0, 2, 1, 3).reshape(n_tiles, P)  # per tile, row-major
+            py, px = pixels.to(device=device, dtype=torch.bool).nonzero(as_tuple=True)
+            p_tile = torch.div(py, ts, rounding_mode="floor") * TX + torch.div(px, ts, rounding_mode="floor")
+            p_slot = (py % ts) * ts + px % ts  # the pixel's place in its tile, row-major
+            asked = torch.zeros(n_tiles, P, dtype=torch.bool, device=device)
+            asked[p_tile, p_slot] = True
             wanted &= asked.any(1)
         active = wanted.nonzero().squeeze(1)
         # Busy tiles first: batches then hold tiles of similar list lengths.
@@ -517,6 +519,10 @@ def composite_tiles(proj: Projected, features: torch.Tensor, width: int, height:
                     continue
                 sel = alive.nonzero().squeeze(1)
             tiles, start, count, t_run, centre = tiles[sel], start[sel], count[sel], t_run[sel], centre[sel]
+    if pixels is not None:  # only the asked pixels: gathered, not the whole tile grid turned into an image
+        img = torch.zeros(height, width, C + 1, device=device, dtype=dtype)
+        img[py, px] = out[p_tile, :, p_slot]
+        return img
     return _tiles_to_image(out, TX, TY, ts, width, height)
 
 
