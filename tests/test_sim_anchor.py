@@ -3,7 +3,11 @@
 
 Hanging bar: a bar hanging from an Anchor (ν = 0, E = 1e5 Pa, ρ = 1000 kg/m³: c = 10 m/s),
 released from rest under gravity, oscillates about its static stretch with the fixed-free period
-4 L / c, L the free length from the anchor's box down to the bar's bottom face.
+4 L / c, L the free length from the held material's lower face down to the bar's bottom face, both
+faces measured from the particles. (The anchor's box ends at y = 1.0, inside the fill's voxel row
+0.99-1.045 m, whose particles all lie above 1.0 and are all held: the held material ends at 0.99 m.
+An anchor selects particles, so its edge is known to a particle spacing, here 2.6 % of L; the bottom
+face is measured from the particles the same way.)
 
 Cantilever: a horizontal beam (L/h = 4, ν = 0) clamped by an Anchor over one thickness, sagging
 under its own weight (E sets the Euler–Bernoulli sag of the nominal beam, ≤ 2 % of L).
@@ -54,7 +58,9 @@ def _hanging_bar(margin: float, damping: float = 0.0):
     bottom = y0 < y0.min() + 0.5 * s  # the bottom layer of particles (they are jittered in their cells)
     bottom_face = y0[bottom].mean() - 0.5 * s
     top_face = y0[y0 > y0.max() - 0.5 * s].mean() + 0.5 * s
-    return x, F, fps, BAR_L - bottom_face, top_face - bottom_face, bottom
+    held = y0 > BAR_L  # the particles the anchor's box selects
+    held_face = y0[held & (y0 < y0[held].min() + 0.5 * s)].mean() - 0.5 * s  # their lowest layer's lower face
+    return x, F, fps, held_face - bottom_face, top_face - bottom_face, bottom
 
 
 def _period_error(margin: float) -> float:
@@ -70,24 +76,44 @@ def test_hanging_bar_period_at_10_cells():
     """The period at 10 cells, with the anchor's edge swept across a cell (10 grid offsets, ~10 s).
 
     Every grid node an anchored particle touched used to be held, 1.5 cells past the region, with
-    stress-free held particles: the period came out −14 … −4 % (mean −8 %) over these offsets. Now a
-    node is held when the anchored particles carry ≥ 15 % of its mass and the held particles keep
-    their stress: measured −4.1 … +3.5 %, mean +0.1 %. A rule that holds whole nodes moves the clamp
-    by about 0.8 cell when the grid slides past the edge, hence the spread (±4 % at 10 cells, half
-    that at 20); the issue's 3 % at every offset is the strict xfail below."""
+    stress-free held particles: the period came out −14 … −4 % (mean −8 %, from the box's edge) over
+    these offsets. Then a node was held when the anchored particles carried ≥ 15 % of its mass: the
+    clamp sat on a node and jumped by most of a cell as the grid slid past the edge, −3.2 … +4.5 %
+    (mean +1.0 %) from the held face. Now the anchor puts the clamp on the edge between the nodes
+    (kernels.anchor_update): measured −2.07, −2.04, −1.76, −0.91, +0.46, +0.49, −0.60, −1.43, −1.87,
+    −2.04 % (mean −1.2 %, spread 2.6 %; 2-core AMD EPYC CPU). The ringing never grows: its second
+    half's peak-to-peak is 0.92-0.97 of its first's."""
     errs = np.array([_period_error(m) for m in OFFSETS])
     assert abs(errs.mean()) < 0.015, errs
-    assert np.abs(errs).max() < 0.045, errs
+    assert errs.max() - errs.min() < 0.035, errs
+    for m in OFFSETS:
+        x, _, _, _, _, bottom = _hanging_bar(m)
+        u = x[:, bottom, 1].mean(1)
+        half = len(u) // 2
+        assert np.ptp(u[half:]) <= np.ptp(u[:half]), m
 
 
-@pytest.mark.xfail(strict=True, reason="issue 22, open: whole grid nodes are held, so the clamp jumps by ~0.8 "
-                   "cell as the grid slides past the anchor's edge; the period is −4.1 … +3.5 % over a cell "
-                   "of offsets at 10 cells (4 of 10 offsets beyond 3 %); 3 % everywhere needs a sub-cell "
-                   "boundary treatment")
 def test_hanging_bar_period_within_3_percent_at_every_grid_offset():
-    """The issue's tolerance at every offset of the grid (the runs are shared with the test above)."""
+    """The issue's tolerance at every offset of the grid (the runs are shared with the test above):
+    measured at most 2.07 % (the node rule: 4.5 %, 4 of 10 offsets beyond 3 %)."""
     errs = np.array([_period_error(m) for m in OFFSETS])
     assert np.abs(errs).max() < 0.03, errs
+
+
+def test_damped_hanging_bar_settles_at_the_static_stretch():
+    """Damped (c = ω1, 1 s), the bar settles with its bottom lowered by ρ g L² / (2 E), exact for this
+    model (ν = 0: the Cauchy stress is E (λ − 1) on an unchanged cross-section), L from the held face.
+    The static stretch goes as L², so it shows where the clamp is more plainly than the period:
+    measured −3.9, −2.5, −0.9, +0.4, +3.5, +2.0, −0.3, −2.2, −3.4, −3.8 % over the ten offsets (~5 s).
+    The old anchor: +13.6 … −5.4 %; before the links across the anchor's edge were weighted
+    (kernels.link_weight), +21 % at the offset where the edge runs through a layer of nodes."""
+    errs = []
+    for m in OFFSETS:
+        x, _, _, L_free, _, bottom = _hanging_bar(m, 1.0)
+        u = -(x[-1, bottom, 1].mean() - x[0, bottom, 1].mean())
+        errs.append(u / (BAR_RHO * G * L_free**2 / (2 * BAR_E)) - 1.0)
+    errs = np.array(errs)
+    assert np.abs(errs).max() < 0.05, errs
 
 
 def _strain_ratio(x, F, dx, frame):
@@ -105,8 +131,8 @@ def test_damping_does_not_move_the_static_answer():
     velocities, so it only takes energy out: the settled bar is the same whatever the damping, hence
     the undamped static answer (the limit of vanishing damping). With c = ω1 and c = 2 ω1 (ζ ≈ 0.5
     and 1 on the fundamental, 1 s; ~2 s of CPU for three grid offsets), the bottom's displacement
-    agrees within 1 % (measured 0.1-0.4 %, what c = 2 ω1 has still to creep) and so does the strain
-    from F relative to the positions' (measured 0.07-0.2 %). Damping only the velocities, as before
+    agrees within 1 % (measured 0.15-0.31 %, what c = 2 ω1 has still to creep) and so does the strain
+    from F relative to the positions' (measured 0.06-0.15 %). Damping only the velocities, as before
     issue 22, made F and the positions differ by 12 %."""
     dx = 1.1 / 10
     for margin in OFFSETS[::4]:
@@ -119,12 +145,28 @@ def test_damping_does_not_move_the_static_answer():
         assert abs(r2 / r1 - 1.0) < 0.01, (margin, r1, r2)
 
 
-@pytest.mark.xfail(strict=True, reason="issue 22, open and not damping: at 10 cells the strain from F is "
-                   "2.2-2.5 % below the strain from the positions (fitted du/dy) in the settled damped bar "
-                   "over ten grid offsets, and as much in the undamped motion, with the old anchor too")
+@pytest.mark.xfail(strict=True, reason="issue 22, open and not damping nor the anchor: at 10 cells the strain "
+                   "from F is 2.2 % below the strain from the positions (0.977-0.978 at three offsets); it is "
+                   "the fill's jitter (±¼ spacing, every particle the same volume): with the jitter set to 0 "
+                   "the ratio is 0.996-1.000")
 def test_damped_strain_from_positions_and_from_F_agree_within_1_percent():
     """The issue's 1 % between the strain from the positions and from F, damped (c = ω1) and settled
-    (``_strain_ratio``: away from the clamp, no estimate of the faces needed)."""
+    (``_strain_ratio``: away from the clamp, no estimate of the faces needed).
+
+    Measured (2-core AMD EPYC CPU): 0.9782, 0.9772, 0.9781 at margins 0.30, 0.34, 0.38, with the old
+    anchor and the new alike, undamped as damped. What it is: the fill jitters each particle by up to
+    ¼ spacing in its voxel and gives every particle the volume of a voxel, so where particles lie
+    farther apart the material is represented more thinly, strains more, and counts once in F's mean
+    while it spans more of the length the positions measure. With the fill's jitter set to 0 (a
+    diagnostic patch of fill_particles) the ratio is 0.9968, 1.0002, 0.9963. A 1-D model of the bar
+    (quadratic B-splines, the kernels' anchor and transfers) shows the same: 0.975-0.983 jittered,
+    0.997-1.001 not, a particle's strain correlating with its Voronoi length at r = +0.68. What it
+    is not: the cubic fit (the stretch between neighbouring layers' mean positions gives 0.979),
+    APIC's C against the true grid gradient Σ v ∇w (the 1-D model with the true gradient: 0.966-0.993
+    jittered), the free bottom's light nodes (leaving out the particles within one or two cells of the
+    bottom: 0.975-0.979), damping (the same undamped) or the clamp region (left out; the old anchor
+    alike). Not fixed here: it would take the fill (particle volumes from the local spacing, or less
+    jitter), which changes every scene."""
     for margin in OFFSETS[::4]:
         x, F, _, _, _, _ = _hanging_bar(margin, 1.0)
         ratio = _strain_ratio(x, F, 1.1 / 10, -1)
@@ -187,9 +229,10 @@ def _period_means(d, fps):
 def test_anchored_cantilever_does_not_creep():
     """Undamped, 4 cells through the thickness, tip sag 2 % of L, 6 bending periods (~10 s): the
     mean tip deflection over each whole period stays within 2 % of the first period's (measured
-    +0.5, +1.0, +0.7, +0.2, +0.5 %: it rises and falls, a slow beat, not a creep). What used to creep was
-    not the anchor (the old and the new anchor crept alike) but F's float32 update, worse the smaller the
-    strain: see the next test. The first period's mean is 0.957 of Timoshenko (within 5 %, asserted)."""
+    +0.07, +0.38, +0.33, +0.52, +0.43 %; with the anchor that held whole nodes +0.5, +1.0, +0.7, +0.2,
+    +0.5 %: it rises and falls, a slow beat, not a creep). What used to creep was not the anchor (the
+    anchors crept alike) but F's float32 update, worse the smaller the strain: see the next test. The
+    first period's mean is 0.991 of Timoshenko (within 5 %, asserted; 0.957 with the clamp on a node)."""
     d, fps, eb, timoshenko = _cantilever(cells=4, periods=6, frames_per_period=24, damping=0.0, sag=0.02)
     means = _period_means(d, fps)
     assert len(means) >= 5
@@ -199,8 +242,8 @@ def test_anchored_cantilever_does_not_creep():
 
 
 def test_anchored_cantilever_does_not_creep_at_small_strain():
-    """The same beam with a 0.2 % sag (~10 s): within 2 % over 6 periods (measured +0.6, +0.3, -0.0, +0.4,
-    +0.2 %; at the issue's 1 % sag +0.5, +1.0, +0.6, +0.2, +0.5 %). With F updated as (I + dt C) F it crept
+    """The same beam with a 0.2 % sag (~10 s): within 2 % over 6 periods (measured −0.02, +0.26, +0.11,
+    +0.31, +0.12 %; with the anchor that held whole nodes +0.6, +0.3, -0.0, +0.4, +0.2 %). With F updated as (I + dt C) F it crept
     +9.6 % here (+2.2 % at 1 %): forming I + dt C in float32 rounds dt C, a few 1e-7 per substep at this
     strain, to float32's step of 1.2e-7 at 1 (doubled at half the CFL, the same with neo-Hookean and with
     the old anchor). g2p now forms F + dt (C F)."""
@@ -212,11 +255,14 @@ def test_anchored_cantilever_does_not_creep_at_small_strain():
 
 def test_damped_anchored_cantilever_settles_at_the_static_deflection():
     """Damped (mass-proportional, c = ω1), 4 cells through the thickness, tip sag 1 % of L, settled
-    over 2 bending periods (~5 s): measured 1.033 of Euler–Bernoulli and 0.962 of Timoshenko (the
-    reference that counts here: the filled beam is 0.0625 m thick, L/h = 3.3, and shear adds 7 %).
+    over 2 bending periods (~5 s): measured 0.981 of Timoshenko, the reference that counts here (the
+    filled beam is 0.0625 m thick, L/h = 3.3, and shear adds 7.4 % to Euler–Bernoulli), and 1.054 of
+    Euler–Bernoulli, which omits shear and so bounds the deflection from below. (With the clamp on a
+    node, inside the held material, it settled stiffer: 0.956 of Timoshenko, 1.027 of EB, and this test
+    also asked for EB within 5 %, which a beam this short within 5 % of Timoshenko cannot meet.)
     Measured against the beam the particles make: the fill makes it thicker than the Gaussians
     (0.0625 m for 0.05 m, 0.037 m wide for 0.025 m, 0.206 m free for 0.2 m), which read as 0.75 of EB,
     "locking", against the nominal beam."""
     d, _, eb, timoshenko = _cantilever(cells=4, periods=2, frames_per_period=12, damping=1.0, sag=0.01)
-    assert abs(d[-1] / eb - 1.0) < 0.05, (d[-1], eb)
+    assert d[-1] > eb, (d[-1], eb)
     assert abs(d[-1] / timoshenko - 1.0) < 0.05, (d[-1], timoshenko)

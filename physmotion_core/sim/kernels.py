@@ -3,7 +3,8 @@
 The same kernels run on ``cpu`` and ``cuda``. One substep is:
 
   p2g          particles -> grid: mass, momentum, the stored stress's impulse, external forces
-  grid_update  grid velocities, gravity, anchors, ground and wall contact (sticky / slip / Coulomb)
+  grid_update  grid velocities, gravity, ground and wall contact (sticky / slip / Coulomb)
+  anchor_*     with anchored particles: the nodes at and past the anchor's edge (anchor_update)
   g2p          grid -> particles: velocity, affine C, position, F = (I + dt C) F, then the
                material's return mapping (plasticity) and the Kirchhoff stress for the next p2g
   rigid_*      for rigid objects: the body's momenta take the grid's exchange, the forces and the
@@ -55,19 +56,13 @@ CONTACT_FRICTION = wp.constant(2)
 FLAG_ANCHORED = wp.constant(1)
 FLAG_RIGID = wp.constant(2)
 
-# An anchor holds a grid node (sets it to the anchor's velocity) when its particles carry at least
-# this fraction of the node's mass. For a node at distance d·dx outside the held material's edge
-# (material on both sides) that fraction is (1.5 − d)³ / 6, so 0.15 holds the nodes up to about half
-# a cell outside the region; the anchored particles keep their stress (see g2p), which stiffens the
-# material up to about half a cell beyond the last held node, and the two put the clamp at the
-# region's edge on average over how the grid lines up with it (hanging bar at 10 cells: period
-# error −4.1 … +3.5 %, mean +0.1 %, over ten offsets of the grid across a cell; holding every node an
-# anchored particle touched, as before, gave −14 … −4 %, mean −8 %).
-ANCHOR_HOLD = wp.constant(0.15)
-# Weight added to an anchored particle's nearest node, so that node is held even where the anchor
-# has too little of the mass (a region smaller than a cell). Those nodes lie within half a cell of
-# the held particles, where ANCHOR_HOLD holds nodes anyway when the region is larger.
-ANCHOR_NEAREST = wp.constant(1.0e4)
+# An anchor holds the grid nodes where its particles carry at least this fraction of the mass, and
+# on the grid links that cross its edge (where the fraction passes ½) it puts the clamp on the edge
+# itself (anchor_update). Before, a node was held from 15 % up, so the clamp sat on a node and
+# jumped by most of a cell as the grid slid past the edge: a hanging bar at 10 cells rang −3.2 …
+# +4.5 % off 4 L / c over ten offsets of the grid across a cell, now −2.1 … +0.6 % (L from the held
+# particles' face; tests/test_sim_anchor.py).
+ANCHOR_LEVEL = wp.constant(0.5)
 
 
 @wp.struct
@@ -330,13 +325,8 @@ def p2g(
                 wp.atomic_add(grid_m, layer, ix, iy, iz, w * m)
                 wp.atomic_add(grid_mv, layer, ix, iy, iz, w * (mv + affine * dpos))
                 if anchored:
-                    # The node nearest the particle (the stencil's centre) is held whatever the mass
-                    # fractions, so an anchor smaller than a cell still holds its particles.
-                    wf = w
-                    if i == 1 and j == 1 and k == 1:
-                        wf = w + ANCHOR_NEAREST
-                    wp.atomic_add(grid_fix, layer, ix, iy, iz, wf * m)
-                    wp.atomic_add(grid_fix_v, layer, ix, iy, iz, (wf * m) * ps.anchor_v[p])
+                    wp.atomic_add(grid_fix, layer, ix, iy, iz, w * m)
+                    wp.atomic_add(grid_fix_v, layer, ix, iy, iz, (w * m) * ps.anchor_v[p])
 
 
 @wp.func
@@ -373,6 +363,7 @@ def update_node(
     dt: float,
     layer_box: wp.array2d(dtype=int),
     layer_lo: wp.vec3i,
+    anchors: int,
 ):
     m = float(0.0)
     mv = wp.vec3(0.0, 0.0, 0.0)
@@ -398,9 +389,7 @@ def update_node(
         grid_fix[l, li, lj, lk] = 0.0
         grid_fix_v[l, li, lj, lk] = wp.vec3(0.0, 0.0, 0.0)
     v = wp.vec3(0.0, 0.0, 0.0)
-    if fix_m > 0.0 and fix_m >= ANCHOR_HOLD * m:
-        v = fix_mv / fix_m  # held by an anchor: fixed or moved at its particles' prescribed velocity
-    elif m > 0.0:
+    if m > 0.0:
         v = mv / m + dt * gravity
         # Domain walls (x, z sides and the top; the bottom too when there is no ground).
         if i < bc.pad:
@@ -419,6 +408,16 @@ def update_node(
         elif j < bc.pad:
             v = contact_velocity(v, wp.vec3(0.0, 1.0, 0.0), bc.wall_contact, bc.wall_friction)
     grid_v[i, j, k] = v
+    if anchors != 0:
+        # Keep the node's sums and free velocity in layer 0 for anchor_pin and anchor_update, which
+        # set the anchored nodes' velocities (anchor_clear then empties layer 0).
+        li = i - layer_lo[0]
+        lj = j - layer_lo[1]
+        lk = k - layer_lo[2]
+        grid_m[0, li, lj, lk] = m
+        grid_mv[0, li, lj, lk] = v
+        grid_fix[0, li, lj, lk] = fix_m
+        grid_fix_v[0, li, lj, lk] = fix_mv
 
 
 @wp.kernel
@@ -437,6 +436,7 @@ def grid_update(
     layer_lo: wp.vec3i,
     run: int,
     k_end: int,
+    anchors: int,
 ):
     """Node velocities from the accumulated mass and momentum. The accumulators have one layer per
     particle chunk (one in all on CUDA, where p2g's atomics are real; a chunk each for the CPU's
@@ -445,7 +445,10 @@ def grid_update(
 
     Each thread updates a run of ``run`` nodes along z, up to node ``k_end`` (exclusive): one node
     on CUDA, a whole column of the span on the CPU, where a thread per node would spend more on
-    turning its linear index into (i, j, k) than on the node."""
+    turning its linear index into (i, j, k) than on the node.
+
+    Every node gets its free velocity here; with ``anchors`` the sums stay in layer 0 for the
+    anchor's passes (anchor_pin, anchor_update, anchor_clear)."""
     a, b, c = wp.tid()
     dt = dt_arr[0]
     i = lo[0] + a
@@ -453,7 +456,232 @@ def grid_update(
     k0 = lo[2] + c * run
     for k in range(k0, wp.min(k0 + run, k_end)):
         update_node(i, j, k, grid_m, grid_mv, grid_v, grid_fix, grid_fix_v, grid, bc, gravity, dt, layer_box,
-                    layer_lo)
+                    layer_lo, anchors)
+
+
+# ----------------------------------------------------------------------------------------------
+# Anchors: a Dirichlet condition at the held material's edge, to a fraction of a cell
+# ----------------------------------------------------------------------------------------------
+
+
+@wp.func
+def node_in_span(n: wp.vec3i, span_lo: wp.vec3i, span_hi: wp.vec3i) -> bool:
+    return n[0] >= span_lo[0] and n[1] >= span_lo[1] and n[2] >= span_lo[2] and n[0] <= span_hi[0] and \
+        n[1] <= span_hi[1] and n[2] <= span_hi[2]
+
+
+@wp.func
+def held_fraction(grid_m: wp.array4d(dtype=float), grid_fix: wp.array4d(dtype=float), n: wp.vec3i,
+                  span_lo: wp.vec3i, span_hi: wp.vec3i, layer_lo: wp.vec3i) -> float:
+    """The anchored particles' share of node n's mass (layer 0 after grid_update), in [0, 1];
+    −1 for a node without mass (or outside the span) and −2 for a pinned node (see anchor_pin)."""
+    if not node_in_span(n, span_lo, span_hi):
+        return -1.0
+    l = n - layer_lo
+    m = grid_m[0, l[0], l[1], l[2]]
+    if m <= 0.0:
+        return -1.0
+    f = grid_fix[0, l[0], l[1], l[2]]
+    if f < 0.0:
+        return -2.0
+    return wp.min(f / m, 1.0)
+
+
+@wp.func
+def axis_step(d: int) -> wp.vec3i:
+    """The six neighbours of a node: d = 0..5 → −x, +x, −y, +y, −z, +z."""
+    s = 2 * (d % 2) - 1
+    a = d / 2
+    if a == 0:
+        return wp.vec3i(s, 0, 0)
+    if a == 1:
+        return wp.vec3i(0, s, 0)
+    return wp.vec3i(0, 0, s)
+
+
+@wp.func
+def held_side(f: float) -> bool:
+    return f >= ANCHOR_LEVEL
+
+
+@wp.func
+def free_side(f: float) -> bool:
+    return f >= 0.0 and f < ANCHOR_LEVEL
+
+
+@wp.func
+def link_weight(f: float, fn: float) -> float:
+    """A link's weight: (φk − φj)⁴. The held fraction changes by ½-⅔ across the edge (from ~0.5 at 45°)
+    and hardly along it, so the weight keeps the links that cross the edge and all but drops those
+    between nodes of a layer the edge runs through, whose fractions scatter about ½."""
+    d = f - fn
+    return d * d * d * d
+
+
+@wp.func
+def link_weights(grid_m: wp.array4d(dtype=float), grid_fix: wp.array4d(dtype=float), n: wp.vec3i, f: float,
+                 held: bool, span_lo: wp.vec3i, span_hi: wp.vec3i, layer_lo: wp.vec3i) -> float:
+    """The summed weights of node n's links (its neighbours across the anchor's edge; n's held
+    fraction is f)."""
+    total = float(0.0)
+    for d in range(6):
+        fn = held_fraction(grid_m, grid_fix, n + axis_step(d), span_lo, span_hi, layer_lo)
+        if (held and free_side(fn)) or ((not held) and held_side(fn)):
+            total += link_weight(f, fn)
+    return total
+
+
+@wp.kernel
+def anchor_pin(
+    ps: Particles,
+    grid: GridInfo,
+    grid_m: wp.array4d(dtype=float),
+    grid_fix: wp.array4d(dtype=float),
+    span_lo: wp.vec3i,
+    span_hi: wp.vec3i,
+    layer_lo: wp.vec3i,
+):
+    """An anchored particle none of whose stencil's nodes is held (an anchor thinner than about a
+    cell: no node where anchored particles carry half the mass) pins its nearest node, which then
+    moves at the anchor's velocity. The mark is the anchored mass's sign, set the same by every
+    particle that sets it, and the test reads its magnitude: the result does not depend on order."""
+    p = wp.tid()
+    if (ps.flags[p] & FLAG_ANCHORED) == 0:
+        return
+    base = stencil_base(ps.x[p], grid)
+    for i in range(3):
+        for j in range(3):
+            for k in range(3):
+                l = base + wp.vec3i(i, j, k) - layer_lo
+                m = grid_m[0, l[0], l[1], l[2]]
+                if m > 0.0 and wp.abs(grid_fix[0, l[0], l[1], l[2]]) >= ANCHOR_LEVEL * m:
+                    return
+    l = base + wp.vec3i(1, 1, 1) - layer_lo
+    grid_fix[0, l[0], l[1], l[2]] = -wp.abs(grid_fix[0, l[0], l[1], l[2]])
+
+
+@wp.kernel
+def anchor_update(
+    grid_m: wp.array4d(dtype=float),
+    grid_mv: wp.array4d(dtype=wp.vec3),
+    grid_v: wp.array3d(dtype=wp.vec3),
+    grid_fix: wp.array4d(dtype=float),
+    grid_fix_v: wp.array4d(dtype=wp.vec3),
+    lo: wp.vec3i,
+    span_lo: wp.vec3i,
+    span_hi: wp.vec3i,
+    layer_lo: wp.vec3i,
+    run: int,
+    k_end: int,
+):
+    """The anchored nodes' velocities, from the sums and free velocities grid_update left in layer 0.
+
+    A node where the anchored particles carry at least ANCHOR_LEVEL (half) of the mass lies on the
+    held side of the anchor's edge: for a straight edge with material on both sides that fraction is
+    exactly ½ on the edge (the B-spline is symmetric), so the edge crosses every grid link between a
+    held-side node k and a free-side node j, at δ = (φk − ½) / (φk − φj) of the link from k (φ the
+    fraction; linear in between). A held-side node with no free-side neighbour moves at the anchor's
+    velocity. On each link the two nodes' velocities relative to the anchor's, u, are projected (in
+    the nodes' masses) onto δ uj + (1 − δ) uk = 0: their linear interpolant meets the anchor at the
+    edge. δ → 0 holds k alone, δ → 1 holds j: the clamp follows the edge continuously as the grid
+    slides past it, where holding whole nodes moved it by up to a cell. A node on several links takes
+    their projections' mean weighted by (φk − φj)⁴ (``link_weight``); each link uses the nodes'
+    masses times its share of their weights, so the result is still a contraction of the kinetic
+    energy. Where the edge runs through a layer of nodes, the fractions there scatter about ½ and
+    link neighbours within the layer; an unweighted mean let those links loosen the nodes held
+    across the edge (the hanging bar's static stretch at that grid offset was 21 % long; weighted by
+    φk − φj 11 %, by its square 5 %, by its 4th power 3.5 %, with links along the bar alone 3.4 %).
+    Pinned nodes (anchor_pin) move at the anchor's velocity.
+
+    What is left: one constraint per link takes the clamp from "hold k" (δ = 0) to "hold j, k free"
+    (δ → 1), and the next cell starts from "hold j and k", so the clamp still steps where the edge
+    crosses a node, by a fraction of a cell (in a 1-D model of the hanging bar the effective clamp
+    lies 0.08 cell below the edge for δ = 0.2-0.6 and up to 0.2 cell above it as δ → 1), where it
+    stepped by most of a cell before. No projection can avoid that step without taking energy out:
+    a continuous family of constraints cannot go from one held node to two."""
+    a, b, c = wp.tid()
+    i = lo[0] + a
+    j = lo[1] + b
+    k0 = lo[2] + c * run
+    for kk in range(k0, wp.min(k0 + run, k_end)):
+        n = wp.vec3i(i, j, kk)
+        l = n - layer_lo
+        m = grid_m[0, l[0], l[1], l[2]]
+        fm = grid_fix[0, l[0], l[1], l[2]]
+        if m <= 0.0:
+            continue
+        f = held_fraction(grid_m, grid_fix, n, span_lo, span_hi, layer_lo)
+        if f == -2.0:
+            grid_v[i, j, kk] = grid_fix_v[0, l[0], l[1], l[2]] / wp.abs(fm)
+            continue
+        held = held_side(f)
+        weights = link_weights(grid_m, grid_fix, n, f, held, span_lo, span_hi, layer_lo)
+        if weights == 0.0:
+            if held:
+                grid_v[i, j, kk] = grid_fix_v[0, l[0], l[1], l[2]] / fm
+            continue
+        total = wp.vec3(0.0, 0.0, 0.0)
+        for d in range(6):
+            nb = n + axis_step(d)
+            fn = held_fraction(grid_m, grid_fix, nb, span_lo, span_hi, layer_lo)
+            if not ((held and free_side(fn)) or ((not held) and held_side(fn))):
+                continue
+            ln = nb - layer_lo
+            w = link_weight(f, fn)
+            if w <= 0.0:
+                continue  # (φk − φj)⁴ underflowed: the link has no say
+            nb_weights = link_weights(grid_m, grid_fix, nb, fn, not held, span_lo, span_hi, layer_lo)
+            mn = grid_m[0, ln[0], ln[1], ln[2]]
+            # k: the held-side node of the link, j: the free-side one; each takes the link's share
+            # of its mass.
+            fk = f
+            fj = fn
+            mk = m * w / weights
+            mj = mn * w / nb_weights
+            vk = grid_mv[0, l[0], l[1], l[2]]
+            vj = grid_mv[0, ln[0], ln[1], ln[2]]
+            va = wp.vec3(0.0, 0.0, 0.0)
+            if held:
+                va = grid_fix_v[0, l[0], l[1], l[2]] / fm
+            else:
+                fk = fn
+                fj = f
+                mk = mn * w / nb_weights
+                mj = m * w / weights
+                vk = grid_mv[0, ln[0], ln[1], ln[2]]
+                vj = grid_mv[0, l[0], l[1], l[2]]
+                va = grid_fix_v[0, ln[0], ln[1], ln[2]] / grid_fix[0, ln[0], ln[1], ln[2]]
+            delta = (fk - ANCHOR_LEVEL) / (fk - fj)
+            uk = vk - va
+            uj = vj - va
+            s = (delta * uj + (1.0 - delta) * uk) / (delta * delta / mj + (1.0 - delta) * (1.0 - delta) / mk)
+            if held:
+                total += (w / weights) * (va + uk - ((1.0 - delta) / mk) * s)
+            else:
+                total += (w / weights) * (va + uj - (delta / mj) * s)
+        grid_v[i, j, kk] = total
+
+
+@wp.kernel
+def anchor_clear(
+    grid_m: wp.array4d(dtype=float),
+    grid_mv: wp.array4d(dtype=wp.vec3),
+    grid_fix: wp.array4d(dtype=float),
+    grid_fix_v: wp.array4d(dtype=wp.vec3),
+    lo: wp.vec3i,
+    layer_lo: wp.vec3i,
+    run: int,
+    k_end: int,
+):
+    """Empty layer 0 over the span after the anchor's passes, for the next substep's p2g."""
+    a, b, c = wp.tid()
+    k0 = lo[2] + c * run
+    for kk in range(k0, wp.min(k0 + run, k_end)):
+        l = wp.vec3i(lo[0] + a, lo[1] + b, kk) - layer_lo
+        grid_m[0, l[0], l[1], l[2]] = 0.0
+        grid_mv[0, l[0], l[1], l[2]] = wp.vec3(0.0, 0.0, 0.0)
+        grid_fix[0, l[0], l[1], l[2]] = 0.0
+        grid_fix_v[0, l[0], l[1], l[2]] = wp.vec3(0.0, 0.0, 0.0)
 
 
 @wp.kernel

@@ -236,6 +236,7 @@ class MPMSolver:
         mat_index = np.asarray(mat_index, dtype=np.int64)
         mass = self._init_mass_and_limits(mat_index, volume)
         flags, tmask = self._particle_flags(mat_index, anchored, body, torque_mask)
+        self._anchors_on = bool((flags & K.FLAG_ANCHORED).any())
         with wp.ScopedDevice(device):
             self._alloc_particles(x, v0, C0, volume, mass, mat_index, flags)
             self._alloc_grid()
@@ -548,6 +549,7 @@ class MPMSolver:
         self.flags.assign(self.wp.array(flags.astype(np.int32), dtype=int, device=self.device))
         self.anchor_v.assign(self.wp.array(np.asarray(velocity, np.float32), dtype=self.wp.vec3, device=self.device))
         held = np.asarray(anchored, bool)
+        self._anchors_on = bool(held.any())
         self._anchor_speed = float(np.linalg.norm(velocity[held], axis=1).max()) if held.any() else 0.0
         self._ctl[K.C_SPEED_FLOOR] = self._anchor_speed
 
@@ -705,9 +707,9 @@ class MPMSolver:
         return [((int(b - a), dims[1], 1), self.wp.vec3i(span_lo[0] + int(a), span_lo[1], span_lo[2]), dims[2])
                 for a, b in zip(edges[:-1], edges[1:]) if b > a]
 
-    def _record_substep(self, span_lo: tuple, span_hi: tuple, torques: bool) -> list:
+    def _record_substep(self, span_lo: tuple, span_hi: tuple, torques: bool, anchors: bool) -> list:
         """The substep program: [(kernel, commands, concurrent)], in order plan → [torques] → p2g
-        → grid → g2p → [merge] → [rigid] → end. Every step reads dt and writes its checks on the
+        → grid → [anchors] → g2p → [merge] → [rigid] → end. Every step reads dt and writes its checks on the
         device, so the program can also be captured as a graph."""
         wp = self.wp
         lo = wp.vec3i(*span_lo)
@@ -732,10 +734,22 @@ class MPMSolver:
             self.particles, forces, self.grid, self.dt_arr, self.grid_m, self.grid_mv, self.grid_fix,
             self.grid_fix_v, self.apic, start, c if layered else 0, self.layer_box, self._layer_lo_w])
             for c, (start, count) in chunks], layered))
+        slabs = self._grid_slabs(span_lo, dims)
+        k_end = int(span_hi[2]) + 1
         prog.append((K.grid_update, [self._cmd(K.grid_update, slab_dims, [
             self.grid_m, self.grid_mv, self.grid_v, self.grid_fix, self.grid_fix_v, slab_lo, self.grid, self.bc,
-            self._gravity_w, self.dt_arr, self.layer_box, self._layer_lo_w, run, int(span_hi[2]) + 1])
-            for slab_dims, slab_lo, run in self._grid_slabs(span_lo, dims)], True))
+            self._gravity_w, self.dt_arr, self.layer_box, self._layer_lo_w, run, k_end, int(anchors)])
+            for slab_dims, slab_lo, run in slabs], True))
+        if anchors:
+            # The anchored nodes, from the sums grid_update left in layer 0 (kernels.anchor_update).
+            step(K.anchor_pin, self.n, [self.particles, self.grid, self.grid_m, self.grid_fix, lo, hi,
+                                        self._layer_lo_w])
+            prog.append((K.anchor_update, [self._cmd(K.anchor_update, slab_dims, [
+                self.grid_m, self.grid_mv, self.grid_v, self.grid_fix, self.grid_fix_v, slab_lo, lo, hi,
+                self._layer_lo_w, run, k_end]) for slab_dims, slab_lo, run in slabs], True))
+            prog.append((K.anchor_clear, [self._cmd(K.anchor_clear, slab_dims, [
+                self.grid_m, self.grid_mv, self.grid_fix, self.grid_fix_v, slab_lo, self._layer_lo_w, run, k_end])
+                for slab_dims, slab_lo, run in slabs], True))
         prog.append((K.g2p, [self._cmd(K.g2p, count, [
             self.particles, self.material_table, forces, self.grid_v, self.grid, self.dt_arr, self._stats_of[c],
             lo, hi, self.status, start]) for c, (start, count) in chunks], True))
@@ -764,13 +778,13 @@ class MPMSolver:
         return prog
 
     def _substep_kernels(self, span_lo: tuple, span_hi: tuple, torques: bool) -> None:
-        """Run one substep: the recorded program for this span and torque state."""
-        key = (span_lo, span_hi, torques)
+        """Run one substep: the recorded program for this span, torque and anchor state."""
+        key = (span_lo, span_hi, torques, self._anchors_on)
         prog = self._programs.get(key)
         if prog is None:
             if len(self._programs) >= MAX_GRAPHS:
                 self._programs.pop(next(iter(self._programs)))
-            prog = self._programs[key] = self._record_substep(span_lo, span_hi, torques)
+            prog = self._programs[key] = self._record_substep(span_lo, span_hi, torques, self._anchors_on)
         for kernel, cmds, concurrent in prog:
             self._run_step(kernel, cmds, concurrent)
 
@@ -824,7 +838,7 @@ class MPMSolver:
                 wp.capture_while(self.cond, self._substep_kernels, span_lo=span[0], span_hi=span[1],
                                  torques=self._torques_on)
                 return
-            key = (span, self._torques_on)
+            key = (span, self._torques_on, self._anchors_on)
             graph = self._graphs.get(key)
             if graph is None:
                 if len(self._graphs) >= MAX_GRAPHS:
