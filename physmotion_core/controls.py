@@ -409,6 +409,7 @@ def probe_tracks(sim: SimResult, camera: Camera, num_points: int = 64, *, backgr
     order and compositing over the tiles that hold them, so the depth and alpha there are the whole frame's
     to round-off). The background anchors go where no splat's box ever reaches (a conservative "never
     covered", so they need no visibility test)."""
+    from .render.frames import frame_threads, run_frame_blocks
     from .render.rasterize import probe, rasterize
 
     _check_track_counts(num_points, background_points)
@@ -423,13 +424,21 @@ def probe_tracks(sim: SimResult, camera: Camera, num_points: int = 64, *, backgr
     tol = _depth_tolerance(sim, depth_tolerance)
     vis = torch.zeros(T, k.numel(), dtype=torch.bool)
     vis[0] = _visible(uv[:1], z[:1], first.alpha, first.depth, tol)[0]
-    covered = first.alpha[0] > 0
+    covered = [first.alpha[0] > 0]
+
+    def work(a: int, b: int, done) -> None:  # frames 1 + a .. b (blocks on several threads on the CPU)
+        seen = torch.zeros(H, W, dtype=torch.bool)
+        for t in range(1 + a, 1 + b):
+            p = probe(sim.gaussians_at(t), camera, around_points(uv[t], W, H))
+            vis[t] = _visible(uv[t:t + 1], z[t:t + 1], p.alpha.cpu()[None], p.depth.cpu()[None], tol)[0]
+            seen |= p.footprint.cpu()
+            done(t - 1)
+        covered.append(seen)
+
     report(progress, 1, T)
-    for t in range(1, T):
-        p = probe(sim.gaussians_at(t), camera, around_points(uv[t], W, H))
-        vis[t] = _visible(uv[t:t + 1], z[t:t + 1], p.alpha.cpu()[None], p.depth.cpu()[None], tol)[0]
-        covered |= p.footprint.cpu()
-        report(progress, t + 1, T)
+    run_frame_blocks(T - 1, frame_threads(T - 1, torch.device("cpu")), work,
+                     None if progress is None else lambda k, n: report(progress, k + 1, n + 1))
+    covered = torch.stack(covered).any(0)
     particle = k
     if background_points:
         uv, vis, particle = _with_background(uv, vis, k, ~_dilate(covered, 4), background_points)
@@ -661,9 +670,9 @@ def render_clip(sim: SimResult, camera: Camera, *, flow: Optional[str] = None, d
     """Every frame rendered once (RGB, alpha, depth as ``render_frames``) and, with ``flow`` ("forward" or
     "backward"), the exact optical flow of the clip from the same renders: each frame carries 9 more
     composited channels (``_flow_features``) that map its visible surface points to the next (forward) or
-    previous (backward) frame. So the tracks, the control videos and the flow of one clip cost one render,
-    posing each frame once."""
-    from .render.frames import check_frames_fit
+    previous (backward) frame. So the control videos and the flow of one clip cost one render, posing each
+    frame once (twice at the edges of the blocks of frames that render at once on the CPU: ``frame_threads``)."""
+    from .render.frames import check_frames_fit, frame_threads, run_frame_blocks
     from .render.rasterize import rasterize
 
     if flow not in (None, "forward", "backward"):
@@ -683,40 +692,45 @@ def render_clip(sim: SimResult, camera: Camera, *, flow: Optional[str] = None, d
         grid = _pixel_grid(camera)
         ray = torch.stack([(grid[..., 0] - camera.cx) / camera.fx, (grid[..., 1] - camera.cy) / camera.fy,
                            torch.ones(H, W, dtype=torch.float64)], -1)  # (H,W,3): r(p)
-    posed: dict = {}
 
-    def pose(f):  # each frame posed once: it is a source and a destination of flow
-        if f not in posed:
-            for old in [k for k in posed if abs(k - f) > 1]:
-                del posed[old]
-            g = sim.gaussians_at(f)
-            posed[f] = (g, g.means.double(), _splat_linear_part(sim, f) if flow is not None else None)
-        return posed[f]
+    def work(a: int, b: int, done) -> None:
+        """Frames a..b-1, in order (a block of its own when several frames render at once)."""
+        posed: dict = {}
 
-    with torch.no_grad():
-        for t in range(T):
-            g, mu, L = pose(t)
-            d = t + 1 if flow == "forward" else t - 1 if flow == "backward" else -1
-            feats = None
-            if 0 <= d < T:
-                _, mu_d, L_d = pose(d)
-                feats = _flow_features(sim, w2c, mu, L, mu_d, L_d).to(g.means.dtype).to(dev)
-            out = rasterize(g.to(dev), camera, extra_features=feats, backend=backend)
-            a = out.alpha.cpu()
-            rgb[t], alpha[t], depth[t] = out.rgb.cpu(), a, out.depth.cpu()
-            if feats is not None:
-                pair = t if flow == "forward" else d
-                ok = a > 0.5
-                if bool(ok.any()):
-                    e = (out.extra.cpu()[ok].double() / a[ok].double()[:, None]).view(-1, 3, 3)
-                    r = ray[ok]
-                    D = e[..., 0] * r[:, 0:1] + e[..., 1] * r[:, 1:2] + e[..., 2]  # where the point goes
-                    p = grid[ok]
-                    uv = torch.stack([camera.fx * D[:, 0] / D[:, 2] + camera.cx,
-                                      camera.fy * D[:, 1] / D[:, 2] + camera.cy], -1)
-                    flows[pair][ok] = (uv - p).float()
-                    valid[pair] = ok
-            report(progress, t + 1, T)
+        def pose(f):  # each frame posed once in a block: it is a source and a destination of flow
+            if f not in posed:
+                for old in [k for k in posed if abs(k - f) > 1]:
+                    del posed[old]
+                g = sim.gaussians_at(f)
+                posed[f] = (g, g.means.double(), _splat_linear_part(sim, f) if flow is not None else None)
+            return posed[f]
+
+        with torch.no_grad():
+            for t in range(a, b):
+                g, mu, L = pose(t)
+                d = t + 1 if flow == "forward" else t - 1 if flow == "backward" else -1
+                feats = None
+                if 0 <= d < T:
+                    _, mu_d, L_d = pose(d)
+                    feats = _flow_features(sim, w2c, mu, L, mu_d, L_d).to(g.means.dtype).to(dev)
+                out = rasterize(g.to(dev), camera, extra_features=feats, backend=backend)
+                a_t = out.alpha.cpu()
+                rgb[t], alpha[t], depth[t] = out.rgb.cpu(), a_t, out.depth.cpu()
+                if feats is not None:
+                    pair = t if flow == "forward" else d
+                    ok = a_t > 0.5
+                    if bool(ok.any()):
+                        e = (out.extra.cpu()[ok].double() / a_t[ok].double()[:, None]).view(-1, 3, 3)
+                        r = ray[ok]
+                        D = e[..., 0] * r[:, 0:1] + e[..., 1] * r[:, 1:2] + e[..., 2]  # where the point goes
+                        p = grid[ok]
+                        uv = torch.stack([camera.fx * D[:, 0] / D[:, 2] + camera.cx,
+                                          camera.fy * D[:, 1] / D[:, 2] + camera.cy], -1)
+                        flows[pair][ok] = (uv - p).float()
+                        valid[pair] = ok
+                done(t)
+
+    run_frame_blocks(T, frame_threads(T, dev), work, progress)
     frames = FrameSet(rgb=rgb, alpha=alpha, depth=depth, fps=sim_fps(sim))
     if flow is None:
         return frames, None

@@ -2,7 +2,10 @@
 
 from __future__ import annotations
 
-from typing import Optional
+import os
+import queue
+import threading
+from typing import Callable, Optional
 
 import torch
 
@@ -33,9 +36,85 @@ def check_frames_fit(frames: int, width: int, height: int, what: str = "The rend
                          "this size) or the image size (e.g. scale the photo down before lifting).")
 
 
+def frame_threads(frames: int, device: torch.device) -> int:
+    """How many frames the CPU renders at once: one per torch thread (PHYSMOTION_RENDER_THREADS overrides; 1 =
+    one frame at a time, as before), at most one per frame; 1 off the CPU, where a frame fills the device.
+
+    Each frame's compositing is a loop of small tensor operations whose fixed cost does not shrink with more
+    intra-op threads, so whole frames on separate threads, each with one torch thread, use the cores better
+    than one frame on all of them."""
+    if torch.device(device).type != "cpu" or frames < 2:
+        return 1
+    env = os.environ.get("PHYSMOTION_RENDER_THREADS", "").strip()
+    n = int(env) if env.isdigit() and int(env) > 0 else torch.get_num_threads()
+    return max(1, min(n, frames))
+
+
+def run_frame_blocks(total: int, threads: int, work: Callable[[int, int, Callable[[int], None]], None],
+                     progress: Optional[ProgressFn] = None) -> None:
+    """Runs ``work(start, stop, done)`` over ``threads`` contiguous blocks of frames, each block on its own thread
+    with one torch thread (restored afterwards); ``work`` calls ``done(k)`` after frame k. Progress is reported
+    from the calling thread, one step per finished frame; when it raises (ComfyUI's Cancel) the workers stop at
+    their next frame and the exception goes on. A worker's exception is raised here. With one thread, ``work``
+    runs here, as a plain loop."""
+    if threads <= 1:
+        work(0, total, lambda k: None if progress is None else report(progress, k + 1, total))
+        return
+    bounds = [round(i * total / threads) for i in range(threads + 1)]
+    finished: queue.Queue = queue.Queue()
+    stop = threading.Event()
+
+    class _Stopped(Exception):
+        pass
+
+    def done(k: int) -> None:
+        finished.put(k)
+        if stop.is_set():
+            raise _Stopped
+
+    def run(a: int, b: int) -> None:
+        try:
+            if not stop.is_set():
+                with torch.no_grad():
+                    work(a, b, done)
+        except _Stopped:
+            pass
+        except BaseException as exc:  # handed to the calling thread
+            finished.put(exc)
+        finally:
+            finished.put(None)
+
+    before = torch.get_num_threads()
+    torch.set_num_threads(1)
+    workers = [threading.Thread(target=run, args=(bounds[i], bounds[i + 1]), daemon=True,
+                                name=f"physmotion-render-{i}") for i in range(threads) if bounds[i + 1] > bounds[i]]
+    try:
+        for w in workers:
+            w.start()
+        running, count = len(workers), 0
+        while running:
+            item = finished.get()
+            if item is None:
+                running -= 1
+            elif isinstance(item, BaseException):
+                stop.set()
+                raise item
+            else:
+                count += 1
+                report(progress, count, total)
+    except BaseException:
+        stop.set()
+        raise
+    finally:
+        for w in workers:
+            w.join()
+        torch.set_num_threads(before)
+
+
 def render_frames(sim: SimResult, camera: Camera, *, device: Optional[torch.device | str] = None,
                   progress: Optional[ProgressFn] = None, backend: str = "auto") -> FrameSet:
-    """RGB (premultiplied), alpha and expected depth for every simulated frame.
+    """RGB (premultiplied), alpha and expected depth for every simulated frame (on the CPU, several frames at
+    once: ``frame_threads``).
 
     The clip's memory is checked before the first frame (``check_frames_fit``) and the frames are
     written into preallocated tensors, so a clip that fits never needs twice its size.
@@ -49,14 +128,18 @@ def render_frames(sim: SimResult, camera: Camera, *, device: Optional[torch.devi
     rgb = torch.empty(total, H, W, 3)
     alpha = torch.empty(total, H, W)
     depth = torch.empty(total, H, W)
-    with torch.no_grad():
-        for k in range(total):
-            g = sim.gaussians_at(k).to(dev)
-            out = rasterize(g, camera, backend=backend)
-            rgb[k] = out.rgb.cpu()
-            alpha[k] = out.alpha.cpu()
-            depth[k] = out.depth.cpu()
-            report(progress, k + 1, total)
+
+    def work(a: int, b: int, done) -> None:
+        with torch.no_grad():
+            for k in range(a, b):
+                g = sim.gaussians_at(k).to(dev)
+                out = rasterize(g, camera, backend=backend)
+                rgb[k] = out.rgb.cpu()
+                alpha[k] = out.alpha.cpu()
+                depth[k] = out.depth.cpu()
+                done(k)
+
+    run_frame_blocks(total, frame_threads(total, dev), work, progress)
     fps = 1.0 / float(sim.times[1] - sim.times[0]) if total > 1 else 24.0
     return FrameSet(rgb=rgb, alpha=alpha, depth=depth, fps=fps)
 
