@@ -52,6 +52,18 @@ def test_frames_flow_and_tracks_match_one_frame_at_a_time(two_threads, monkeypat
     assert torch.equal(par_tracks.visible, seq_tracks.visible) and torch.equal(par_tracks.uv, seq_tracks.uv)
 
 
+def test_frames_render_at_once_under_inference_mode(two_threads):
+    """ComfyUI runs nodes under torch.inference_mode(), which is per thread: the clip's tensors are then inference
+    tensors, which the workers can fill only inside it too."""
+    sim = C.resample_simulation(cube_sim(frames=12), 16.0, 9)
+    cam = camera(64, 48)
+    with torch.inference_mode():
+        frames = render_frames(sim, cam)
+        clip, flow = C.render_clip(sim, cam, flow="backward")
+    torch.testing.assert_close(frames.rgb, clip.rgb, atol=2e-6, rtol=0)
+    assert float(frames.alpha.amax()) > 0.5 and bool(flow.valid.any())
+
+
 def test_cancel_stops_every_worker_and_restores_torch_threads():
     torch.set_num_threads(2)
     rendered, names = [], set()

@@ -72,10 +72,12 @@ def run_frame_blocks(total: int, threads: int, work: Callable[[int, int, Callabl
         if stop.is_set():
             raise _Stopped
 
+    inference = torch.is_inference_mode_enabled()  # ComfyUI runs nodes in it; it is per thread, like no_grad
+
     def run(a: int, b: int) -> None:
         try:
             if not stop.is_set():
-                with torch.no_grad():
+                with torch.inference_mode(inference), torch.no_grad():
                     work(a, b, done)
         except _Stopped:
             pass
