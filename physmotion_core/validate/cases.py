@@ -493,9 +493,9 @@ def cantilever(cells_thick: int = 4, slenderness: float = 10.0) -> CaseResult:
     dom = box_domain((-clamp - 0.1, -0.1 - 0.05 * L, -0.1), (L + 0.1, h + 0.1, h + 0.1), dx)
     s = MPMSolver(x, vol, np.zeros(len(x), np.int64), [mat], dom, anchored=held)
     s.set_anchors(held, np.zeros_like(x))
-    # The clamp is where the held material ends, x = 0: the anchor holds the grid nodes its particles
-    # carry >= 15 % of the mass of (issue 22; before, every node their stencils touched, 1.5 dx past them,
-    # and the free length was measured from that last node).
+    # The clamp is where the held material ends, x = 0: the anchor puts it on that edge between the grid
+    # nodes (kernels.anchor_update, issue 22; before, every node their stencils touched was held, 1.5 dx
+    # past them, and the free length was measured from that last node).
     clamp_x = 0.0
     L_free = float(x[:, 0].max() + dx / 4 - clamp_x)
     tip = x[:, 0] > x[:, 0].max() - 0.5 * dx
