@@ -94,6 +94,7 @@ class Particles:
     v: wp.array(dtype=wp.vec3)  # velocities (m/s)
     C: wp.array(dtype=wp.mat33)  # affine velocity (APIC / MLS-MPM), the velocity gradient
     F: wp.array(dtype=wp.mat33)  # elastic deformation gradient
+    F_err: wp.array(dtype=wp.mat33)  # what float32 rounded off F's last update (see g2p)
     tau: wp.array(dtype=wp.mat33)  # Kirchhoff stress for the next p2g
     rot: wp.array(dtype=wp.quat)  # the tracked rotation of F (corotated models)
     plastic: wp.array(dtype=float)  # the model's state: plastic strain, snow's J_p, fracture damage
@@ -684,6 +685,21 @@ def anchor_clear(
         grid_fix_v[0, l[0], l[1], l[2]] = wp.vec3(0.0, 0.0, 0.0)
 
 
+@wp.func
+def rounding_left(Fp: wp.mat33, inc: wp.mat33, Ftrial: wp.mat33, Fstored: wp.mat33):
+    """What the float32 sum Ftrial = Fp + inc rounded off (exactly, where Ftrial and Fp are within a factor
+    of 2 of each other, as for any small increment), when the model stored Ftrial unchanged; else zero."""
+    r = wp.mat33(0.0)
+    same = True
+    for i in range(3):
+        for j in range(3):
+            if Fstored[i, j] != Ftrial[i, j]:
+                same = False
+    if same:
+        r = inc - (Ftrial - Fp)
+    return r
+
+
 @wp.kernel
 def g2p(
     ps: Particles,
@@ -757,9 +773,16 @@ def g2p(
     # F + dt (C F), not (I + dt C) F: forming I + dt C in float32 rounds dt C (~1e-7 per substep at small
     # strain) to float32's step at 1 (1.2e-7), a bias that accumulated into a +10 % creep of an anchored
     # cantilever at 0.2 % sag over 6 periods (tests/test_sim_anchor.py); the same product, summed exactly.
+    # The sum is also compensated (Kahan): F near I keeps about 1.2e-7 of resolution, and a slowly loaded
+    # stiff beam changes F by less than that per substep, so the part rounded off is carried into the next
+    # update (F_err) while the model stores the trial F as it is (an elastic step); a return mapping or a
+    # reset that changes F drops it. Without it a slender damped cantilever at 1 % sag crept on past its
+    # static deflection (1.12-1.15 of Euler-Bernoulli over 2-4 periods, issue 22).
     Fp = ps.F[p]
-    Ftrial = Fp + dt * (new_C * Fp)
+    inc = dt * (new_C * Fp) + ps.F_err[p]
+    Ftrial = Fp + inc
     c2 = update_material(mat, Ftrial, new_C, ps.rot[p], ps.plastic[p], dt, p, ps.rot, ps.plastic, ps.F, ps.tau)
+    ps.F_err[p] = rounding_left(Fp, inc, Ftrial, ps.F[p])
 
     # Reductions plan_step reads for the next step: max speed and stiffness (CFL), active box, NaN flag.
     speed = wp.length(new_v)

@@ -316,6 +316,7 @@ class MPMSolver:
         self.C = (wp.zeros(n, dtype=wp.mat33) if C0 is None
                   else wp.array(np.asarray(C0, np.float32).reshape(n, 3, 3), dtype=wp.mat33))
         self.F = wp.array(np.tile(np.eye(3, dtype=np.float32), (n, 1, 1)), dtype=wp.mat33)
+        self.F_err = wp.zeros(n, dtype=wp.mat33)
         self.tau = wp.zeros(n, dtype=wp.mat33)
         self.rot = wp.array(np.tile(np.array([0, 0, 0, 1], np.float32), (n, 1)), dtype=wp.quat)
         snow = np.array([m.model == "snow" for m in materials])[mat_index]
@@ -374,7 +375,8 @@ class MPMSolver:
         """The kernels' view of the particle arrays (the struct holds references: it stays valid
         while the arrays are only written in place)."""
         ps = K.Particles()
-        for name in ("x", "v", "C", "F", "tau", "rot", "plastic", "mass", "vol", "mat_id", "flags", "anchor_v"):
+        for name in ("x", "v", "C", "F", "F_err", "tau", "rot", "plastic", "mass", "vol", "mat_id", "flags",
+                     "anchor_v"):
             setattr(ps, name, getattr(self, name))
         return ps
 
