@@ -497,20 +497,23 @@ def wan_tracks_json(tracks: Tracks, length: Optional[int] = None, occlusion: str
     uv = tracks.uv[f0] * (1 - w) + tracks.uv[f1] * w  # (121, N, 2)
     frac = torch.from_numpy(frame_of - f0)[:, None]
     vis = tracks.visible[f0] & (tracks.visible[f1] | (frac < 1e-9))
-    out = []
-    uvn = uv.numpy()
+    # Rounded once as an array (np.round: the double nearest k / 10^decimals, so each prints as its short
+    # decimal), written as json.dumps writes [[{"x":..,"y":..},..],..] with separators (",", ":").
+    # A point crossing the camera's plane projects to ±inf or NaN: written far off the frame (it is hidden there,
+    # so "end" ends its track before), since JSON has no such numbers.
+    a = np.nan_to_num(uv.numpy().astype(np.float64), nan=-1e6, posinf=1e6, neginf=-1e6).clip(-1e6, 1e6)
+    xy = np.round(a, decimals).transpose(1, 0, 2).tolist()  # (N, 121, 2)
+    visn = vis.numpy()
+    tracks_out = []
     for n in range(tracks.num_points):
         count = WAN_TRACK_SAMPLES
         if occlusion == "end":
-            hidden = np.nonzero(~vis[:, n].numpy())[0]
+            hidden = np.flatnonzero(~visn[:, n])
             count = int(hidden[0]) if hidden.size else WAN_TRACK_SAMPLES
         if count == 0:
             continue
-        out.append([{"x": round(float(uvn[s, n, 0]), decimals), "y": round(float(uvn[s, n, 1]), decimals)}
-                    for s in range(count)])
-    import json
-
-    return json.dumps(out, separators=(",", ":"))
+        tracks_out.append("[" + ",".join(f'{{"x":{x!r},"y":{y!r}}}' for x, y in xy[n][:count]) + "]")
+    return "[" + ",".join(tracks_out) + "]"
 
 
 def _track_colours(n: int) -> np.ndarray:
@@ -532,9 +535,14 @@ def draw_tracks(images: torch.Tensor, tracks: Tracks, trail: int = 8, radius: in
     cols = _track_colours(tracks.num_points)
     uv = tracks.uv.numpy()
     vis = tracks.visible.numpy()
-    out = []
+    out = np.empty((tracks.num_frames, tracks.height, tracks.width, 3), dtype=np.uint8)
+    base, base_ptr = None, None
     for t in range(tracks.num_frames):
-        img = np.ascontiguousarray((images[t, ..., :3].clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8))
+        if images[t].data_ptr() != base_ptr or base is None:  # one frame expanded over the clip: converted once
+            base_ptr = images[t].data_ptr()
+            base = (images[t, ..., :3].clamp(0, 1).numpy() * 255 + 0.5).astype(np.uint8)
+        img = out[t]
+        img[...] = base
         for n in range(tracks.num_points):
             c = tuple(int(v) for v in cols[n])
             pts = [(float(uv[s, n, 0]), float(uv[s, n, 1])) for s in range(max(0, t - trail), t + 1) if vis[s, n]]
@@ -543,8 +551,7 @@ def draw_tracks(images: torch.Tensor, tracks: Tracks, trail: int = 8, radius: in
                          cv2.LINE_AA)
             centre = (round(float(uv[t, n, 0]) - 0.5), round(float(uv[t, n, 1]) - 0.5))
             cv2.circle(img, centre, r, c, -1 if vis[t, n] else 1, cv2.LINE_AA)
-        out.append(torch.from_numpy(img).float() / 255.0)
-    return torch.stack(out)
+    return torch.from_numpy(out).float().div_(255.0)
 
 
 # ----------------------------------------------------------------------------------------------
