@@ -21,9 +21,12 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
-from typing import Iterable, Mapping, Optional, Sequence
+from typing import TYPE_CHECKING, Iterable, Mapping, Optional, Sequence
 
 from .errors import InputError, MissingModelError
+
+if TYPE_CHECKING:  # torch is imported where used, so the module imports without it
+    import torch
 
 MODEL_FOLDERS = {
     "sams": "sams",

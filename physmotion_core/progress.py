@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import sys
 import time
-from typing import Callable, Optional, Protocol
+from typing import Optional, Protocol
 
 
 class ProgressFn(Protocol):

@@ -4,7 +4,6 @@ damaged output or Ctrl-C, and the ComfyUI executor (against the stand-in server)
 
 from __future__ import annotations
 
-import json
 import os
 import signal
 import subprocess

@@ -13,7 +13,6 @@ import logging
 import threading
 import time
 
-import numpy as np
 import pytest
 import torch
 

@@ -11,7 +11,7 @@ from physmotion_core.errors import InputError, Interrupted, MissingModelError
 from physmotion_core.lift.imagedream import generate_views, load_imagedream, views_for_lgm
 from physmotion_core.lift.learned import (LearnedLiftResult, input_camera, learned_lift, lgm_gaussians_to_world,
                                           recenter, views_for_refine)
-from physmotion_core.lift.lgm import IMAGENET_MEAN, IMAGENET_STD, LGMNet, lgm_architecture, load_lgm, orbit_pose
+from physmotion_core.lift.lgm import IMAGENET_MEAN, IMAGENET_STD, LGMNet, load_lgm, orbit_pose
 from physmotion_core.lift.silhouette import LiftResult
 from physmotion_core.refine import RefineView
 from physmotion_core.render.rasterize import rasterize

@@ -18,7 +18,6 @@ import functools
 import math
 
 import numpy as np
-import pytest
 
 from physmotion_core.sim.simulate import simulate
 from physmotion_core.types import Anchor, Conditions, Gravity, Material, Region, SimSettings

@@ -16,7 +16,7 @@ from physmotion_core.cli import main
 from physmotion_core.errors import InputError
 from physmotion_core.types.material import material_preset
 from physmotion_core.sim.simulate import simulate
-from physmotion_core.types import Conditions, Force, Gravity, Ground, InitialVelocity, SimSettings
+from physmotion_core.types import Conditions, Force, Gravity, Ground, SimSettings
 from physmotion_core.validate import cases as C
 from physmotion_core.validate import stress as S
 from physmotion_core.validate.harness import CaseResult

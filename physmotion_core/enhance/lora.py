@@ -266,7 +266,6 @@ def personalize(models, images: Sequence, masks: Sequence = (), settings: Option
     models.place("vae")
     try:
         with torch.no_grad():
-            sf = float(models.vae.config.scaling_factor)
             dists = [models.vae.encode((batch[i:i + 1].to(dev, models.vae_dtype) * 2 - 1)).latent_dist
                      for i in range(batch.shape[0])]
             means = torch.cat([d.mean.float() for d in dists]).cpu()

@@ -42,12 +42,11 @@ azimuths 0/90/180/270 (azimuth 0 = the input view, on +z looking down -z; 90 = o
 from __future__ import annotations
 
 import dataclasses
-import json
 import math
 import re
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
-from typing import Mapping, Optional, Sequence, Union
+from typing import Mapping, Optional, Union
 
 import numpy as np
 import torch
@@ -55,8 +54,7 @@ import torch.nn as nn
 import torch.nn.functional as F
 
 from ..errors import InputError, MissingModelError
-from ..models import (check_state_dict, default_dtype, describe_folder, load_state_dict_file, model_dir,
-                      pick_device, resolve_weight_file)
+from ..models import (check_state_dict, default_dtype, describe_folder, load_state_dict_file, pick_device, resolve_weight_file)
 
 __all__ = [
     "LGMConfig", "LGM_BIG", "LGMNet", "MVAttention", "ResnetBlock", "LGMUNet", "gaussian_activations",

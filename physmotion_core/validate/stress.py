@@ -18,7 +18,6 @@ Anything else (a ``SimulationError`` mid-run, another exception, an energy blow-
 from __future__ import annotations
 
 import itertools
-import math
 import time
 import traceback
 from dataclasses import dataclass, field
