@@ -171,6 +171,12 @@ N_STATUS = 10
 
 
 @wp.func
+def node_in_span(n: wp.vec3i, span_lo: wp.vec3i, span_hi: wp.vec3i) -> bool:
+    return n[0] >= span_lo[0] and n[1] >= span_lo[1] and n[2] >= span_lo[2] and n[0] <= span_hi[0] and \
+        n[1] <= span_hi[1] and n[2] <= span_hi[2]
+
+
+@wp.func
 def track_position(x: wp.vec3, grid: GridInfo, span_lo: wp.vec3i, span_hi: wp.vec3i,
                    stats: wp.array(dtype=float), status: wp.array(dtype=int)):
     """Grow the active box by x and check that x's next stencil lies inside the launch's grid span
@@ -192,6 +198,16 @@ def track_position(x: wp.vec3, grid: GridInfo, span_lo: wp.vec3i, span_hi: wp.ve
         if b[0] < 0 or b[1] < 0 or b[2] < 0 or b[0] + 2 > grid.nx - 1 or b[1] + 2 > grid.ny - 1 or \
                 b[2] + 2 > grid.nz - 1:
             status[I_ESCAPE] = 1
+
+
+@wp.func
+def track_anchored(x: wp.vec3, grid: GridInfo, anchor_lo: wp.vec3i, anchor_hi: wp.vec3i, status: wp.array(dtype=int)):
+    """Check that an anchored particle's next stencil, and a node around it, lie inside the anchor's span
+    (anchor_update's links reach one node past the held nodes); else end the launch so the host widens it."""
+    b = stencil_base(x, grid)
+    if b[0] - 1 < anchor_lo[0] or b[1] - 1 < anchor_lo[1] or b[2] - 1 < anchor_lo[2] or b[0] + 3 > anchor_hi[0] or \
+            b[1] + 3 > anchor_hi[1] or b[2] + 3 > anchor_hi[2]:
+        status[I_OVERFLOW] = 1
 
 
 @wp.kernel
@@ -365,12 +381,17 @@ def update_node(
     layer_box: wp.array2d(dtype=int),
     layer_lo: wp.vec3i,
     anchors: int,
+    anchor_lo: wp.vec3i,
+    anchor_hi: wp.vec3i,
 ):
     m = float(0.0)
     mv = wp.vec3(0.0, 0.0, 0.0)
     fix_m = float(0.0)
     fix_mv = wp.vec3(0.0, 0.0, 0.0)
     layers = grid_m.shape[0]
+    # Only anchored particles scatter into the grid_fix accumulators, and their stencils lie in the anchor's
+    # span (kernels.track_anchored): elsewhere those stay zero and are neither read nor cleared.
+    held = anchors != 0 and node_in_span(wp.vec3i(i, j, k), anchor_lo, anchor_hi)
     for l in range(layers):
         if layers > 1:
             # Nodes outside this layer's stencils were never written: skip them.
@@ -382,13 +403,14 @@ def update_node(
         lk = k - layer_lo[2]
         m += grid_m[l, li, lj, lk]
         mv += grid_mv[l, li, lj, lk]
-        fix_m += grid_fix[l, li, lj, lk]
-        fix_mv += grid_fix_v[l, li, lj, lk]
         # Leave the accumulators clean for the next substep's p2g.
         grid_m[l, li, lj, lk] = 0.0
         grid_mv[l, li, lj, lk] = wp.vec3(0.0, 0.0, 0.0)
-        grid_fix[l, li, lj, lk] = 0.0
-        grid_fix_v[l, li, lj, lk] = wp.vec3(0.0, 0.0, 0.0)
+        if held:
+            fix_m += grid_fix[l, li, lj, lk]
+            fix_mv += grid_fix_v[l, li, lj, lk]
+            grid_fix[l, li, lj, lk] = 0.0
+            grid_fix_v[l, li, lj, lk] = wp.vec3(0.0, 0.0, 0.0)
     v = wp.vec3(0.0, 0.0, 0.0)
     if m > 0.0:
         v = mv / m + dt * gravity
@@ -409,9 +431,10 @@ def update_node(
         elif j < bc.pad:
             v = contact_velocity(v, wp.vec3(0.0, 1.0, 0.0), bc.wall_contact, bc.wall_friction)
     grid_v[i, j, k] = v
-    if anchors != 0:
+    if held:
         # Keep the node's sums and free velocity in layer 0 for anchor_pin and anchor_update, which
-        # set the anchored nodes' velocities (anchor_clear then empties layer 0).
+        # set the anchored nodes' velocities (anchor_clear then empties layer 0), over the anchor's span
+        # (the anchored particles' stencils and a node around them, all those passes read or set).
         li = i - layer_lo[0]
         lj = j - layer_lo[1]
         lk = k - layer_lo[2]
@@ -438,6 +461,8 @@ def grid_update(
     run: int,
     k_end: int,
     anchors: int,
+    anchor_lo: wp.vec3i,
+    anchor_hi: wp.vec3i,
 ):
     """Node velocities from the accumulated mass and momentum. The accumulators have one layer per
     particle chunk (one in all on CUDA, where p2g's atomics are real; a chunk each for the CPU's
@@ -449,7 +474,8 @@ def grid_update(
     turning its linear index into (i, j, k) than on the node.
 
     Every node gets its free velocity here; with ``anchors`` the sums stay in layer 0 for the
-    anchor's passes (anchor_pin, anchor_update, anchor_clear)."""
+    anchor's passes (anchor_pin, anchor_update, anchor_clear) over the anchor's span ``anchor_lo`` ..
+    ``anchor_hi`` (inclusive)."""
     a, b, c = wp.tid()
     dt = dt_arr[0]
     i = lo[0] + a
@@ -457,18 +483,12 @@ def grid_update(
     k0 = lo[2] + c * run
     for k in range(k0, wp.min(k0 + run, k_end)):
         update_node(i, j, k, grid_m, grid_mv, grid_v, grid_fix, grid_fix_v, grid, bc, gravity, dt, layer_box,
-                    layer_lo, anchors)
+                    layer_lo, anchors, anchor_lo, anchor_hi)
 
 
 # ----------------------------------------------------------------------------------------------
 # Anchors: a Dirichlet condition at the held material's edge, to a fraction of a cell
 # ----------------------------------------------------------------------------------------------
-
-
-@wp.func
-def node_in_span(n: wp.vec3i, span_lo: wp.vec3i, span_hi: wp.vec3i) -> bool:
-    return n[0] >= span_lo[0] and n[1] >= span_lo[1] and n[2] >= span_lo[2] and n[0] <= span_hi[0] and \
-        n[1] <= span_hi[1] and n[2] <= span_hi[2]
 
 
 @wp.func
@@ -713,9 +733,12 @@ def g2p(
     span_hi: wp.vec3i,
     status: wp.array(dtype=int),
     offset: int,
+    anchor_lo: wp.vec3i,
+    anchor_hi: wp.vec3i,
 ):
     """Gather particles offset .. offset + launch dim; ``stats`` takes their reductions (a chunk's
-    own row on the CPU, folded in by ``merge_stats``)."""
+    own row on the CPU, folded in by ``merge_stats``). Anchored particles also check the anchor's span
+    (``track_anchored``)."""
     p = wp.tid() + offset
     dt = dt_arr[0]
     base = stencil_base(ps.x[p], grid)
@@ -745,6 +768,7 @@ def g2p(
         ps.x[p] = ps.x[p] + dt * va
         xa = ps.x[p]
         track_position(xa, grid, span_lo, span_hi, stats, status)
+        track_anchored(xa, grid, anchor_lo, anchor_hi, status)
         wp.atomic_max(stats, S_VMAX, wp.length(va))
         return
     mat = materials[ps.mat_id[p]]
@@ -793,6 +817,8 @@ def g2p(
     if not anchored:
         wp.atomic_add(stats, S_MV2, ps.mass[p] * wp.dot(new_v, new_v))
     track_position(new_x, grid, span_lo, span_hi, stats, status)
+    if anchored:
+        track_anchored(new_x, grid, anchor_lo, anchor_hi, status)
 
 
 @wp.func

@@ -237,6 +237,7 @@ class MPMSolver:
         mass = self._init_mass_and_limits(mat_index, volume)
         flags, tmask = self._particle_flags(mat_index, anchored, body, torque_mask)
         self._anchors_on = bool((flags & K.FLAG_ANCHORED).any())
+        self._held = np.flatnonzero(flags & K.FLAG_ANCHORED)
         with wp.ScopedDevice(device):
             self._alloc_particles(x, v0, C0, volume, mass, mat_index, flags)
             self._alloc_grid()
@@ -261,6 +262,7 @@ class MPMSolver:
         self._graphs: dict = {}
         self._programs: dict = {}  # recorded substep launch commands, per grid span and torque state
         self._span: Optional[tuple] = None
+        self._aspan: Optional[tuple] = None  # the anchor passes' span (inside _span), see _anchor_span
         self._chunk = 8
         # Particle chunks (see MIN_CHUNK_PARTICLES) and the threads that run them.
         self.chunks = cpu_chunks(self.n, self.device)
@@ -551,6 +553,10 @@ class MPMSolver:
         self.flags.assign(self.wp.array(flags.astype(np.int32), dtype=int, device=self.device))
         self.anchor_v.assign(self.wp.array(np.asarray(velocity, np.float32), dtype=self.wp.vec3, device=self.device))
         held = np.asarray(anchored, bool)
+        idx = np.flatnonzero(held)
+        if not np.array_equal(idx, self._held):
+            self._aspan = None  # other particles are held: the anchor's span is found again
+        self._held = idx
         self._anchors_on = bool(held.any())
         self._anchor_speed = float(np.linalg.norm(velocity[held], axis=1).max()) if held.any() else 0.0
         self._ctl[K.C_SPEED_FLOOR] = self._anchor_speed
@@ -709,14 +715,16 @@ class MPMSolver:
         return [((int(b - a), dims[1], 1), self.wp.vec3i(span_lo[0] + int(a), span_lo[1], span_lo[2]), dims[2])
                 for a, b in zip(edges[:-1], edges[1:]) if b > a]
 
-    def _record_substep(self, span_lo: tuple, span_hi: tuple, torques: bool, anchors: bool) -> list:
+    def _record_substep(self, span_lo: tuple, span_hi: tuple, torques: bool, anchors: bool, aspan: tuple) -> list:
         """The substep program: [(kernel, commands, concurrent)], in order plan → [torques] → p2g
-        → grid → [anchors] → g2p → [merge] → [rigid] → end. Every step reads dt and writes its checks on the
+        → grid → [anchors] → g2p → [merge] → [rigid] → end. The anchor passes work over ``aspan``, the
+        anchored particles' part of the span (``_anchor_span``). Every step reads dt and writes its checks on the
         device, so the program can also be captured as a graph."""
         wp = self.wp
         lo = wp.vec3i(*span_lo)
         hi = wp.vec3i(*span_hi)
         dims = tuple(int(h - l + 1) for l, h in zip(span_lo, span_hi))
+        alo, ahi = wp.vec3i(*aspan[0]), wp.vec3i(*aspan[1])
         prog = []
 
         def step(kernel, dim, inputs):
@@ -740,21 +748,25 @@ class MPMSolver:
         k_end = int(span_hi[2]) + 1
         prog.append((K.grid_update, [self._cmd(K.grid_update, slab_dims, [
             self.grid_m, self.grid_mv, self.grid_v, self.grid_fix, self.grid_fix_v, slab_lo, self.grid, self.bc,
-            self._gravity_w, self.dt_arr, self.layer_box, self._layer_lo_w, run, k_end, int(anchors)])
+            self._gravity_w, self.dt_arr, self.layer_box, self._layer_lo_w, run, k_end, int(anchors), alo, ahi])
             for slab_dims, slab_lo, run in slabs], True))
         if anchors:
-            # The anchored nodes, from the sums grid_update left in layer 0 (kernels.anchor_update).
-            step(K.anchor_pin, self.n, [self.particles, self.grid, self.grid_m, self.grid_fix, lo, hi,
+            # The anchored nodes, from the sums grid_update left in layer 0 (kernels.anchor_update), over the
+            # anchor's span only: elsewhere no node is held or next to a held one, and these passes change nothing.
+            adims = tuple(int(h - l + 1) for l, h in zip(aspan[0], aspan[1]))
+            aslabs = self._grid_slabs(aspan[0], adims)
+            ak_end = int(aspan[1][2]) + 1
+            step(K.anchor_pin, self.n, [self.particles, self.grid, self.grid_m, self.grid_fix, alo, ahi,
                                         self._layer_lo_w])
             prog.append((K.anchor_update, [self._cmd(K.anchor_update, slab_dims, [
-                self.grid_m, self.grid_mv, self.grid_v, self.grid_fix, self.grid_fix_v, slab_lo, lo, hi,
-                self._layer_lo_w, run, k_end]) for slab_dims, slab_lo, run in slabs], True))
+                self.grid_m, self.grid_mv, self.grid_v, self.grid_fix, self.grid_fix_v, slab_lo, alo, ahi,
+                self._layer_lo_w, run, ak_end]) for slab_dims, slab_lo, run in aslabs], True))
             prog.append((K.anchor_clear, [self._cmd(K.anchor_clear, slab_dims, [
-                self.grid_m, self.grid_mv, self.grid_fix, self.grid_fix_v, slab_lo, self._layer_lo_w, run, k_end])
-                for slab_dims, slab_lo, run in slabs], True))
+                self.grid_m, self.grid_mv, self.grid_fix, self.grid_fix_v, slab_lo, self._layer_lo_w, run, ak_end])
+                for slab_dims, slab_lo, run in aslabs], True))
         prog.append((K.g2p, [self._cmd(K.g2p, count, [
             self.particles, self.material_table, forces, self.grid_v, self.grid, self.dt_arr, self._stats_of[c],
-            lo, hi, self.status, start]) for c, (start, count) in chunks], True))
+            lo, hi, self.status, start, alo, ahi]) for c, (start, count) in chunks], True))
         if self.stats_rows is not None:
             step(K.merge_stats, 1, [self.stats_rows, self.stats])
         if self.n_bodies:
@@ -781,12 +793,13 @@ class MPMSolver:
 
     def _substep_kernels(self, span_lo: tuple, span_hi: tuple, torques: bool) -> None:
         """Run one substep: the recorded program for this span, torque and anchor state."""
-        key = (span_lo, span_hi, torques, self._anchors_on)
+        aspan = self._aspan if self._anchors_on and self._aspan is not None else (span_lo, span_hi)
+        key = (span_lo, span_hi, torques, self._anchors_on, aspan)
         prog = self._programs.get(key)
         if prog is None:
             if len(self._programs) >= MAX_GRAPHS:
                 self._programs.pop(next(iter(self._programs)))
-            prog = self._programs[key] = self._record_substep(span_lo, span_hi, torques, self._anchors_on)
+            prog = self._programs[key] = self._record_substep(span_lo, span_hi, torques, self._anchors_on, aspan)
         for kernel, cmds, concurrent in prog:
             self._run_step(kernel, cmds, concurrent)
 
@@ -798,10 +811,27 @@ class MPMSolver:
         With graphs, the room also covers the acceleration bound (a new span means a new capture).
         Without, it covers the present speed only, at most EAGER_SPAN_MARGIN nodes: outgrowing a
         span only ends the launch early, and every grid node spared is work saved each substep."""
+        return self._span_around(*self._box, horizon)
+
+    def _anchor_span(self, horizon: float) -> tuple[tuple, tuple]:
+        """The nodes the anchor passes work on: the held particles' stencils and one node around them
+        (anchor_update's links), with the same room for travel as ``_grid_span``, inside the launch's span.
+        Every other node has no held mass and no held neighbour, so the passes would leave it as it is; a
+        held particle whose stencil would leave this span ends the launch (kernels.track_anchored)."""
+        xa = self.x.numpy()[self._held].astype(np.float64)
+        (alo, ahi) = self._span_around(xa.min(0), xa.max(0), horizon, extra=1, quantum=1)
+        (slo, shi) = self._span
+        lo = tuple(max(a, s) for a, s in zip(alo, slo))
+        hi = tuple(max(min(a, s), l) for a, s, l in zip(ahi, shi, lo))
+        return lo, hi
+
+    def _span_around(self, lo: np.ndarray, hi: np.ndarray, horizon: float, extra: int = 0,
+                     quantum: int = SPAN_QUANTUM) -> tuple[tuple, tuple]:
+        """The span of ``_grid_span`` for particles in the box lo .. hi, ``extra`` nodes wider per side,
+        rounded out to multiples of ``quantum`` nodes."""
         d = self.domain
-        lo, hi = self._box
-        node_lo = np.floor((lo - d.origin) / d.dx - 0.5).astype(np.int64)
-        node_hi = np.floor((hi - d.origin) / d.dx - 0.5).astype(np.int64) + 2
+        node_lo = np.floor((lo - d.origin) / d.dx - 0.5).astype(np.int64) - extra
+        node_hi = np.floor((hi - d.origin) / d.dx - 0.5).astype(np.int64) + 2 + extra
         speed = max(float(self._stats[K.S_VMAX]), self._anchor_speed)
         travel = speed * horizon
         cap = EAGER_SPAN_MARGIN
@@ -809,7 +839,7 @@ class MPMSolver:
             travel += 0.5 * float(self._ctl[K.C_ACCEL]) * horizon * horizon
             cap = MAX_SPAN_MARGIN
         margin = int(min(max(math.ceil(travel / d.dx) + 1, 2), cap))
-        q = SPAN_QUANTUM
+        q = int(quantum)
         span_lo = np.maximum((node_lo - margin) // q * q, 0)
         span_hi = np.minimum(-((-(node_hi + margin + 1)) // q) * q - 1, np.asarray(d.dims) - 1)
         return tuple(int(v) for v in span_lo), tuple(int(v) for v in span_hi)
@@ -840,7 +870,7 @@ class MPMSolver:
                 wp.capture_while(self.cond, self._substep_kernels, span_lo=span[0], span_hi=span[1],
                                  torques=self._torques_on)
                 return
-            key = (span, self._torques_on, self._anchors_on)
+            key = (span, self._torques_on, self._anchors_on, self._aspan)
             graph = self._graphs.get(key)
             if graph is None:
                 if len(self._graphs) >= MAX_GRAPHS:
@@ -899,6 +929,9 @@ class MPMSolver:
             if self._span is None:
                 self._span = self._grid_span(t_end - self.t)
                 self._fit_layers(self._span)
+                self._aspan = None
+            if self._anchors_on and self._aspan is None:
+                self._aspan = self._anchor_span(t_end - self.t)
             self._ctl[K.C_T_END] = t_end
             self._status[K.I_LAUNCH_SUBSTEPS] = 0
             self._status[K.I_CHUNK] = self._chunk
@@ -914,7 +947,7 @@ class MPMSolver:
                 self._raise_invalid(frame)
             if self._status[K.I_OVERFLOW]:
                 self._status[K.I_OVERFLOW] = 0
-                self._span = None  # the particles outgrew the span: the next launch gets a wider one
+                self._span = None  # the particles outgrew a span: the next launch gets wider ones
                 self.span_changes += 1
             if progress is not None:
                 progress()
@@ -924,6 +957,9 @@ class MPMSolver:
         if self._span is None:
             self._span = self._grid_span(float(dt))
             self._fit_layers(self._span)
+            self._aspan = None
+        if self._anchors_on and self._aspan is None:
+            self._aspan = self._anchor_span(float(dt))
         self._ctl[K.C_FORCE_DT] = float(dt)
         self._ctl[K.C_T_END] = self.t + float(dt)
         self._status[K.I_LAUNCH_SUBSTEPS] = 0
