@@ -24,6 +24,8 @@ import numpy as np  # noqa: E402
 
 from comfy_harness import node_classes, prepare_template_inputs, run_prompt  # noqa: E402
 
+from physmotion_core.errors import MissingModelError  # noqa: E402
+
 #: Native nodes that need weights (or a newer ComfyUI) and the stand-in .ply their output is replaced
 #: with for the thumbnail (the frame is then labelled as made with a stand-in).
 STANDIN_SPLATS = {"VAEDecodeTripoSplat": "PhysMotion/standin_splat.ply"}
@@ -96,7 +98,11 @@ def main(names: list[str]) -> int:
             # at the full 20000 alike (IoU 0.98, colour error 0.043-0.048: docs/lift.md).
             prepare_template_inputs(prompt, Path(tmp), max_gaussians=4000)
             t0 = time.perf_counter()
-            out = run_prompt(prompt)
+            try:
+                out = run_prompt(prompt)
+            except MissingModelError as exc:  # a learned stage the stand-ins do not replace: keep its thumbnail
+                print(f"{path.stem}: skipped (needs learned weights: {str(exc).split(' not found')[0]})", flush=True)
+                continue
             wall = time.perf_counter() - t0
         frames = out["results"][frames_node(prompt)][0]
         sims = [r[0] for r in out["results"].values() if r and type(r[0]).__name__ == "SimResult"]
