@@ -60,7 +60,7 @@ FLAG_RIGID = wp.constant(2)
 # on the grid links that cross its edge (where the fraction passes ½) it puts the clamp on the edge
 # itself (anchor_update). Before, a node was held from 15 % up, so the clamp sat on a node and
 # jumped by most of a cell as the grid slid past the edge: a hanging bar at 10 cells rang −3.2 …
-# +4.5 % off 4 L / c over ten offsets of the grid across a cell, now −2.1 … +0.6 % (L from the held
+# +4.5 % off 4 L / c over ten offsets of the grid across a cell, now −1.9 … +0.6 % (L from the held
 # particles' face; tests/test_sim_anchor.py).
 ANCHOR_LEVEL = wp.constant(0.5)
 
