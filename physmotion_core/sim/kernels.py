@@ -203,10 +203,13 @@ def track_position(x: wp.vec3, grid: GridInfo, span_lo: wp.vec3i, span_hi: wp.ve
 @wp.func
 def track_anchored(x: wp.vec3, grid: GridInfo, anchor_lo: wp.vec3i, anchor_hi: wp.vec3i, status: wp.array(dtype=int)):
     """Check that an anchored particle's next stencil, and a node around it, lie inside the anchor's span
-    (anchor_update's links reach one node past the held nodes); else end the launch so the host widens it."""
+    (anchor_update's links reach one node past the held nodes; past the grid's edge there is no node to
+    reach); else end the launch so the host widens it."""
     b = stencil_base(x, grid)
-    if b[0] - 1 < anchor_lo[0] or b[1] - 1 < anchor_lo[1] or b[2] - 1 < anchor_lo[2] or b[0] + 3 > anchor_hi[0] or \
-            b[1] + 3 > anchor_hi[1] or b[2] + 3 > anchor_hi[2]:
+    lo = wp.vec3i(wp.max(b[0] - 1, 0), wp.max(b[1] - 1, 0), wp.max(b[2] - 1, 0))
+    hi = wp.vec3i(wp.min(b[0] + 3, grid.nx - 1), wp.min(b[1] + 3, grid.ny - 1), wp.min(b[2] + 3, grid.nz - 1))
+    if lo[0] < anchor_lo[0] or lo[1] < anchor_lo[1] or lo[2] < anchor_lo[2] or hi[0] > anchor_hi[0] or \
+            hi[1] > anchor_hi[1] or hi[2] > anchor_hi[2]:
         status[I_OVERFLOW] = 1
 
 
