@@ -394,7 +394,7 @@ def update_node(
     layers = grid_m.shape[0]
     # Only anchored particles scatter into the grid_fix accumulators, and their stencils lie in the anchor's
     # span (kernels.track_anchored): elsewhere those stay zero and are neither read nor cleared.
-    held = anchors != 0 and node_in_span(wp.vec3i(i, j, k), anchor_lo, anchor_hi)
+    in_anchor = anchors != 0 and node_in_span(wp.vec3i(i, j, k), anchor_lo, anchor_hi)
     for l in range(layers):
         if layers > 1:
             # Nodes outside this layer's stencils were never written: skip them.
@@ -409,7 +409,7 @@ def update_node(
         # Leave the accumulators clean for the next substep's p2g.
         grid_m[l, li, lj, lk] = 0.0
         grid_mv[l, li, lj, lk] = wp.vec3(0.0, 0.0, 0.0)
-        if held:
+        if in_anchor:
             fix_m += grid_fix[l, li, lj, lk]
             fix_mv += grid_fix_v[l, li, lj, lk]
             grid_fix[l, li, lj, lk] = 0.0
@@ -434,7 +434,7 @@ def update_node(
         elif j < bc.pad:
             v = contact_velocity(v, wp.vec3(0.0, 1.0, 0.0), bc.wall_contact, bc.wall_friction)
     grid_v[i, j, k] = v
-    if held:
+    if in_anchor:
         # Keep the node's sums and free velocity in layer 0 for anchor_pin and anchor_update, which
         # set the anchored nodes' velocities (anchor_clear then empties layer 0), over the anchor's span
         # (the anchored particles' stencils and a node around them, all those passes read or set).
@@ -697,7 +697,7 @@ def anchor_clear(
     run: int,
     k_end: int,
 ):
-    """Empty layer 0 over the span after the anchor's passes, for the next substep's p2g."""
+    """Empty layer 0 over the anchor's span after the anchor's passes, for the next substep's p2g."""
     a, b, c = wp.tid()
     k0 = lo[2] + c * run
     for kk in range(k0, wp.min(k0 + run, k_end)):
