@@ -695,3 +695,18 @@ def test_half_precision_gaussians_render_like_float32():
     torch.testing.assert_close(half.alpha.float(), ref.alpha, atol=1e-2, rtol=0)
     torch.testing.assert_close(half.rgb.float(), ref.rgb, atol=1e-2, rtol=0)
     assert float((half.alpha.float() - ref.alpha).abs().mean()) < 1e-3
+
+
+@pytest.mark.parametrize("shape", [(3, 700, 64), (200, 12, 64)])
+def test_cumprod_both_ways_match_float64(shape):
+    """_cumprod_ takes cumprod_ for few tiles and a long chunk and loops over the chunk otherwise; either way
+    the transmittances are the float64 products to float32 round-off (relative 1e-5 over 700 factors)."""
+    from physmotion_core.render._torch_raster import CUMPROD_LOOP_MIN, _cumprod_
+
+    T, K, P = shape
+    assert (T * P < CUMPROD_LOOP_MIN) == (shape[0] == 3)  # one shape per branch
+    g = torch.Generator().manual_seed(0)
+    x = 1.0 - 0.01 * torch.rand(shape, generator=g)  # 700 factors down to ~3e-2, no underflow
+    ref = x.double().cumprod(1)
+    got = _cumprod_(x.clone())
+    assert torch.allclose(got.double(), ref, rtol=1e-5, atol=0.0)
