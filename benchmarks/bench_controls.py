@@ -8,7 +8,8 @@ hold them: the tracks node alone (as the Wan tracks template), the controls node
 template) and all three (tracks, controls, forward flow; one render shared, see nodes/video_control.py).
 A plain render of the clip
 (render_frames, what the coarse video costs) is timed too. Written to docs/benchmarks.md, section
-"controls". Usage:
+"controls" ("controls-gpu" on a CUDA machine, where the simulations and renders run on the GPU;
+scripts/gpu_checks.sh runs it). Usage:
     .venv/bin/python -m benchmarks.bench_controls [name ...]   (names: a subset, said so in the section)
 """
 
@@ -72,12 +73,30 @@ def _scenario(classes, common, background, which) -> float:
     return time.perf_counter() - t0
 
 
+def _gpu_renderer() -> str:
+    from physmotion_core.render.rasterize import gsplat_available
+
+    return "with gsplat" if gsplat_available() else "with the PyTorch rasterizer on CUDA (gsplat not installed)"
+
+
 def main(names: list[str]) -> int:
     # Torch renders with as many threads as the simulation ran with (PHYSMOTION_CPU_THREADS, else every
     # core), as in ComfyUI, where both use the machine.
     env = os.environ.get("PHYSMOTION_CPU_THREADS", "").strip()
     torch.set_num_threads(int(env) if env.isdigit() and int(env) > 0 else (os.cpu_count() or 1))
     classes = node_classes()
+    # On a CUDA machine the simulations, renders and nodes run there (the nodes follow ComfyUI's device, else
+    # CUDA when available); the numbers go to their own section. Warp's kernels are compiled first, so no
+    # simulation pays for it, and each clip's plain render is timed after a warm-up render (gsplat's JIT).
+    gpu = torch.cuda.is_available()
+    dev = torch.device("cuda:0" if gpu else "cpu")
+    if gpu:
+        import warp as wp
+
+        from physmotion_core.sim import kernels, pose
+
+        for module in (kernels, pose):
+            wp.load_module(module, device="cuda:0")
     loads = []  # 1-minute load averages while the nodes ran: how busy the shared machine was
     rows, totals = [], {"sim": 0.0, "render": 0.0, "tracks": 0.0, "controls": 0.0, "all": 0.0}
     for path in sorted((ROOT / "example_workflows" / "api").glob("*.json")):
@@ -107,7 +126,10 @@ def main(names: list[str]) -> int:
             common = dict(simulation=sim, camera=camera, width=WIDTH, height=HEIGHT, fps=FPS, length=length)
             rs = C.resample_simulation(sim, FPS, length)
             loads.append(os.getloadavg()[0])
-            _, t_render = _timed(lambda: render_frames(rs, C.fit_camera(camera, WIDTH, HEIGHT)))
+            fitted = C.fit_camera(camera, WIDTH, HEIGHT)
+            if gpu:
+                render_frames(rs, fitted, device=dev)  # warm-up
+            _, t_render = _timed(lambda: render_frames(rs, fitted, device=dev))
             t_tracks = _scenario(classes, common, background, ("tracks",))
             t_controls = _scenario(classes, common, background, ("controls",))
             t_all = _scenario(classes, common, background, ("tracks", "controls", "flow"))
@@ -126,7 +148,8 @@ def main(names: list[str]) -> int:
                 f"{totals['all']:.1f} ({100 * totals['all'] / ts:.0f} %) |")
     busy = (" (above the core count: shared with other jobs, so every time here is longer than on an idle machine)"
             if max(loads, default=0.0) > (os.cpu_count() or 1) else " (not above the core count)")
-    md = f"""## Wan controls next to the simulation
+    where = "" if not gpu else f" (GPU: simulations with Warp on cuda:0, renders {_gpu_renderer()})"
+    md = f"""## Wan controls next to the simulation{where}
 
 The three video-control nodes (`PhysMotionPointTracks`, `PhysMotionControlVideos`, `PhysMotionExactFlow`)
 on the simulation of each CPU template, at {WIDTH}x{HEIGHT}, {FPS:g} fps and the 4k+1 frame count the
@@ -148,7 +171,7 @@ on {os.cpu_count()} cores{busy}. Measured {datetime.date.today().isoformat()}. R
 | template | Gaussians | frames (sim -> Wan) | simulation s (threads) | render s | tracks node s | controls node s | all three s |
 | --- | ---: | --- | ---: | ---: | ---: | ---: | ---: |
 """ + "\n".join(rows) + "\n"
-    update_section("benchmarks.md", "controls", md)
+    update_section("benchmarks.md", "controls-gpu" if gpu else "controls", md)
     print(md)
     return 0
 

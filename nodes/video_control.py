@@ -172,8 +172,9 @@ class PhysMotionPointTracks:
         sim, cam = _at_model_clock(simulation, camera, width, height, fps, length)
         # The tracks are the particles projected through the camera; frame 0 is rendered to pick the points,
         # and in the other frames only the pixels around the points, for their visibility (C.probe_tracks).
+        dev = torch_device()
         tracks, first = C.probe_tracks(sim, cam, int(num_points), background_points=int(background_points),
-                                       progress=progress_callback())
+                                       device=dev if dev.type == "cuda" else "cpu", progress=progress_callback())
         text = C.wan_tracks_json(tracks, occlusion="end" if occlusion == "end track" else "keep")
         if preview == "coarse video":
             rcam = cam.resized(cam.width // PREVIEW_DIVISOR, cam.height // PREVIEW_DIVISOR)

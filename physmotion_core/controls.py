@@ -400,6 +400,7 @@ def point_tracks(sim: SimResult, frames: FrameSet, camera: Camera, num_points: i
 
 def probe_tracks(sim: SimResult, camera: Camera, num_points: int = 64, *, background_points: int = 0,
                  depth_tolerance: float = 0.0, edge_px: int = 2, backend: str = "auto",
+                 device: Optional[str] = None,
                  progress: Optional[ProgressFn] = None) -> tuple[Tracks, FrameSet]:
     """``point_tracks`` without rendering the clip: the same tracks (the same points, positions and
     visibility), and frame 0's render (for a preview).
@@ -408,14 +409,15 @@ def probe_tracks(sim: SimResult, camera: Camera, num_points: int = 64, *, backgr
     3x3 pixels around each point are rendered (``render.rasterize.probe``: the rasterizer's own projection,
     order and compositing over the tiles that hold them, so the depth and alpha there are the whole frame's
     to round-off). The background anchors go where no splat's box ever reaches (a conservative "never
-    covered", so they need no visibility test)."""
+    covered", so they need no visibility test). ``device``: where the renders and probes run (default the CPU)."""
     from .render.frames import frame_threads, run_frame_blocks
     from .render.rasterize import probe, rasterize
 
     _check_track_counts(num_points, background_points)
     T, H, W = sim.num_frames, int(camera.height), int(camera.width)
+    dev = torch.device(device) if device is not None else torch.device("cpu")
     with torch.no_grad():
-        out = rasterize(sim.gaussians_at(0), camera, backend=backend)
+        out = rasterize(sim.gaussians_at(0).to(dev), camera, backend=backend)
     first = FrameSet(rgb=out.rgb.cpu()[None], alpha=out.alpha.cpu()[None], depth=out.depth.cpu()[None],
                      fps=sim_fps(sim))
     k = _pick_particles(sim, first.alpha[0], first.depth[0], camera, num_points, edge_px)
@@ -429,14 +431,14 @@ def probe_tracks(sim: SimResult, camera: Camera, num_points: int = 64, *, backgr
     def work(a: int, b: int, done) -> None:  # frames 1 + a .. b (blocks on several threads on the CPU)
         seen = torch.zeros(H, W, dtype=torch.bool)
         for t in range(1 + a, 1 + b):
-            p = probe(sim.gaussians_at(t), camera, around_points(uv[t], W, H))
+            p = probe(sim.gaussians_at(t).to(dev), camera, around_points(uv[t], W, H))
             vis[t] = _visible(uv[t:t + 1], z[t:t + 1], p.alpha.cpu()[None], p.depth.cpu()[None], tol)[0]
             seen |= p.footprint.cpu()
             done(t - 1)
         covered.append(seen)
 
     report(progress, 1, T)
-    run_frame_blocks(T - 1, frame_threads(T - 1, torch.device("cpu")), work,
+    run_frame_blocks(T - 1, frame_threads(T - 1, dev), work,
                      None if progress is None else lambda k, n: report(progress, k + 1, n + 1))
     covered = torch.stack(covered).any(0)
     particle = k

@@ -6,7 +6,7 @@
 # optionally gsplat. Results land in $OUT (default out/gpu): the pytest log and the docs sections
 # the benchmarks rewrite (copy them back into docs/).
 #
-#   bash scripts/gpu_checks.sh            # everything below, about 6-8 min on an H100/H200
+#   bash scripts/gpu_checks.sh            # everything below, about 8-10 min on an H100/H200 (estimate)
 #   QUICK=1 bash scripts/gpu_checks.sh    # the tests and the launch-mode table only
 set -uo pipefail
 cd "$(dirname "$0")/.."
@@ -15,14 +15,17 @@ mkdir -p "$OUT"
 PY=${PYTHON:-python3}
 export PYTHONUNBUFFERED=1
 nvidia-smi -L 2>&1 | tee "$OUT/gpu.txt"
-# CUDA tests: MPM graph run vs the CPU run, torch rasterizer on CUDA vs CPU, gsplat vs ours, fp16 LGM.
-$PY -m pytest -q -p no:cacheprovider tests/test_sim_graph.py tests/test_render.py tests/test_lgm.py \
+# CUDA tests: MPM graph run vs the CPU run, torch rasterizer on CUDA vs CPU, gsplat vs ours, fp16 LGM,
+# the Wan controls' probes and clip on CUDA vs CPU.
+$PY -m pytest -q -p no:cacheprovider tests/test_sim_graph.py tests/test_render.py tests/test_lgm.py tests/test_controls.py \
     -k "cuda or gsplat or fp16" 2>&1 | tee "$OUT/pytest.log"
 # MPM: kernel-by-kernel vs CUDA-graph replay (docs/benchmarks.md, section sim-launch-cuda).
 $PY -m benchmarks.bench_sim --launch-only --device cuda:0 2>&1 | tee "$OUT/launch.log"
 if [ -z "${QUICK:-}" ]; then
   # MPM throughput against particle count / grid size on the GPU (section sim-throughput).
   $PY -m benchmarks.bench_sim --quick --device cuda:0 2>&1 | tee "$OUT/sim.log"
+  # Wan controls next to the simulation on the GPU, every CPU template (section controls-gpu; issue 17).
+  $PY -m benchmarks.bench_controls 2>&1 | tee "$OUT/controls.log"
   # Enhancement: s/frame and peak memory, full-size random SD 2.1 + 2 ControlNets (docs/enhance.md, gpu).
   $PY -m benchmarks.bench_enhance --gpu --gpu-steps 3 2>&1 | tee "$OUT/enhance.log"
 fi

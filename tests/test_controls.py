@@ -659,6 +659,21 @@ def test_track_points_match_point_tracks_on_the_rendered_clip(clip):
     assert float(frames.alpha[:, by, bx].max()) == 0.0
 
 
+
+@pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
+def test_cuda_tracks_and_clip_match_the_cpu(clip):
+    """On a GPU the tracks node probes and the controls render there (torch on CUDA, or gsplat for the clip):
+    the same tracks as on the CPU but where a depth test sits within round-off of its tolerance, and the
+    clip's alpha within a 1/255 step."""
+    _, rs, cam, frames, _ = clip
+    cpu, _ = C.probe_tracks(rs, cam, 48, background_points=4)
+    gpu, _ = C.probe_tracks(rs, cam, 48, background_points=4, device="cuda")
+    assert torch.equal(gpu.particle, cpu.particle) and torch.equal(gpu.uv, cpu.uv)
+    assert float((gpu.visible != cpu.visible).float().mean()) <= 0.01
+    got, _ = C.render_clip(rs, cam, device="cuda")
+    assert float((got.alpha - frames.alpha).abs().max()) < 1.0 / 255.0
+
+
 # ---------------------------------------------------------------------------------------------
 # Templates
 # ---------------------------------------------------------------------------------------------
