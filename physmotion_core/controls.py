@@ -728,14 +728,19 @@ def render_clip(sim: SimResult, camera: Camera, *, flow: Optional[str] = None, d
                 if feats is not None:
                     pair = t if flow == "forward" else d
                     ok = a_t > 0.5
-                    if bool(ok.any()):
-                        e = (out.extra.cpu()[ok].double() / a_t[ok].double()[:, None]).view(-1, 3, 3)
-                        r = ray[ok]
-                        D = e[..., 0] * r[:, 0:1] + e[..., 1] * r[:, 1:2] + e[..., 2]  # where the point goes
-                        p = grid[ok]
-                        uv = torch.stack([camera.fx * D[:, 0] / D[:, 2] + camera.cx,
-                                          camera.fy * D[:, 1] / D[:, 2] + camera.cy], -1)
-                        flows[pair][ok] = (uv - p).float()
+                    rows, cols = ok.any(1).nonzero(), ok.any(0).nonzero()
+                    if rows.numel():
+                        # Over the box the object covers (cheaper than gathering the pixels by mask, the same values
+                        # at them): the pixels it does not cover get 0.
+                        y0, y1, x0, x1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+                        o = ok[y0:y1, x0:x1]
+                        a = torch.where(o, a_t[y0:y1, x0:x1], 1.0).double()
+                        e = (out.extra[y0:y1, x0:x1].cpu().double() / a[..., None]).view(y1 - y0, x1 - x0, 3, 3)
+                        r = ray[y0:y1, x0:x1]
+                        D = e[..., 0] * r[..., 0:1] + e[..., 1] * r[..., 1:2] + e[..., 2]  # where the point goes
+                        uv = torch.stack([camera.fx * D[..., 0] / D[..., 2] + camera.cx,
+                                          camera.fy * D[..., 1] / D[..., 2] + camera.cy], -1)
+                        flows[pair, y0:y1, x0:x1] = torch.where(o[..., None], uv - grid[y0:y1, x0:x1], 0.0).float()
                         valid[pair] = ok
                 done(t)
 
