@@ -410,7 +410,7 @@ def probe_tracks(sim: SimResult, camera: Camera, num_points: int = 64, *, backgr
     order and compositing over the tiles that hold them, so the depth and alpha there are the whole frame's
     to round-off). The background anchors go where no splat's box ever reaches (a conservative "never
     covered", so they need no visibility test). ``device``: where the renders and probes run (default the CPU)."""
-    from .render.frames import frame_threads, run_frame_blocks
+    from .render.frames import frame_threads, render_costs, run_frame_blocks
     from .render.rasterize import probe, rasterize
 
     _check_track_counts(num_points, background_points)
@@ -431,6 +431,10 @@ def probe_tracks(sim: SimResult, camera: Camera, num_points: int = 64, *, backgr
     def work(a: int, b: int, done) -> None:  # frames 1 + a .. b (blocks on several threads on the CPU)
         seen = torch.zeros(H, W, dtype=torch.bool)
         for t in range(1 + a, 1 + b):
+            if t > 1 + a and sim.same_pose(t, t - 1):  # at rest: the same points, probed to the same values
+                vis[t] = vis[t - 1]
+                done(t - 1)
+                continue
             p = probe(sim.gaussians_at(t).to(dev), camera, around_points(uv[t], W, H))
             vis[t] = _visible(uv[t:t + 1], z[t:t + 1], p.alpha.cpu()[None], p.depth.cpu()[None], tol)[0]
             seen |= p.footprint.cpu()
@@ -439,7 +443,8 @@ def probe_tracks(sim: SimResult, camera: Camera, num_points: int = 64, *, backgr
 
     report(progress, 1, T)
     run_frame_blocks(T - 1, frame_threads(T - 1, dev), work,
-                     None if progress is None else lambda k, n: report(progress, k + 1, n + 1))
+                     None if progress is None else lambda k, n: report(progress, k + 1, n + 1),
+                     cost=render_costs(sim, 1))
     covered = torch.stack(covered).any(0)
     particle = k
     if background_points:
@@ -674,6 +679,22 @@ def _flow_features(sim: SimResult, w2c: torch.Tensor, mu_s: torch.Tensor, L_s: t
     return G.reshape(-1, FLOW_CHANNELS)
 
 
+def _repeats_previous(sim: SimResult, t: int, d: int, flow: Optional[str]) -> bool:
+    """Whether ``render_clip``'s frame t (with the flow channels toward frame d when there is a flow) is its frame
+    t-1's, bit for bit: the same pose and, with a flow, the same pose at both frames' destinations (forward: t+1
+    and t; backward: t-1 and t-2), so that both carry the channels or neither."""
+    if not sim.same_pose(t, t - 1):
+        return False
+    if flow is None:
+        return True
+    d_prev = d - 1  # the destination frame t-1 used
+    T = sim.num_frames
+    has, had = 0 <= d < T, 0 <= d_prev < T
+    if has != had:
+        return False
+    return not has or sim.same_pose(d, d_prev)
+
+
 def render_clip(sim: SimResult, camera: Camera, *, flow: Optional[str] = None, device: Optional[str] = None,
                 backend: str = "auto", progress: Optional[ProgressFn] = None) -> tuple[FrameSet, Optional["Flow"]]:
     """Every frame rendered once (RGB, alpha, depth as ``render_frames``) and, with ``flow`` ("forward" or
@@ -681,7 +702,7 @@ def render_clip(sim: SimResult, camera: Camera, *, flow: Optional[str] = None, d
     composited channels (``_flow_features``) that map its visible surface points to the next (forward) or
     previous (backward) frame. So the control videos and the flow of one clip cost one render, posing each
     frame once (twice at the edges of the blocks of frames that render at once on the CPU: ``frame_threads``)."""
-    from .render.frames import check_frames_fit, frame_threads, run_frame_blocks
+    from .render.frames import check_frames_fit, frame_threads, render_costs, run_frame_blocks
     from .render.rasterize import rasterize
 
     if flow not in (None, "forward", "backward"):
@@ -716,8 +737,15 @@ def render_clip(sim: SimResult, camera: Camera, *, flow: Optional[str] = None, d
 
         with torch.no_grad():
             for t in range(a, b):
-                g, mu, L = pose(t)
                 d = t + 1 if flow == "forward" else t - 1 if flow == "backward" else -1
+                if t > a and _repeats_previous(sim, t, d, flow):
+                    rgb[t], alpha[t], depth[t] = rgb[t - 1], alpha[t - 1], depth[t - 1]
+                    if 0 <= d < T:  # and the previous frame's flow pair
+                        pair, before = (t, t - 1) if flow == "forward" else (d, d - 1)
+                        flows[pair], valid[pair] = flows[before], valid[before]
+                    done(t)
+                    continue
+                g, mu, L = pose(t)
                 feats = None
                 if 0 <= d < T:
                     _, mu_d, L_d = pose(d)
@@ -734,8 +762,8 @@ def render_clip(sim: SimResult, camera: Camera, *, flow: Optional[str] = None, d
                         # at them): the pixels it does not cover get 0.
                         y0, y1, x0, x1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
                         o = ok[y0:y1, x0:x1]
-                        a = torch.where(o, a_t[y0:y1, x0:x1], 1.0).double()
-                        e = (out.extra[y0:y1, x0:x1].cpu().double() / a[..., None]).view(y1 - y0, x1 - x0, 3, 3)
+                        a_box = torch.where(o, a_t[y0:y1, x0:x1], 1.0).double()
+                        e = (out.extra[y0:y1, x0:x1].cpu().double() / a_box[..., None]).view(y1 - y0, x1 - x0, 3, 3)
                         r = ray[y0:y1, x0:x1]
                         D = e[..., 0] * r[..., 0:1] + e[..., 1] * r[..., 1:2] + e[..., 2]  # where the point goes
                         uv = torch.stack([camera.fx * D[..., 0] / D[..., 2] + camera.cx,
@@ -744,7 +772,7 @@ def render_clip(sim: SimResult, camera: Camera, *, flow: Optional[str] = None, d
                         valid[pair] = ok
                 done(t)
 
-    run_frame_blocks(T, frame_threads(T, dev), work, progress)
+    run_frame_blocks(T, frame_threads(T, dev), work, progress, cost=render_costs(sim))
     frames = FrameSet(rgb=rgb, alpha=alpha, depth=depth, fps=sim_fps(sim))
     if flow is None:
         return frames, None

@@ -660,6 +660,70 @@ def test_track_points_match_point_tracks_on_the_rendered_clip(clip):
 
 
 
+def _coming_to_rest(rs: SimResult, stop: int) -> SimResult:
+    """``rs`` with every frame from ``stop`` on posed as frame ``stop`` (the object at rest), and one frame in the
+    middle of the motion repeated (a pause)."""
+    x, F = rs.x.clone(), rs.F.clone()
+    x[stop:], F[stop:] = x[stop], F[stop]
+    x[5], F[5] = x[4], F[4]
+    return dataclasses.replace(rs, x=x, F=F)
+
+
+def test_frames_at_rest_are_copied_not_drawn_again(clip, monkeypatch):
+    """A frame posed bit for bit as the one before it (SimResult.same_pose) gets that frame's render, colour,
+    depth, flow and track visibility, exactly what drawing it again gives (checked with the reuse turned off),
+    and the rasterizer is not called for it; on several threads too, whose blocks are balanced by the frames
+    that need drawing."""
+    import importlib
+
+    R = importlib.import_module("physmotion_core.render.rasterize")  # the package exports the function by that name
+    _, rs, cam, _, _ = clip
+    sim = _coming_to_rest(rs, 20)
+    T = sim.num_frames
+    assert sim.same_pose(T - 1, 20) and sim.same_pose(5, 4) and not sim.same_pose(4, 3)
+    drawn = T - (T - 1 - 20) - 1  # every frame but the repeats (frames 21.. and 5)
+    calls = []
+    real = R.rasterize
+    monkeypatch.setattr(R, "rasterize", lambda *a, **k: calls.append(1) or real(*a, **k))
+    results = {}
+    for threads in ("1", "2"):
+        monkeypatch.setenv("PHYSMOTION_RENDER_THREADS", threads)
+        calls.clear()
+        frames = render_frames(sim, cam)
+        assert len(calls) <= drawn + int(threads) - 1, (threads, len(calls))  # a block starts with a draw
+        clips = {d: C.render_clip(sim, cam, flow=d) for d in ("forward", "backward")}
+        tracks, _ = C.probe_tracks(sim, cam, 24, background_points=4)
+        results[threads] = (frames, clips, tracks)
+    monkeypatch.setattr(SimResult, "same_pose", lambda self, a, b: False)
+    monkeypatch.delenv("PHYSMOTION_RENDER_THREADS")
+    calls.clear()
+    ref = render_frames(sim, cam)
+    assert len(calls) == T
+    ref_clips = {d: C.render_clip(sim, cam, flow=d) for d in ("forward", "backward")}
+    ref_tracks, _ = C.probe_tracks(sim, cam, 24, background_points=4)
+    for frames, clips, tracks in results.values():
+        for k in ("rgb", "alpha", "depth"):
+            assert torch.equal(getattr(frames, k), getattr(ref, k)), k
+        for d, (cf, fl) in clips.items():
+            rf, rfl = ref_clips[d]
+            assert torch.equal(cf.rgb, rf.rgb) and torch.equal(cf.depth, rf.depth), d
+            assert torch.equal(fl.flow, rfl.flow) and torch.equal(fl.valid, rfl.valid), d
+        assert torch.equal(tracks.uv, ref_tracks.uv) and torch.equal(tracks.visible, ref_tracks.visible)
+    # At rest nothing moves: the flow there is 0 where the object is (the exact map gives the pixel itself).
+    fl = results["1"][1]["forward"][1]
+    assert bool(fl.valid[25].any()) and float(fl.flow[25][fl.valid[25]].abs().max()) < 1e-3
+
+
+def test_frame_blocks_balance_the_frames_that_need_drawing():
+    from physmotion_core.render.frames import _block_bounds
+
+    assert _block_bounds(17, 2) == [0, 8, 17]  # by count, as before
+    assert _block_bounds(17, 2, [1] * 8 + [0] * 9) == [0, 4, 17]  # the resting tail costs nothing
+    assert _block_bounds(33, 2, [1] * 22 + [0] * 11) == [0, 11, 33]
+    b = _block_bounds(10, 3, [1, 0, 0, 1, 1, 0, 1, 1, 0, 0])
+    assert b[0] == 0 and b[-1] == 10 and b == sorted(b)
+
+
 @pytest.mark.skipif(not torch.cuda.is_available(), reason="needs a CUDA device")
 def test_cuda_tracks_and_clip_match_the_cpu(clip):
     """On a GPU the tracks node probes and the controls render there (torch on CUDA, or gsplat for the clip):

@@ -50,17 +50,34 @@ def frame_threads(frames: int, device: torch.device) -> int:
     return max(1, min(n, frames))
 
 
+def _block_bounds(total: int, threads: int, cost: Optional[list] = None) -> list:
+    """Bounds of ``threads`` contiguous blocks of ``total`` frames: equal counts, or, given each frame's ``cost``,
+    about equal sums of it (frames that copy the one before cost next to nothing)."""
+    if cost is None or len(cost) != total or sum(cost) <= 0:
+        return [round(i * total / threads) for i in range(threads + 1)]
+    run, acc = [], 0.0
+    for c in cost:
+        acc += float(c)
+        run.append(acc)  # cost of frames 0..k
+    bounds = [0]
+    for i in range(1, threads):
+        goal = i * acc / threads
+        k = next((j + 1 for j, r in enumerate(run) if r >= goal), total)  # the block ends once it holds its share
+        bounds.append(min(max(k, bounds[-1]), total))
+    return bounds + [total]
+
+
 def run_frame_blocks(total: int, threads: int, work: Callable[[int, int, Callable[[int], None]], None],
-                     progress: Optional[ProgressFn] = None) -> None:
+                     progress: Optional[ProgressFn] = None, cost: Optional[list] = None) -> None:
     """Runs ``work(start, stop, done)`` over ``threads`` contiguous blocks of frames, each block on its own thread
     with one torch thread (restored afterwards); ``work`` calls ``done(k)`` after frame k. Progress is reported
     from the calling thread, one step per finished frame; when it raises (ComfyUI's Cancel) the workers stop at
     their next frame and the exception goes on. A worker's exception is raised here. With one thread, ``work``
-    runs here, as a plain loop."""
+    runs here, as a plain loop. ``cost`` (one number per frame) balances the blocks by it instead of by count."""
     if threads <= 1:
         work(0, total, lambda k: None if progress is None else report(progress, k + 1, total))
         return
-    bounds = [round(i * total / threads) for i in range(threads + 1)]
+    bounds = _block_bounds(total, threads, cost)
     finished: queue.Queue = queue.Queue()
     stop = threading.Event()
 
@@ -113,10 +130,16 @@ def run_frame_blocks(total: int, threads: int, work: Callable[[int, int, Callabl
         torch.set_num_threads(before)
 
 
+def render_costs(sim: SimResult, first: int = 0) -> list:
+    """Per frame from ``first`` on: 0 where it is posed as the frame before (copied, not drawn), else 1."""
+    return [0 if k > first and sim.same_pose(k, k - 1) else 1 for k in range(first, sim.num_frames)]
+
+
 def render_frames(sim: SimResult, camera: Camera, *, device: Optional[torch.device | str] = None,
                   progress: Optional[ProgressFn] = None, backend: str = "auto") -> FrameSet:
     """RGB (premultiplied), alpha and expected depth for every simulated frame (on the CPU, several frames at
-    once: ``frame_threads``).
+    once: ``frame_threads``). A frame posed exactly as the one before it (``SimResult.same_pose``: the object at
+    rest) gets that frame's render, copied, not drawn again.
 
     The clip's memory is checked before the first frame (``check_frames_fit``) and the frames are
     written into preallocated tensors, so a clip that fits never needs twice its size.
@@ -134,6 +157,10 @@ def render_frames(sim: SimResult, camera: Camera, *, device: Optional[torch.devi
     def work(a: int, b: int, done) -> None:
         with torch.no_grad():
             for k in range(a, b):
+                if k > a and sim.same_pose(k, k - 1):  # at rest: the previous frame's render, bit for bit
+                    rgb[k], alpha[k], depth[k] = rgb[k - 1], alpha[k - 1], depth[k - 1]
+                    done(k)
+                    continue
                 g = sim.gaussians_at(k).to(dev)
                 out = rasterize(g, camera, backend=backend)
                 rgb[k] = out.rgb.cpu()
@@ -141,7 +168,7 @@ def render_frames(sim: SimResult, camera: Camera, *, device: Optional[torch.devi
                 depth[k] = out.depth.cpu()
                 done(k)
 
-    run_frame_blocks(total, frame_threads(total, dev), work, progress)
+    run_frame_blocks(total, frame_threads(total, dev), work, progress, cost=render_costs(sim))
     fps = 1.0 / float(sim.times[1] - sim.times[0]) if total > 1 else 24.0
     return FrameSet(rgb=rgb, alpha=alpha, depth=depth, fps=fps)
 

@@ -95,6 +95,13 @@ class SimResult:
     def num_frames(self) -> int:
         return int(self.x.shape[0])
 
+    def same_pose(self, a: int, b: int) -> bool:
+        """Whether frames ``a`` and ``b`` pose every Gaussian identically: the same particle positions and
+        deformation gradients, bit for bit (``gaussians_at`` reads nothing else per frame). A body that has come
+        to rest repeats its last frame exactly (rigid bodies sleep, settled sand stops), so a render of one is a
+        render of the other, and the renderers copy it instead of drawing it again."""
+        return bool(torch.equal(self.x[a], self.x[b]) and torch.equal(self.F[a], self.F[b]))
+
     def gaussians_at(self, frame: int) -> Gaussians:
         """The Gaussians at ``frame``: each follows its particle's position and deformation.
 
