@@ -97,9 +97,10 @@ class SimResult:
 
     def same_pose(self, a: int, b: int) -> bool:
         """Whether frames ``a`` and ``b`` pose every Gaussian identically: the same particle positions and
-        deformation gradients, bit for bit (``gaussians_at`` reads nothing else per frame). A body that has come
-        to rest repeats its last frame exactly (rigid bodies sleep, settled sand stops), so a render of one is a
-        render of the other, and the renderers copy it instead of drawing it again."""
+        deformation gradients, bit for bit (``gaussians_at`` reads nothing else per frame). Once a scene is at
+        rest the simulator stops substepping and repeats its state (sim/simulate.py, REST_FRAMES), and frames
+        resampled between equal frames are equal too, so a render of one is a render of the other: the renderers
+        copy it instead of drawing it again."""
         return bool(torch.equal(self.x[a], self.x[b]) and torch.equal(self.F[a], self.F[b]))
 
     def gaussians_at(self, frame: int) -> Gaussians:
