@@ -410,7 +410,7 @@ def probe_tracks(sim: SimResult, camera: Camera, num_points: int = 64, *, backgr
     order and compositing over the tiles that hold them, so the depth and alpha there are the whole frame's
     to round-off). The background anchors go where no splat's box ever reaches (a conservative "never
     covered", so they need no visibility test). ``device``: where the renders and probes run (default the CPU)."""
-    from .render.frames import frame_threads, render_costs, run_frame_blocks
+    from .render.frames import frame_threads, repeated_frames, run_frame_blocks
     from .render.rasterize import probe, rasterize
 
     _check_track_counts(num_points, background_points)
@@ -428,10 +428,12 @@ def probe_tracks(sim: SimResult, camera: Camera, num_points: int = 64, *, backgr
     vis[0] = _visible(uv[:1], z[:1], first.alpha, first.depth, tol)[0]
     covered = [first.alpha[0] > 0]
 
+    repeated = repeated_frames(sim)
+
     def work(a: int, b: int, done) -> None:  # frames 1 + a .. b (blocks on several threads on the CPU)
         seen = torch.zeros(H, W, dtype=torch.bool)
         for t in range(1 + a, 1 + b):
-            if t > 1 + a and sim.same_pose(t, t - 1):  # at rest: the same points, probed to the same values
+            if t > 1 + a and repeated[t]:  # at rest: the same points, probed to the same values
                 vis[t] = vis[t - 1]
                 done(t - 1)
                 continue
@@ -444,7 +446,7 @@ def probe_tracks(sim: SimResult, camera: Camera, num_points: int = 64, *, backgr
     report(progress, 1, T)
     run_frame_blocks(T - 1, frame_threads(T - 1, dev), work,
                      None if progress is None else lambda k, n: report(progress, k + 1, n + 1),
-                     cost=render_costs(sim, 1))
+                     cost=[0 if r and t > 1 else 1 for t, r in enumerate(repeated) if t >= 1])
     covered = torch.stack(covered).any(0)
     particle = k
     if background_points:
@@ -679,20 +681,20 @@ def _flow_features(sim: SimResult, w2c: torch.Tensor, mu_s: torch.Tensor, L_s: t
     return G.reshape(-1, FLOW_CHANNELS)
 
 
-def _repeats_previous(sim: SimResult, t: int, d: int, flow: Optional[str]) -> bool:
+def _repeats_previous(repeated: list, t: int, d: int, flow: Optional[str]) -> bool:
     """Whether ``render_clip``'s frame t (with the flow channels toward frame d when there is a flow) is its frame
-    t-1's, bit for bit: the same pose and, with a flow, the same pose at both frames' destinations (forward: t+1
-    and t; backward: t-1 and t-2), so that both carry the channels or neither."""
-    if not sim.same_pose(t, t - 1):
+    t-1's, bit for bit: the same pose (``repeated``: ``render.frames.repeated_frames``) and, with a flow, the same
+    pose at both frames' destinations (forward: t+1 and t; backward: t-1 and t-2), so that both carry the
+    channels or neither."""
+    if not repeated[t]:
         return False
     if flow is None:
         return True
-    d_prev = d - 1  # the destination frame t-1 used
-    T = sim.num_frames
-    has, had = 0 <= d < T, 0 <= d_prev < T
+    T = len(repeated)
+    has, had = 0 <= d < T, 0 <= d - 1 < T  # frame t-1's destination is d - 1
     if has != had:
         return False
-    return not has or sim.same_pose(d, d_prev)
+    return not has or repeated[d]
 
 
 def render_clip(sim: SimResult, camera: Camera, *, flow: Optional[str] = None, device: Optional[str] = None,
@@ -702,7 +704,7 @@ def render_clip(sim: SimResult, camera: Camera, *, flow: Optional[str] = None, d
     composited channels (``_flow_features``) that map its visible surface points to the next (forward) or
     previous (backward) frame. So the control videos and the flow of one clip cost one render, posing each
     frame once (twice at the edges of the blocks of frames that render at once on the CPU: ``frame_threads``)."""
-    from .render.frames import check_frames_fit, frame_threads, render_costs, run_frame_blocks
+    from .render.frames import check_frames_fit, frame_threads, repeated_frames, run_frame_blocks
     from .render.rasterize import rasterize
 
     if flow not in (None, "forward", "backward"):
@@ -723,6 +725,8 @@ def render_clip(sim: SimResult, camera: Camera, *, flow: Optional[str] = None, d
         ray = torch.stack([(grid[..., 0] - camera.cx) / camera.fx, (grid[..., 1] - camera.cy) / camera.fy,
                            torch.ones(H, W, dtype=torch.float64)], -1)  # (H,W,3): r(p)
 
+    repeated = repeated_frames(sim)
+
     def work(a: int, b: int, done) -> None:
         """Frames a..b-1, in order (a block of its own when several frames render at once)."""
         posed: dict = {}
@@ -738,7 +742,7 @@ def render_clip(sim: SimResult, camera: Camera, *, flow: Optional[str] = None, d
         with torch.no_grad():
             for t in range(a, b):
                 d = t + 1 if flow == "forward" else t - 1 if flow == "backward" else -1
-                if t > a and _repeats_previous(sim, t, d, flow):
+                if t > a and _repeats_previous(repeated, t, d, flow):
                     rgb[t], alpha[t], depth[t] = rgb[t - 1], alpha[t - 1], depth[t - 1]
                     if 0 <= d < T:  # and the previous frame's flow pair
                         pair, before = (t, t - 1) if flow == "forward" else (d, d - 1)
@@ -772,7 +776,7 @@ def render_clip(sim: SimResult, camera: Camera, *, flow: Optional[str] = None, d
                         valid[pair] = ok
                 done(t)
 
-    run_frame_blocks(T, frame_threads(T, dev), work, progress, cost=render_costs(sim))
+    run_frame_blocks(T, frame_threads(T, dev), work, progress, cost=[0 if r else 1 for r in repeated])
     frames = FrameSet(rgb=rgb, alpha=alpha, depth=depth, fps=sim_fps(sim))
     if flow is None:
         return frames, None

@@ -130,9 +130,10 @@ def run_frame_blocks(total: int, threads: int, work: Callable[[int, int, Callabl
         torch.set_num_threads(before)
 
 
-def render_costs(sim: SimResult, first: int = 0) -> list:
-    """Per frame from ``first`` on: 0 where it is posed as the frame before (copied, not drawn), else 1."""
-    return [0 if k > first and sim.same_pose(k, k - 1) else 1 for k in range(first, sim.num_frames)]
+def repeated_frames(sim: SimResult) -> list:
+    """Per frame: whether it is posed bit for bit as the frame before (``SimResult.same_pose``), so a renderer
+    copies the frame before instead of drawing it. Frame 0 never is."""
+    return [k > 0 and sim.same_pose(k, k - 1) for k in range(sim.num_frames)]
 
 
 def render_frames(sim: SimResult, camera: Camera, *, device: Optional[torch.device | str] = None,
@@ -154,10 +155,12 @@ def render_frames(sim: SimResult, camera: Camera, *, device: Optional[torch.devi
     alpha = torch.empty(total, H, W)
     depth = torch.empty(total, H, W)
 
+    repeated = repeated_frames(sim)
+
     def work(a: int, b: int, done) -> None:
         with torch.no_grad():
             for k in range(a, b):
-                if k > a and sim.same_pose(k, k - 1):  # at rest: the previous frame's render, bit for bit
+                if k > a and repeated[k]:  # at rest: the previous frame's render, bit for bit
                     rgb[k], alpha[k], depth[k] = rgb[k - 1], alpha[k - 1], depth[k - 1]
                     done(k)
                     continue
@@ -168,7 +171,7 @@ def render_frames(sim: SimResult, camera: Camera, *, device: Optional[torch.devi
                 depth[k] = out.depth.cpu()
                 done(k)
 
-    run_frame_blocks(total, frame_threads(total, dev), work, progress, cost=render_costs(sim))
+    run_frame_blocks(total, frame_threads(total, dev), work, progress, cost=[0 if r else 1 for r in repeated])
     fps = 1.0 / float(sim.times[1] - sim.times[0]) if total > 1 else 24.0
     return FrameSet(rgb=rgb, alpha=alpha, depth=depth, fps=fps)
 
