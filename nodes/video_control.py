@@ -269,12 +269,21 @@ class PhysMotionExactFlow:
     def run(self, simulation, camera, width, height, fps, length, direction, max_flow, filename_prefix):
         from physmotion_core import controls as C
 
+        from concurrent.futures import ThreadPoolExecutor
+
         sim, cam = _at_model_clock(simulation, camera, width, height, fps, length)
         _, flow = _render(sim, cam, simulation, (fps, length), flow=direction)
-        preview = C.flow_to_color(flow.flow, float(max_flow))
         path, _, _ = output_path(filename_prefix, "npz")
-        C.save_flow_npz(path, flow, cam)
-        return {"ui": preview_video(preview, float(fps), "PhysMotion_flow"), "result": (flow, preview, str(path))}
+        # The .npz is compressed (zlib, which releases the GIL) while the colour-wheel preview is made: on two
+        # cores the two overlap. The file is complete (or, on an error, not written) before the node returns.
+        with ThreadPoolExecutor(max_workers=1, thread_name_prefix="physmotion-npz") as pool:
+            saved = pool.submit(C.save_flow_npz, path, flow, cam)
+            try:
+                preview = C.flow_to_color(flow.flow, float(max_flow))
+                ui = preview_video(preview, float(fps), "PhysMotion_flow")
+            finally:
+                saved.result()
+        return {"ui": ui, "result": (flow, preview, str(path))}
 
 
 NODE_CLASS_MAPPINGS = {

@@ -468,6 +468,27 @@ def test_control_videos(clip):
 # ---------------------------------------------------------------------------------------------
 
 
+def test_flow_node_saves_beside_the_preview_and_reports_a_failed_save(tmp_path, monkeypatch):
+    """The Exact Flow node compresses its .npz on a second thread while it makes the preview: the file is
+    complete when the node returns, and a failed save is the node's error, not lost in the thread."""
+    from comfy_harness import node_classes
+
+    monkeypatch.setenv("PHYSMOTION_OUTPUT_DIR", str(tmp_path))
+    monkeypatch.setenv("PHYSMOTION_TEMP_DIR", str(tmp_path / "temp"))
+    node = node_classes()["PhysMotionExactFlow"]()
+    common = dict(simulation=cube_sim(frames=12), camera=camera(300, 200), width=160, height=96, fps=16.0, length=9)
+    flow, preview, path = node.run(**common, direction="forward", max_flow=0.0, filename_prefix="ok/f")["result"]
+    with np.load(path) as z:
+        assert np.array_equal(z["flow"], flow.flow.numpy()) and np.array_equal(z["valid"], flow.valid.numpy())
+
+    def full_disk(*args, **kwargs):
+        raise OSError(28, "No space left on device")
+
+    monkeypatch.setattr(C, "save_flow_npz", full_disk)
+    with pytest.raises(OSError, match="No space left"):
+        node.run(**common, direction="forward", max_flow=0.0, filename_prefix="full/f")
+
+
 def test_nodes_run_report_progress_and_cancel(tmp_path, monkeypatch):
     from comfy_harness import node_classes
     from fake_comfy import InterruptProcessingException, install_fake_comfy
