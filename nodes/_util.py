@@ -114,7 +114,9 @@ def preview_video(frames: torch.Tensor, fps: float, stem: str = "PhysMotion_prev
     if f.shape[0] == 1:
         return preview_images(f, stem)
     name = f"{stem}_{os.urandom(4).hex()}.mp4"
-    write_mp4(folder / name, f, fps=float(min(max(fps, 1.0), 240.0)), crf=28)
+    # A preview: the fastest x264 preset (on a 33-frame 512x288 clip 0.08 s instead of 0.21-0.24 s for "medium";
+    # three previews in a Wan controls prompt), in a larger temp file.
+    write_mp4(folder / name, f, fps=float(min(max(fps, 1.0), 240.0)), crf=28, preset="ultrafast")
     return {"images": [{"filename": name, "subfolder": "", "type": "temp"}], "animated": (True,)}
 
 

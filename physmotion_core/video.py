@@ -53,8 +53,12 @@ def video_format(path: str | os.PathLike) -> tuple[str, str, str]:
     return VIDEO_FORMATS[ext]
 
 
+#: x264's speed presets, fastest first (``write_video``'s ``preset``).
+X264_PRESETS = ("ultrafast", "superfast", "veryfast", "faster", "fast", "medium", "slow", "slower", "veryslow")
+
+
 def write_video(path: str | os.PathLike, frames, fps: float = 24.0, crf: int = 18,
-                threads: Optional[int] = None) -> Path:
+                threads: Optional[int] = None, preset: str = "medium") -> Path:
     """Write (T,H,W,3) frames (float 0..1 or uint8) atomically, in the container its extension
     names (``VIDEO_FORMATS``); any other extension is refused before encoding.
 
@@ -67,11 +71,15 @@ def write_video(path: str | os.PathLike, frames, fps: float = 24.0, crf: int = 1
     gave 2-4 different files): the automatic thread count, which x264 writes into the stream and
     slices frames by, and macroblock-tree rate control (mbtree), whose result depended on what the
     process had encoded before. So a fixed count also turns mbtree off (files a little larger at the
-    same crf). None lets the encoder choose both (smallest files, bytes may vary).
+    same crf). None lets the encoder choose both (smallest files, bytes may vary). ``preset``: x264's speed
+    preset for H.264 (``X264_PRESETS``; "ultrafast" encodes a node's preview clip about 3x faster than "medium",
+    in a file about 2.5x larger at the same crf); the other codecs ignore it.
     """
     import av
 
     container_fmt, codec, pix_fmt = video_format(path)
+    if preset not in X264_PRESETS:
+        raise InputError(f"preset must be one of {', '.join(X264_PRESETS)}; got {preset!r}")
     arr = _to_uint8_frames(frames)
     if not (0 < fps <= 1000):
         raise InputError(f"fps must be in (0, 1000]; got {fps}")
@@ -93,7 +101,7 @@ def write_video(path: str | os.PathLike, frames, fps: float = 24.0, crf: int = 1
                     raise InputError(f"threads must be a positive number of encoder threads; got {threads}")
                 stream.codec_context.thread_count = int(threads)
             if codec == "libx264":
-                stream.options = {"crf": str(int(crf)), "preset": "medium",
+                stream.options = {"crf": str(int(crf)), "preset": preset,
                                   **({"threads": str(int(threads)), "x264-params": "mbtree=0"}
                                      if threads is not None else {})}
             elif codec == "libvpx-vp9":  # constant quality (b:v 0); VP9's 0..63 scale sits above x264's
@@ -132,10 +140,10 @@ def _write_gif(path: Path, arr: np.ndarray, fps: float) -> Path:
 
 
 def write_mp4(path: str | os.PathLike, frames, fps: float = 24.0, crf: int = 18,
-              threads: Optional[int] = None) -> Path:
+              threads: Optional[int] = None, preset: str = "medium") -> Path:
     """``write_video`` (the name is historical: the container follows ``path``'s extension, H.264
     mp4 for ``.mp4``)."""
-    return write_video(path, frames, fps=fps, crf=crf, threads=threads)
+    return write_video(path, frames, fps=fps, crf=crf, threads=threads, preset=preset)
 
 
 def read_video(path: str | os.PathLike) -> tuple[np.ndarray, float]:

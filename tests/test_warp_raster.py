@@ -1,0 +1,143 @@
+"""The compiled CPU compositing (``render._warp_raster``) against the PyTorch tensor path and a float64 brute force.
+
+``rasterize`` uses it for CPU float32 renders that ask no gradient (every video render); the tensor path keeps the
+gradients. Both composite the same projected splats in the same order, so they agree to float round-off.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import pytest
+import torch
+
+from physmotion_core.errors import InputError
+from physmotion_core.render import rasterize
+from physmotion_core.render import _warp_raster as WR
+from physmotion_core.render._torch_raster import composite_tiles, project_gaussians
+from physmotion_core.render.rasterize import probe
+
+from test_render import EPS2D, camera, gaussians, random_gaussians, reference_render
+
+
+def _projected(g, cam):
+    w2c = cam.w2c_opencv()
+    with torch.no_grad():
+        return project_gaussians(g.means, g.covariance(), g.opacities, w2c, cam.fx, cam.fy, cam.cx, cam.cy,
+                                 cam.width, cam.height, cam.near, cam.far, EPS2D)
+
+
+def _features(g, proj, mc, extra: int, seed: int = 0):
+    gen = torch.Generator().manual_seed(seed)
+    parts = [g.rgb[proj.index], mc[proj.index][:, 2:3] - 4.0]
+    if extra:
+        parts.append(torch.randn(len(proj.index), extra, generator=gen))
+    return torch.cat(parts, 1).contiguous()
+
+
+@pytest.mark.parametrize("extra", [0, 9])  # colour + depth (4 channels), and with the flow's 9 (13)
+@pytest.mark.parametrize("opacity", [(0.05, 0.3), (0.2, 0.95), (0.9, 1.0)])
+def test_compositing_matches_the_tensor_path(extra, opacity):
+    """Faint splats (pixels never saturate), mixed ones and nearly opaque ones (most pixels stop early, at the
+    0.99 clamp) on a 160x120 frame with odd tiles at the borders: every channel within float32 round-off of the
+    tensor path, at every pixel."""
+    cam = camera(163, 121)
+    g = random_gaussians(1500, seed=3, spread=0.7, size=0.06, opacity=opacity)
+    proj, mc = _projected(g, cam)
+    feats = _features(g, proj, mc, extra)
+    ref = composite_tiles(proj, feats, cam.width, cam.height)
+    got = WR.composite_warp(proj, feats, cam.width, cam.height)
+    assert got.shape == ref.shape == (cam.height, cam.width, feats.shape[1] + 1)
+    scale = float(feats.abs().max())
+    torch.testing.assert_close(got, ref, atol=2e-5 * scale, rtol=1e-5)
+    if opacity[0] >= 0.9:
+        assert float(got[..., -1].max()) > 0.999  # saturated pixels: the early termination was exercised
+
+
+def test_tile_size_changes_nothing():
+    """A pixel visits the same splats in the same order whatever the tile: bit-identical results."""
+    cam = camera(97, 70)
+    g = random_gaussians(800, seed=5, spread=0.7, size=0.1)
+    proj, mc = _projected(g, cam)
+    feats = _features(g, proj, mc, 2)
+    base = WR.composite_warp(proj, feats, cam.width, cam.height, tile_size=8)
+    for ts in (4, 16, 32, 64):
+        assert torch.equal(WR.composite_warp(proj, feats, cam.width, cam.height, tile_size=ts), base), ts
+
+
+def test_rasterize_uses_it_without_gradients_and_matches_brute_force():
+    cam = camera()
+    g = random_gaussians(120, seed=2, opacity=(0.3, 1.0))
+    with torch.no_grad():
+        out = rasterize(g, cam)
+        tensor_path = rasterize(g, cam, backend="torch")
+    assert out.backend == "warp" and tensor_path.backend == "torch"
+    rgb, alpha, depth = reference_render(g, cam)
+    torch.testing.assert_close(out.rgb.double(), rgb, atol=2e-5, rtol=0)
+    torch.testing.assert_close(out.alpha.double(), alpha, atol=2e-5, rtol=0)
+    m = alpha > 0.05
+    torch.testing.assert_close(out.depth.double()[m], depth[m], atol=1e-4, rtol=0)
+    for a, b in ((out.rgb, tensor_path.rgb), (out.alpha, tensor_path.alpha), (out.depth, tensor_path.depth)):
+        torch.testing.assert_close(a, b, atol=2e-6, rtol=1e-5)
+
+
+def test_opaque_stack_shows_the_front_splat_only():
+    """Two opaque splats on the same axis: with the 0.99 clamp the second brings T to 1e-4, so it is not counted
+    (the termination rule), and the front colour shows alone."""
+    cam = camera()
+    g = gaussians([[0, 0, 0.5], [0, 0, 0]], [0.3, 0.3, 0.3], 1.0, rgb=[[1.0, 0.0, 0.0], [0.0, 1.0, 0.0]])
+    out = rasterize(g, cam)
+    assert out.backend == "warp"
+    c = out.rgb[24, 32]
+    assert float(c[0]) == pytest.approx(0.99, abs=1e-6) and float(c[1]) == 0.0
+    assert float(out.alpha[24, 32]) == pytest.approx(0.99, abs=1e-6)
+
+
+def test_gradients_and_other_dtypes_take_the_tensor_path():
+    cam = camera()
+    g = random_gaussians(40, seed=4)
+    means = g.means.clone().requires_grad_()
+    out = rasterize(dataclasses.replace(g, means=means), cam)
+    assert out.backend == "torch"
+    out.alpha.sum().backward()
+    assert means.grad is not None and float(means.grad.abs().sum()) > 0
+    with torch.no_grad():  # the same inputs, no gradient asked: compiled
+        assert rasterize(dataclasses.replace(g, means=means), cam).backend == "warp"
+        assert rasterize(random_gaussians(40, seed=4, dtype=torch.float64), cam).backend == "torch"
+    assert not WR.usable("cpu", torch.float64)
+    assert not WR.usable("meta", torch.float32)
+
+
+def test_asked_pixels_only_and_probe():
+    cam = camera(120, 90)
+    g = random_gaussians(600, seed=6, spread=0.6, size=0.07)
+    proj, mc = _projected(g, cam)
+    feats = _features(g, proj, mc, 0)
+    full = WR.composite_warp(proj, feats, cam.width, cam.height, tile_size=8)
+    asked = torch.rand(cam.height, cam.width, generator=torch.Generator().manual_seed(1)) < 0.05
+    part = WR.composite_warp(proj, feats, cam.width, cam.height, tile_size=8, pixels=asked)
+    assert torch.equal(part[asked], full[asked])  # the same loop for each asked pixel
+    assert float(part[~asked].abs().max()) == 0.0
+    # probe (the tracks' visibility) composites the same way: the frame's alpha and depth at the asked pixels.
+    with torch.no_grad():
+        frame = rasterize(g, cam)
+        p = probe(g, cam, asked)
+    torch.testing.assert_close(p.alpha[asked], frame.alpha[asked], atol=2e-6, rtol=1e-5)
+    torch.testing.assert_close(p.depth[asked], frame.depth[asked], atol=2e-5, rtol=1e-5)
+
+
+def test_too_many_intersections_is_a_clear_error(monkeypatch):
+    cam = camera()
+    g = random_gaussians(200, seed=7)
+    proj, mc = _projected(g, cam)
+    monkeypatch.setattr(WR, "MAX_INTERSECTIONS", 10)
+    with pytest.raises(InputError, match="Lower the resolution"):
+        WR.composite_warp(proj, _features(g, proj, mc, 0), cam.width, cam.height)
+
+
+def test_empty_frame():
+    cam = camera()
+    g = gaussians([[0, 0, 10.0]], [0.1, 0.1, 0.1], 0.5)  # behind the camera (it sits at z = 4 looking at -z)
+    with torch.no_grad():
+        out = rasterize(g, cam)
+    assert out.backend == "warp" and float(out.alpha.abs().max()) == 0.0 and float(out.depth.abs().max()) == 0.0
