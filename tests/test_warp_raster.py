@@ -141,3 +141,28 @@ def test_empty_frame():
     with torch.no_grad():
         out = rasterize(g, cam)
     assert out.backend == "warp" and float(out.alpha.abs().max()) == 0.0 and float(out.depth.abs().max()) == 0.0
+
+
+def test_a_failing_compiled_path_falls_back_once(monkeypatch, caplog):
+    """A kernel that fails to build or launch (a broken Warp install) costs no render: the tensor path draws it,
+    with one warning, and the compiled path is not tried again."""
+    calls = []
+
+    def broken(*args, **kwargs):
+        calls.append(1)
+        raise RuntimeError("clang: cannot compile")
+
+    monkeypatch.setattr(WR, "composite_warp", broken)
+    monkeypatch.setattr(WR, "_failed", False)
+    cam = camera()
+    g = random_gaussians(50, seed=8)
+    with caplog.at_level("WARNING", logger=WR.__name__), torch.no_grad():
+        first = rasterize(g, cam)
+        second = rasterize(g, cam)
+        asked = torch.zeros(cam.height, cam.width, dtype=torch.bool)
+        asked[20:25, 30:35] = True
+        p = probe(g, cam, asked)
+    assert first.backend == second.backend == "torch" and len(calls) == 1
+    torch.testing.assert_close(first.rgb, rasterize(g, cam, backend="torch").rgb)
+    torch.testing.assert_close(p.alpha[asked], first.alpha[asked], atol=2e-6, rtol=1e-5)
+    assert sum("compiled CPU compositing failed" in r.getMessage() for r in caplog.records) == 1

@@ -2,10 +2,13 @@
 
 The PyTorch rasterizer (``_torch_raster``) composites dense blocks [tiles, splats, pixels] with tensor
 operations: every (splat, pixel) entry of a tile's list goes through a GEMM, exp2, threshold, clamp, a running
-product and a batched matmul, each a pass over memory, and a frame takes dozens of such steps. Without
-gradients none of those intermediates is needed: here each pixel walks its tile's depth-ordered list in a
-compiled loop and stops at its own saturation, so an entry costs a few flops and nothing is written but the
-pixel's sums.
+product and a batched matmul, each a pass over memory, for all 64 pixels of the tile, and a frame takes dozens
+of such steps. Without gradients none of those intermediates is needed: here a compiled loop walks each tile's
+depth-ordered list once, and each splat visits only the pixels of the tile that its ellipse at alpha = 1/255
+(plus a margin) holds, row by row; every pixel keeps its own transmittance and stops at its own saturation, and
+the tile stops once all its pixels have. On the CPU templates' thin, faint shells (about 27 splats contribute to
+each pixel, which rarely saturates) that visits a third or less of the (splat, pixel) pairs the tensor tiles
+evaluate.
 
 Same image-formation model and the same inputs as ``composite_tiles``: the projection, culling and depth
 order of ``project_gaussians``, alpha = min(0.99, o exp(-½ dᵀ conic d)) at the pixel centre, entries with
@@ -42,13 +45,32 @@ _built = None
 TILE = 32
 
 
+_failed = False
+
+
 def available() -> bool:
-    """Whether Warp imports (it is a dependency; a broken install falls back to the PyTorch path)."""
+    """Whether Warp imports and the kernels build (Warp is a dependency; a broken install falls back to the
+    PyTorch path, and is not tried again)."""
+    if _failed:
+        return False
     try:
         _build()
         return True
-    except Exception:  # ImportError, or a Warp that cannot initialise
+    except Exception as exc:  # ImportError, or a Warp that cannot initialise
+        mark_failed(exc)
         return False
+
+
+def mark_failed(exc: BaseException) -> None:
+    """Turn this path off for the rest of the process (a failed import, build or launch), with one warning."""
+    global _failed
+    if not _failed:
+        import logging
+
+        logging.getLogger(__name__).warning("The compiled CPU compositing failed (%s: %s); CPU renders use the "
+                                            "PyTorch compositing for the rest of this session.",
+                                            type(exc).__name__, exc)
+    _failed = True
 
 
 def _build():

@@ -193,9 +193,14 @@ def rasterize(gaussians: Gaussians, camera: Camera, *, colors: Optional[torch.Te
 
         if _warp_raster.usable(device, work, gaussians.means, gaussians.covars, gaussians.quats, gaussians.scales,
                                colors, opac, extra):
-            out = _rasterize_with_torch(gaussians, camera, colors, opac, extra, depth_mode, eps2d,
-                                        compositor=_warp_raster.composite_warp)
-            out.backend = "warp"
+            try:
+                out = _rasterize_with_torch(gaussians, camera, colors, opac, extra, depth_mode, eps2d,
+                                            compositor=_warp_raster.composite_warp)
+                out.backend = "warp"
+            except InputError:
+                raise
+            except Exception as exc:  # a failed kernel build or launch: the tensor path, from now on
+                _warp_raster.mark_failed(exc)
         elif backend == "warp":
             _warn_once("backend='warp' renders CPU float32 tensors without gradients; these are not, so the "
                        "PyTorch rasterizer renders them.")
@@ -336,9 +341,15 @@ def probe(gaussians: Gaussians, camera: Camera, pixels: torch.Tensor, *, depth_m
         from . import _warp_raster
 
         feats = (depth[keep] - ref)[:, None]
+        img = None
         if _warp_raster.usable(device, work):  # as rasterize composites a frame without gradients
-            img = _warp_raster.composite_warp(sub, feats, W, H, tile_size=ts, pixels=pixels.to(device))
-        else:
+            try:
+                img = _warp_raster.composite_warp(sub, feats, W, H, tile_size=ts, pixels=pixels.to(device))
+            except InputError:
+                raise
+            except Exception as exc:
+                _warp_raster.mark_failed(exc)
+        if img is None:
             # Longer chunks than a whole frame's: few tiles, so the per-step overhead, not the work, dominates.
             img = composite_tiles(sub, feats, W, H, tile_size=ts, chunk=PROBE_CHUNK, pixels=pixels.to(device))
         alpha = img[..., 1].contiguous()
