@@ -130,9 +130,15 @@ def test_too_many_intersections_is_a_clear_error(monkeypatch):
     cam = camera()
     g = random_gaussians(200, seed=7)
     proj, mc = _projected(g, cam)
+    feats = _features(g, proj, mc, 0)
     monkeypatch.setattr(WR, "MAX_INTERSECTIONS", 10)
     with pytest.raises(InputError, match="Lower the resolution"):
-        WR.composite_warp(proj, _features(g, proj, mc, 0), cam.width, cam.height)
+        WR.composite_warp(proj, feats, cam.width, cam.height)
+    import physmotion_core.render._torch_raster as TR  # the tensor path's limit, the same check
+
+    monkeypatch.setattr(TR, "MAX_INTERSECTIONS", 10)
+    with pytest.raises(InputError, match="splat-tile intersections"):
+        composite_tiles(proj, feats, cam.width, cam.height)
 
 
 def test_empty_frame():

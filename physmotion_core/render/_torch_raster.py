@@ -394,6 +394,20 @@ def _tile_runs(proj: Projected, ts: int, cull: bool):
     return g, ty, c_lo, c_hi
 
 
+def check_intersections(proj: Projected, ts: int, width: int, height: int, limit: Optional[int] = None) -> int:
+    """The (splat, tile) pairs the splats' boxes cover with ``ts`` px tiles; InputError above ``limit``
+    (``MAX_INTERSECTIONS``), before any memory is committed to them."""
+    limit = MAX_INTERSECTIONS if limit is None else int(limit)
+    box = torch.div(proj.pix_hi, ts, rounding_mode="floor") - torch.div(proj.pix_lo, ts, rounding_mode="floor") + 1
+    total = int((box[:, 0] * box[:, 1]).sum())
+    if total > limit:
+        raise InputError(
+            f"Rasterizing would need {total:,} splat-tile intersections (limit {limit:,}): the Gaussians are too "
+            f"many or too large on screen for this {width}x{height} image. Lower the resolution, move the camera "
+            "back, or shrink/drop huge Gaussians.")
+    return total
+
+
 def composite_tiles(proj: Projected, features: torch.Tensor, width: int, height: int, *,
                     tile_size: int = 8, chunk: int = 16,
                     max_elements: Optional[int] = None, cull: bool = True,
@@ -425,14 +439,7 @@ def composite_tiles(proj: Projected, features: torch.Tensor, width: int, height:
 
     # ---- (Gaussian, tile) intersections, in (tile, depth) order ------------------------------
     with torch.no_grad():
-        box = torch.div(proj.pix_hi, ts, rounding_mode="floor") - torch.div(proj.pix_lo, ts, rounding_mode="floor") + 1
-        total = int((box[:, 0] * box[:, 1]).sum())
-        if total > MAX_INTERSECTIONS:
-            raise InputError(
-                f"Rasterizing would need {total:,} splat-tile intersections (limit "
-                f"{MAX_INTERSECTIONS:,}): the Gaussians are too many or too large on screen for this "
-                f"{width}x{height} image. Lower the resolution, move the camera back, or shrink/drop "
-                "huge Gaussians.")
+        check_intersections(proj, ts, width, height)
         g, ty, c_lo, c_hi = _tile_runs(proj, ts, cull)
         counts = (c_hi - c_lo + 1).clamp_min(0)
         total = int(counts.sum())

@@ -32,8 +32,7 @@ from typing import Optional
 
 import torch
 
-from ..errors import InputError
-from ._torch_raster import ALPHA_MAX, ALPHA_MIN, MAX_INTERSECTIONS, T_DONE, Projected
+from ._torch_raster import ALPHA_MAX, ALPHA_MIN, MAX_INTERSECTIONS, T_DONE, Projected, check_intersections
 
 _lock = threading.Lock()
 _built = None
@@ -123,43 +122,39 @@ def _build():
             # round-off of the per-pixel evaluation (the one composite_tiles' culling uses).
             return 2.0 * (logo + LN_255) + 0.05 + 1.0e-3 * (ca + cc) * float(ts * ts)
 
+        @wp.func
+        def listed(uv: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3), logo: wp.array(dtype=float),
+                   lo: wp.array(dtype=wp.vec2i), hi: wp.array(dtype=wp.vec2i), ts: int, m: int, tx: int, ty: int):
+            # Whether splat m goes in the list of tile (tx, ty): its ellipse reaches a pixel centre of the tile
+            # inside the splat's box.
+            c = conic[m]
+            x0 = float(wp.max(tx * ts, lo[m][0])) + 0.5
+            x1 = float(wp.min(tx * ts + ts - 1, hi[m][0])) + 0.5
+            y0 = float(wp.max(ty * ts, lo[m][1])) + 0.5
+            y1 = float(wp.min(ty * ts + ts - 1, hi[m][1])) + 0.5
+            return reaches(uv[m][0], uv[m][1], c[0], c[1], c[2], level(c[0], c[2], logo[m], ts), x0, x1, y0, y1)
+
         @wp.kernel(enable_backward=False)
         def count(uv: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3), logo: wp.array(dtype=float),
                   lo: wp.array(dtype=wp.vec2i), hi: wp.array(dtype=wp.vec2i), ts: int, TX: int,
                   per_tile: wp.array(dtype=int)):
-            # One splat: +1 to every tile its ellipse reaches (the counts do not depend on the order).
+            # One splat: +1 to every tile it goes in (the counts do not depend on the order).
             m = wp.tid()
-            c = conic[m]
-            u = uv[m][0]
-            v = uv[m][1]
-            r2 = level(c[0], c[2], logo[m], ts)
             for ty in range(lo[m][1] / ts, hi[m][1] / ts + 1):
                 for tx in range(lo[m][0] / ts, hi[m][0] / ts + 1):
-                    x0 = float(wp.max(tx * ts, lo[m][0])) + 0.5
-                    x1 = float(wp.min(tx * ts + ts - 1, hi[m][0])) + 0.5
-                    y0 = float(wp.max(ty * ts, lo[m][1])) + 0.5
-                    y1 = float(wp.min(ty * ts + ts - 1, hi[m][1])) + 0.5
-                    if reaches(u, v, c[0], c[1], c[2], r2, x0, x1, y0, y1):
+                    if listed(uv, conic, logo, lo, hi, ts, m, tx, ty):
                         wp.atomic_add(per_tile, ty * TX + tx, 1)
 
         @wp.kernel(enable_backward=False)
         def fill(uv: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3), logo: wp.array(dtype=float),
                  lo: wp.array(dtype=wp.vec2i), hi: wp.array(dtype=wp.vec2i), ts: int, TX: int, M: int,
                  cursor: wp.array(dtype=int), lists: wp.array(dtype=int)):
-            # Launched once (dim 1): the splats in depth order, each appended to the tiles it reaches, so every
+            # Launched once (dim 1): the splats in depth order, each appended to the tiles it goes in, so every
             # tile's list is in depth order. ``cursor`` starts at each tile's first slot.
             for m in range(M):
-                c = conic[m]
-                u = uv[m][0]
-                v = uv[m][1]
-                r2 = level(c[0], c[2], logo[m], ts)
                 for ty in range(lo[m][1] / ts, hi[m][1] / ts + 1):
                     for tx in range(lo[m][0] / ts, hi[m][0] / ts + 1):
-                        x0 = float(wp.max(tx * ts, lo[m][0])) + 0.5
-                        x1 = float(wp.min(tx * ts + ts - 1, hi[m][0])) + 0.5
-                        y0 = float(wp.max(ty * ts, lo[m][1])) + 0.5
-                        y1 = float(wp.min(ty * ts + ts - 1, hi[m][1])) + 0.5
-                        if reaches(u, v, c[0], c[1], c[2], r2, x0, x1, y0, y1):
+                        if listed(uv, conic, logo, lo, hi, ts, m, tx, ty):
                             t = ty * TX + tx
                             lists[cursor[t]] = m
                             cursor[t] = cursor[t] + 1
@@ -263,13 +258,7 @@ def composite_warp(proj: Projected, features: torch.Tensor, width: int, height: 
     if M == 0:
         return torch.zeros(height, width, C + 1, dtype=f32)
     with torch.no_grad():
-        box = torch.div(proj.pix_hi, ts, rounding_mode="floor") - torch.div(proj.pix_lo, ts, rounding_mode="floor") + 1
-        bound = int((box[:, 0] * box[:, 1]).sum())
-        if bound > MAX_INTERSECTIONS:
-            raise InputError(
-                f"Rasterizing would need {bound:,} splat-tile intersections (limit {MAX_INTERSECTIONS:,}): the "
-                f"Gaussians are too many or too large on screen for this {width}x{height} image. Lower the "
-                "resolution, move the camera back, or shrink/drop huge Gaussians.")
+        check_intersections(proj, ts, width, height, MAX_INTERSECTIONS)
         keep = []
 
         def view(t, dtype):
