@@ -658,10 +658,48 @@ def _pixel_grid(camera: Camera) -> torch.Tensor:
 
 #: Per-Gaussian flow channels rendered with the colour (see ``render_clip``).
 FLOW_CHANNELS = 9
+#: Frames whose splats all move by one affine map (rigid bodies) take their flow from the rendered depth instead
+#: of 9 composited channels (``_one_map``); False renders the channels always (the tests compare the two).
+ONE_MAP_FLOW = True
+
+
+#: Largest flow error (px) accepted from reading a frame's motion as one rigid map (``_one_map``).
+ONE_MAP_TOLERANCE_PX = 1e-3
+
+
+def _flow_maps(sim: SimResult, w2c: torch.Tensor, mu_s: torch.Tensor, L_s: torch.Tensor, mu_d: torch.Tensor,
+               L_d: torch.Tensor):
+    """Each Gaussian's affine map x -> A x + b from frame s to frame d, in camera coordinates (float64): A (N,3,3)
+    = R L_d L_s^-1 Rᵀ of the deformation its particle's splats follow, b (N,3) = its mean's destination - A times
+    its mean; and its mean at frame s (N,3)."""
+    R, t = w2c[:3, :3], w2c[:3, 3]
+    A = (R @ (L_d @ _inverse(L_s)) @ R.T)[sim.binding]  # per particle, in camera coordinates; per Gaussian
+    ms = mu_s @ R.T + t
+    md = mu_d @ R.T + t
+    b = md - (A @ ms[..., None])[..., 0]
+    return A, b, ms
+
+
+def _one_map(A: torch.Tensor, b: torch.Tensor, ms: torch.Tensor, camera: Camera):
+    """(A, b) when every Gaussian moves by the same affine map (a rigid body, or a still frame), else None: the
+    largest difference from the mean map, applied to the farthest mean, moves a point by at most
+    ``ONE_MAP_TOLERANCE_PX`` px at the nearest depth. Then the composited flow channels are that map applied to
+    the rendered surface point (depth times the pixel's ray), so the frame needs none."""
+    if A.shape[0] == 0:
+        return None
+    A0, b0 = A.mean(0), b.mean(0)
+    dA = float((A - A0).flatten(1).norm(dim=1).max())
+    db = float((b - b0).norm(dim=1).max())
+    z = ms[:, 2]
+    near = float(z[z > 0].min()) if bool((z > 0).any()) else 0.0
+    if near <= 0.0:
+        return None
+    err_px = max(camera.fx, camera.fy) / near * (dA * float(ms.norm(dim=1).max()) + db)
+    return (A0, b0) if err_px <= ONE_MAP_TOLERANCE_PX else None
 
 
 def _flow_features(sim: SimResult, w2c: torch.Tensor, mu_s: torch.Tensor, L_s: torch.Tensor, mu_d: torch.Tensor,
-                   L_d: torch.Tensor) -> torch.Tensor:
+                   L_d: torch.Tensor, maps=None) -> torch.Tensor:
     """(N,9) per-Gaussian channels G (3x3, row-major) such that, composited like colour, G(p) r(p) / alpha
     is where the surface point seen at pixel p goes (camera coordinates), r(p) = ((u-cx)/fx, (v-cy)/fy, 1).
 
@@ -670,12 +708,8 @@ def _flow_features(sim: SimResult, w2c: torch.Tensor, mu_s: torch.Tensor, L_s: t
     pixel p's ray is X = z r(p), so A X + b = (z A) r(p) + b: the columns of G are z A[:, 0], z A[:, 1] and
     z A[:, 2] + b with z the Gaussian's own depth. Composited, the pixel gets A (sum w z) r + b alpha for
     splats that share a motion, and sum w z / alpha is exactly the rendered (expected) depth: exact for rigid
-    motion, first order in the splat size for deforming material."""
-    R, t = w2c[:3, :3], w2c[:3, 3]
-    A = (R @ (L_d @ _inverse(L_s)) @ R.T)[sim.binding]  # per particle, in camera coordinates; per Gaussian
-    ms = mu_s @ R.T + t
-    md = mu_d @ R.T + t
-    b = md - (A @ ms[..., None])[..., 0]
+    motion, first order in the splat size for deforming material. ``maps``: ``_flow_maps``' result, if made."""
+    A, b, ms = _flow_maps(sim, w2c, mu_s, L_s, mu_d, L_d) if maps is None else maps
     G = A * ms[:, 2, None, None]
     G[:, :, 2] += b
     return G.reshape(-1, FLOW_CHANNELS)
@@ -702,8 +736,10 @@ def render_clip(sim: SimResult, camera: Camera, *, flow: Optional[str] = None, d
     """Every frame rendered once (RGB, alpha, depth as ``render_frames``) and, with ``flow`` ("forward" or
     "backward"), the exact optical flow of the clip from the same renders: each frame carries 9 more
     composited channels (``_flow_features``) that map its visible surface points to the next (forward) or
-    previous (backward) frame. So the control videos and the flow of one clip cost one render, posing each
-    frame once (twice at the edges of the blocks of frames that render at once on the CPU: ``frame_threads``)."""
+    previous (backward) frame; a frame whose splats all move by one affine map (a rigid body: ``_one_map``)
+    needs none, its flow is that map applied to the rendered depth. So the control videos and the flow of one
+    clip cost one render, posing each frame once (twice at the edges of the blocks of frames that render at once
+    on the CPU: ``frame_threads``)."""
     from .render.frames import check_frames_fit, frame_threads, repeated_frames, run_frame_blocks
     from .render.rasterize import rasterize
 
@@ -750,14 +786,17 @@ def render_clip(sim: SimResult, camera: Camera, *, flow: Optional[str] = None, d
                     done(t)
                     continue
                 g, mu, L = pose(t)
-                feats = None
+                feats = one = None
                 if 0 <= d < T:
                     _, mu_d, L_d = pose(d)
-                    feats = _flow_features(sim, w2c, mu, L, mu_d, L_d).to(g.means.dtype).to(dev)
+                    maps = _flow_maps(sim, w2c, mu, L, mu_d, L_d)
+                    one = _one_map(*maps, camera) if ONE_MAP_FLOW else None
+                    if one is None:  # each splat its own map: composited as 9 more channels
+                        feats = _flow_features(sim, w2c, mu, L, mu_d, L_d, maps).to(g.means.dtype).to(dev)
                 out = rasterize(g.to(dev), camera, extra_features=feats, backend=backend)
                 a_t = out.alpha.cpu()
                 rgb[t], alpha[t], depth[t] = out.rgb.cpu(), a_t, out.depth.cpu()
-                if feats is not None:
+                if feats is not None or one is not None:
                     pair = t if flow == "forward" else d
                     ok = a_t > 0.5
                     rows, cols = ok.any(1).nonzero(), ok.any(0).nonzero()
@@ -766,10 +805,15 @@ def render_clip(sim: SimResult, camera: Camera, *, flow: Optional[str] = None, d
                         # at them): the pixels it does not cover get 0.
                         y0, y1, x0, x1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
                         o = ok[y0:y1, x0:x1]
-                        a_box = torch.where(o, a_t[y0:y1, x0:x1], 1.0).double()
-                        e = (out.extra[y0:y1, x0:x1].cpu().double() / a_box[..., None]).view(y1 - y0, x1 - x0, 3, 3)
                         r = ray[y0:y1, x0:x1]
-                        D = e[..., 0] * r[..., 0:1] + e[..., 1] * r[..., 1:2] + e[..., 2]  # where the point goes
+                        if one is not None:  # one map: applied to the rendered surface point, depth times the ray
+                            A0, b0 = one
+                            D = depth[t, y0:y1, x0:x1].double()[..., None] * (r @ A0.T) + b0
+                        else:
+                            a_box = torch.where(o, a_t[y0:y1, x0:x1], 1.0).double()
+                            e = (out.extra[y0:y1, x0:x1].cpu().double() / a_box[..., None]).view(y1 - y0, x1 - x0,
+                                                                                                 3, 3)
+                            D = e[..., 0] * r[..., 0:1] + e[..., 1] * r[..., 1:2] + e[..., 2]  # where the point goes
                         uv = torch.stack([camera.fx * D[..., 0] / D[..., 2] + camera.cx,
                                           camera.fy * D[..., 1] / D[..., 2] + camera.cy], -1)
                         flows[pair, y0:y1, x0:x1] = torch.where(o[..., None], uv - grid[y0:y1, x0:x1], 0.0).float()

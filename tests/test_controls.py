@@ -874,3 +874,64 @@ def test_tracks_json_is_the_json_of_the_rounded_samples():
             assert max(abs(p["x"]) for p in data[2]) == 1e6
         else:
             assert len(data[0]) == 121 and len(data[kept.index(2)]) < 121
+
+
+def test_rigid_frames_take_the_flow_from_depth_and_match_the_channels(monkeypatch):
+    """A frame whose splats all move by one affine map (a rigid body) renders no flow channels: its flow is the map
+    applied to the rendered surface point. It matches the composited channels (which the flag turns back on)
+    within 1e-3 px; a deforming body, each splat its own map, still composites them (identical either way)."""
+    import importlib
+
+    R = importlib.import_module("physmotion_core.render.rasterize")  # the module (the package re-exports the function)
+    seen = []
+    real = R.rasterize
+    monkeypatch.setattr(R, "rasterize", lambda g, cam, **k: seen.append(k.get("extra_features") is not None)
+                        or real(g, cam, **k))
+    cam = camera()
+    rigid = C.resample_simulation(cube_sim(V, OMEGA, frames=8), C.WAN_FPS)
+    flows = {}
+    for flag in (True, False):
+        monkeypatch.setattr(C, "ONE_MAP_FLOW", flag)
+        seen.clear()
+        frames, flows[flag] = C.render_clip(rigid, cam, flow="forward")
+        assert seen == ([False] * rigid.num_frames if flag else [True] * (rigid.num_frames - 1) + [False])
+    assert torch.equal(flows[True].valid, flows[False].valid) and bool(flows[True].valid.any())
+    ok = flows[True].valid
+    assert float((flows[True].flow - flows[False].flow)[ok].norm(dim=-1).max()) < 1e-3
+    assert float(flows[True].flow[~ok].abs().max()) == 0.0
+    # A sheared cube: F differs from particle to particle, so every frame composites the channels.
+    sim = cube_sim((0.0, 0.0, 0.0), 0.0, frames=8)
+    X = sim.rest_particles.double()
+    shear = torch.zeros(3, 3, dtype=torch.float64)
+    shear[0, 1] = 1.0
+    k = (X[:, 0:1, None] - float(X[:, 0].mean())) * 4.0  # the shear rate grows across the cube
+    Fs, xs = [], []
+    for tt in sim.times.tolist():
+        F = torch.eye(3, dtype=torch.float64) + k * tt * shear  # (n,3,3)
+        xs.append(CENTRE + ((F @ (X - CENTRE)[..., None])[..., 0]))
+        Fs.append(F)
+    sheared = dataclasses.replace(sim, x=torch.stack(xs).float(), F=torch.stack(Fs).float())
+    out = {}
+    for flag in (True, False):
+        monkeypatch.setattr(C, "ONE_MAP_FLOW", flag)
+        seen.clear()
+        out[flag] = C.render_clip(sheared, cam, flow="forward")[1]
+        assert seen[:-1] == [True] * (sheared.num_frames - 1)
+    assert torch.equal(out[True].flow, out[False].flow) and bool(out[True].valid.any())
+
+
+def test_one_map_is_read_only_within_its_tolerance():
+    cam = camera()
+    n = 50
+    A = torch.eye(3, dtype=torch.float64).expand(n, 3, 3).clone()
+    ms = torch.tensor([0.0, 0.0, 1.0], dtype=torch.float64) + 0.1 * torch.rand(n, 3, dtype=torch.float64)
+    b = torch.tensor([0.01, 0.0, 0.0], dtype=torch.float64).expand(n, 3).clone()
+    A0, b0 = C._one_map(A, b, ms, cam)
+    assert torch.equal(A0, A[0]) and torch.allclose(b0, b[0])
+    b2 = b.clone()
+    b2[0, 0] += 1e-3  # one splat moving 1 mm more at ~1 m: about 0.15 px at this focal length
+    assert C._one_map(A, b2, ms, cam) is None
+    A2 = A.clone()
+    A2[3] = A2[3] @ rot_y(1e-3)  # one splat turning a milliradian more
+    assert C._one_map(A2, b, ms, cam) is None
+    assert C._one_map(A, b + 1e-9, ms, cam) is not None  # round-off is not a second map
