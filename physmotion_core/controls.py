@@ -848,22 +848,16 @@ def flow_to_color(flow: torch.Tensor, max_flow: float = 0.0) -> torch.Tensor:
 
     f = flow.detach().float().cpu().numpy()
     shape = f.shape[:-1]
-    f = f.reshape(-1, 2)
-    # Only the moving pixels are converted: a still one (0, 0) is white (saturation 0, value 255) whatever its hue,
-    # and the still background is most of a frame.
-    moving = np.flatnonzero((f[:, 0] != 0) | (f[:, 1] != 0))
-    out = np.full((f.shape[0], 3), 255, np.uint8)
-    if moving.size:
-        fx = np.ascontiguousarray(f[moving, 0]).reshape(-1, 1)
-        fy = np.ascontiguousarray(f[moving, 1]).reshape(-1, 1)
-        mag, ang = cv2.cartToPolar(fx, fy, angleInDegrees=True)  # float32, angle in [0, 360)
-        top = float(max_flow) if max_flow > 0 else float(mag.max())
-        hsv = np.empty(mag.shape + (3,), np.uint8)
-        hsv[..., 0] = (ang * 0.5).astype(np.uint8)  # OpenCV's hue runs 0..180
-        hsv[..., 1] = (np.minimum(mag * (1.0 / max(top, 1e-9)), 1.0) * 255.0).astype(np.uint8)
-        hsv[..., 2] = 255
-        out[moving] = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB).reshape(-1, 3)
-    return torch.from_numpy(out.reshape(shape + (3,))).float().div_(255.0)
+    fx = np.ascontiguousarray(f[..., 0]).reshape(-1, shape[-1] if len(shape) else 1)
+    fy = np.ascontiguousarray(f[..., 1]).reshape(fx.shape)
+    mag, ang = cv2.cartToPolar(fx, fy, angleInDegrees=True)  # float32, angle in [0, 360)
+    top = float(max_flow) if max_flow > 0 else float(mag.max()) if mag.size else 0.0
+    hsv = np.empty(mag.shape + (3,), np.uint8)
+    hsv[..., 0] = (ang * 0.5).astype(np.uint8)  # OpenCV's hue runs 0..180
+    hsv[..., 1] = (np.minimum(mag * (1.0 / max(top, 1e-9)), 1.0) * 255.0).astype(np.uint8)
+    hsv[..., 2] = 255
+    rgb = cv2.cvtColor(hsv.reshape(-1, 1, 3), cv2.COLOR_HSV2RGB).reshape(shape + (3,))
+    return torch.from_numpy(rgb).float().div_(255.0)
 
 
 def save_flow_npz(path, flow: Flow, camera: Optional[Camera] = None) -> str:
