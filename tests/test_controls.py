@@ -430,6 +430,21 @@ def test_flow_colours_and_npz(tmp_path):
     assert col[0, 1, 1].tolist() == [1.0, 1.0, 1.0]  # still = white
     assert col[0, 0, 0, 0] > 0.9 and col[0, 0, 0, 1] < 0.2 and col[0, 0, 0, 2] < 0.2
     assert not torch.allclose(col[0, 0, 0], col[0, 0, 1])
+    assert torch.equal(C.flow_to_color(torch.zeros(2, 3, 5, 2)), torch.ones(2, 3, 5, 3))  # nothing moves: white
+    # Converting only the moving pixels gives what converting every pixel gives (OpenCV's HSV wheel, here whole).
+    import cv2
+
+    g = torch.Generator().manual_seed(2)
+    big = torch.randn(3, 20, 30, 2, generator=g) * 4
+    big[torch.rand(3, 20, 30, generator=g) < 0.7] = 0.0  # a still background
+    for top in (0.0, 2.5):
+        fx, fy = big[..., 0].reshape(-1, 30).numpy(), big[..., 1].reshape(-1, 30).numpy()
+        mag, ang = cv2.cartToPolar(fx, fy, angleInDegrees=True)
+        peak = top if top > 0 else float(mag.max())
+        hsv = np.stack([(ang * 0.5).astype(np.uint8), (np.minimum(mag * (1.0 / peak), 1.0) * 255.0).astype(np.uint8),
+                        np.full(mag.shape, 255, np.uint8)], -1)
+        whole = cv2.cvtColor(hsv, cv2.COLOR_HSV2RGB).reshape(3, 20, 30, 3)
+        assert torch.equal(C.flow_to_color(big, top), torch.from_numpy(whole).float() / 255.0)
     flow = C.Flow(flow=f, valid=f.norm(dim=-1) > 0, fps=16.0)
     path = C.save_flow_npz(tmp_path / "f.npz", flow, camera(8, 8))
     data = np.load(path)
