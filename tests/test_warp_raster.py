@@ -131,12 +131,11 @@ def test_too_many_intersections_is_a_clear_error(monkeypatch):
     g = random_gaussians(200, seed=7)
     proj, mc = _projected(g, cam)
     feats = _features(g, proj, mc, 0)
-    monkeypatch.setattr(WR, "MAX_INTERSECTIONS", 10)
+    # The limits are patched in the modules these functions run in (other tests reload the render modules).
+    monkeypatch.setitem(WR.composite_warp.__globals__, "MAX_INTERSECTIONS", 10)
     with pytest.raises(InputError, match="Lower the resolution"):
         WR.composite_warp(proj, feats, cam.width, cam.height)
-    import physmotion_core.render._torch_raster as TR  # the tensor path's limit, the same check
-
-    monkeypatch.setattr(TR, "MAX_INTERSECTIONS", 10)
+    monkeypatch.setitem(composite_tiles.__globals__, "MAX_INTERSECTIONS", 10)  # the tensor path: the same check
     with pytest.raises(InputError, match="splat-tile intersections"):
         composite_tiles(proj, feats, cam.width, cam.height)
 
