@@ -40,7 +40,7 @@ _built = None
 #: Pixel side of a tile for a whole frame. Larger tiles than ``composite_tiles``' 8: a pixel only visits the splats
 #: whose ellipse holds it (row spans, below), so a larger tile costs no more per pixel and lists each splat in fewer
 #: tiles (on the CPU templates' Wan clips, 832x480, one core: 32 px tiles 1.1-2x faster than the tensor path, 16 px
-#: 3-8 % slower than 32).
+#: 2-8 % slower than 32).
 TILE = 32
 
 
