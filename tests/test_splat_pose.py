@@ -40,6 +40,40 @@ def test_splat_deformation_matches_the_svd_clamp_everywhere():
     assert torch.equal(splat_deformation(small, MAX_SPLAT_STRETCH), small)
 
 
+def test_compiled_stretch_clamp_matches_lapack_on_hard_matrices():
+    """sim/pose.clamp_stretch (Warp's svd3 per matrix, the CPU path of splat_deformation) against LAPACK's SVD in
+    float64, on the matrices where an SVD's sign and order conventions matter: inversions (a negative determinant),
+    rank-deficient and zero matrices, repeated singular values, rotations, reflections, and stretches past the
+    clamp both ways; with and without the rotation-free rule."""
+    from physmotion_core.sim.pose import clamp_stretch
+
+    gen = torch.Generator().manual_seed(7)
+    F = _random_F(3000, gen).double()
+    R = torch.linalg.qr(torch.randn(40, 3, 3, generator=gen, dtype=torch.float64)).Q
+    special = [torch.eye(3), -torch.eye(3), torch.diag(torch.tensor([1.0, 1.0, -1.0])),
+               torch.diag(torch.tensor([2.0, 2.0, 0.0])), torch.diag(torch.tensor([5.0, 0.1, 0.1])),
+               torch.diag(torch.tensor([1e-9, 1.0, 1e9]))]
+    F = torch.cat([F, R, R * 4.0, R * torch.tensor([1.0, 1.0, -0.05], dtype=torch.float64),
+                   torch.stack(special).double()])
+    for rf in (torch.zeros(len(F), dtype=torch.bool), torch.ones(len(F), dtype=torch.bool),
+               torch.rand(len(F), generator=gen) < 0.5):
+        got = clamp_stretch(F, MAX_SPLAT_STRETCH, rf)
+        want = _reference_deformation(F, MAX_SPLAT_STRETCH, rf)
+        assert (got - want).abs().max() < 1e-9, (got - want).abs().amax((1, 2)).argmax()
+    assert clamp_stretch(F[:0], MAX_SPLAT_STRETCH, rf[:0]).shape == (0, 3, 3)
+    # Rank 0 or 1: U and V of the repeated zero singular values are each free, so U clamp(S) Vᵀ is not unique
+    # (any SVD's is as right); its singular values are: the clamp's. V clamp(S) Vᵀ is unique again.
+    low = torch.stack([torch.zeros(3, 3), torch.ones(3, 3), torch.outer(torch.tensor([1.0, 2, 3]),
+                                                                         torch.tensor([0.5, -1, 2]))]).double()
+    for rfv in (False, True):
+        rf = torch.full((3,), rfv)
+        got = clamp_stretch(low, MAX_SPLAT_STRETCH, rf)
+        want = torch.linalg.svdvals(low).clamp(1 / MAX_SPLAT_STRETCH, MAX_SPLAT_STRETCH)
+        assert (torch.linalg.svdvals(got) - want).abs().max() < 1e-12
+        if rfv:
+            assert (got - _reference_deformation(low, MAX_SPLAT_STRETCH, rf)).abs().max() < 1e-12
+
+
 def _sim(gen, N=3000, P=1500, K=8, T=2):
     means = torch.rand(N, 3, generator=gen) + torch.tensor([2.0, 1.0, -3.0])  # metres from the origin
     g = Gaussians.from_rgb(means, torch.rand(N, 3, generator=gen), 0.01 * torch.rand(N, 3, generator=gen) + 1e-3,
