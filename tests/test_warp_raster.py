@@ -54,6 +54,50 @@ def test_compositing_matches_the_tensor_path(extra, opacity):
         assert float(got[..., -1].max()) > 0.999  # saturated pixels: the early termination was exercised
 
 
+def test_compiled_projection_matches_project_gaussians():
+    """``project_warp`` (the projection of every CPU render without gradients) against the tensor path on splats
+    that take every culling branch: behind the camera, past far, too faint, NaN and infinite means, degenerate
+    covariances, splats wholly off the frame or on its borders, far beyond the frustum (the Jacobian's clamp),
+    and ordinary ones with ties in depth (the sort is stable). The same splats survive, in the same order, with
+    the same pixel boxes; positions bit-equal, log opacities to an ulp; conics within float32 round-off amplified by the
+    determinant's cancellation (relative to the conic's size)."""
+    cam = camera(163, 121)
+    g = random_gaussians(3000, seed=11, spread=1.6, size=0.05, opacity=(0.0, 1.0))
+    means, cov, opac = g.means.clone(), g.covariance().clone(), g.opacities.clone()
+    means[:40, 2] = 6.0  # behind the camera (at z = 4 looking at -z)
+    means[40:60, 2] = -500.0  # past far
+    opac[60:80] = 0.5 / 255  # fainter than 1/255, on the optical axis (a pixel centre: the box alone keeps them)
+    means[60:80, :2] = 0.0
+    means[80, 0], means[81, 1], means[82, 2] = float("nan"), float("inf"), float("-inf")
+    cov[90:100] = 0.0  # a point: only eps2d keeps it
+    cov[100:110] = torch.diag(torch.tensor([1e-3, 0.0, 0.0]))  # a needle
+    means[110:130, 0] = 40.0  # far off to the side
+    # Large splats centred beyond 1.3 half-fields of view whose boxes still reach the frame: the Jacobian's clamp.
+    tan_x = 0.5 * cam.width / cam.fx
+    means[170:190] = torch.tensor([2.0 * 4.0 * tan_x, 0.0, 0.0])
+    cov[170:190] = torch.eye(3) * torch.linspace(1.0, 4.0, 20)[:, None, None]
+    means[130:150] = means[150:170]  # exact ties in depth
+    w2c = cam.w2c_opencv()
+    args = (means, cov, opac, w2c, cam.fx, cam.fy, cam.cx, cam.cy, cam.width, cam.height, cam.near, cam.far, EPS2D)
+    with torch.no_grad():
+        ref, mc_ref = project_gaussians(*args)
+        got, mc = WR.project_warp(*args)
+    assert 1000 < len(ref.index) < 2900  # many culled, many kept
+    assert torch.equal(got.index, ref.index)
+    kept = set(ref.index.tolist())
+    assert not kept & set(range(60, 80)) and set(range(170, 190)) <= kept
+    assert torch.equal(got.pix_lo, ref.pix_lo) and torch.equal(got.pix_hi, ref.pix_hi)
+    assert torch.equal(got.uv, ref.uv)
+    torch.testing.assert_close(got.log_opacity, ref.log_opacity, atol=1e-7, rtol=1e-6)  # two logf's: an ulp
+    fin = torch.isfinite(mc_ref).all(1)
+    assert torch.equal(mc[fin], mc_ref[fin])
+    size = ref.conic.abs().amax(1, keepdim=True)
+    assert float(((got.conic - ref.conic).abs() / size).max()) < 1e-4
+    assert float(((got.conic - ref.conic).abs() / size).median()) < 1e-6
+    empty, _ = WR.project_warp(means[:0], cov[:0], opac[:0], *args[3:])
+    assert empty.index.numel() == 0 and empty.pix_lo.shape == (0, 2)
+
+
 def test_tile_size_changes_nothing():
     """A pixel visits the same splats in the same order whatever the tile: bit-identical results."""
     cam = camera(97, 70)

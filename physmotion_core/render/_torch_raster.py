@@ -550,7 +550,7 @@ def rasterize_torch(means: torch.Tensor, cov3d: torch.Tensor, opacities: torch.T
                     features: torch.Tensor, w2c: torch.Tensor, *, fx: float, fy: float, cx: float, cy: float,
                     width: int, height: int, near: float, far: float, eps2d: float, depth_mode: str,
                     tile_size: int = 8, chunk: int = 16, max_elements: Optional[int] = None,
-                    cull: bool = True, compositor=None) -> tuple[torch.Tensor, float]:
+                    cull: bool = True, compositor=None, projector=None) -> tuple[torch.Tensor, float]:
     """Render features (N, C) to (H, W, C + 2): features, depth, alpha (all accumulated Σ f w).
 
     The depth channel is accumulated as an offset from a reference depth (returned too), expected
@@ -558,9 +558,10 @@ def rasterize_torch(means: torch.Tensor, cov3d: torch.Tensor, opacities: torch.T
     range is small compared with its distance. ``compositor``: a function with ``composite_tiles``'
     signature (projected splats, features, width, height) to composite with instead (the Warp one,
     ``_warp_raster.composite_warp``, for renders without gradients); the tiling options are then unused.
+    ``projector``: likewise a function with ``project_gaussians``' signature (``_warp_raster.project_warp``).
     """
-    proj, mc = project_gaussians(means, cov3d, opacities, w2c, fx, fy, cx, cy, width, height,
-                                 near, far, eps2d)
+    proj, mc = (projector or project_gaussians)(means, cov3d, opacities, w2c, fx, fy, cx, cy, width, height,
+                                                near, far, eps2d)
     mcv = mc[proj.index]
     depth = mcv[:, 2] if depth_mode == "z" else torch.linalg.vector_norm(mcv, dim=-1)
     ref = float(depth.detach().mean()) if depth.numel() else 0.0

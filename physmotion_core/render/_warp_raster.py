@@ -1,4 +1,5 @@
-"""Forward-only Gaussian-splat compositing compiled with Warp, for CPU renders that need no gradients.
+"""Forward-only Gaussian-splat projection and compositing compiled with Warp, for CPU renders that need no
+gradients.
 
 The PyTorch rasterizer (``_torch_raster``) composites dense blocks [tiles, splats, pixels] with tensor
 operations: every (splat, pixel) entry of a tile's list goes through a GEMM, exp2, threshold, clamp, a running
@@ -19,6 +20,10 @@ by the order of float32 operations (exp instead of exp2 of a tile-local expansio
 of per chunk), so by round-off, and where round-off moves an entry across the 1/255 threshold or a pixel
 across the termination test (single pixels, by at most about 1/255 of a colour).
 
+The projection (``project_warp``: culling, EWA covariance, conic, pixel box, key for the depth sort) is compiled
+too, one loop over the splats with ``project_gaussians``' arithmetic, so the same splats come out in the same
+order with the same boxes; its conics differ by float32 round-off.
+
 The tile lists are built in one serial loop over the splats in depth order (so each tile's list comes out in
 depth order with no sort). That loop is serial by construction, so this path is for the CPU: on CUDA, gsplat
 does this job.
@@ -32,7 +37,9 @@ from typing import Optional
 
 import torch
 
-from ._torch_raster import ALPHA_MAX, ALPHA_MIN, MAX_INTERSECTIONS, T_DONE, Projected, check_intersections
+from ..errors import InputError
+from ._torch_raster import (ALPHA_MAX, ALPHA_MIN, MAX_EXTENT, MAX_INTERSECTIONS, T_DONE, Projected,
+                            check_intersections)
 
 _lock = threading.Lock()
 _built = None
@@ -234,10 +241,82 @@ def _build():
                                         alpha_out[p] = alpha_out[p] + w
                                         T[p] = t_next
 
-        _built = (wp, count, fill, composite)
+        MAX_EXTENT_ = wp.constant(MAX_EXTENT)
+        INF = wp.constant(math.inf)
+
+        @wp.kernel(enable_backward=False)
+        def project(means: wp.array(dtype=wp.vec3), cov: wp.array(dtype=wp.mat33), opac: wp.array(dtype=float),
+                    R: wp.mat33, t: wp.vec3, fx: float, fy: float, cx: float, cy: float, W: int, H: int,
+                    near: float, far: float, eps2d: float, lim: wp.vec4, big: float,
+                    mc: wp.array(dtype=wp.vec3), key: wp.array(dtype=float), uv: wp.array(dtype=wp.vec2),
+                    conic: wp.array(dtype=wp.vec3), logo: wp.array(dtype=float), lo: wp.array(dtype=wp.vec2i),
+                    hi: wp.array(dtype=wp.vec2i)):
+            # One splat, as project_gaussians computes it: camera-space mean, EWA 2D covariance (the Jacobian's
+            # x/z, y/z clamped to lim = (-x, +x, -y, +y) bounds), conic, pixel box at the opacity's extent; key = its
+            # z when it is drawn, +inf when culled (behind near, past far, opacity < 1/255, a degenerate or
+            # non-finite projection, a box that holds no pixel centre).
+            i = wp.tid()
+            p = R * means[i] + t
+            mc[i] = p
+            key[i] = INF
+            z = p[2]
+            o = opac[i]
+            if not (z > near and z < far and o >= ALPHA_MIN_):
+                return
+            rz = 1.0 / z
+            tx = z * wp.clamp(p[0] * rz, -lim[0], lim[1])
+            ty = z * wp.clamp(p[1] * rz, -lim[2], lim[3])
+            r0 = wp.vec3(R[0, 0], R[0, 1], R[0, 2])
+            r1 = wp.vec3(R[1, 0], R[1, 1], R[1, 2])
+            r2 = wp.vec3(R[2, 0], R[2, 1], R[2, 2])
+            m0 = (fx * rz) * r0 + (-fx * tx * rz * rz) * r2  # rows of J R, the world -> screen Jacobian
+            m1 = (fy * rz) * r1 + (-fy * ty * rz * rz) * r2
+            S = cov[i]
+            s0 = S * m0
+            s1 = S * m1
+            a = wp.dot(m0, s0) + eps2d
+            b = 0.5 * (wp.dot(m1, s0) + wp.dot(m0, s1))  # a non-symmetric Σ acts as its symmetric part
+            c = wp.dot(m1, s1) + eps2d
+            det = a * c - b * b
+            u = fx * p[0] * rz + cx
+            v = fy * p[1] * rz + cy
+            if not (det > 0.0 and wp.isfinite(det) and wp.isfinite(a) and wp.isfinite(c) and wp.isfinite(u)
+                    and wp.isfinite(v)):
+                return
+            extent = wp.min(wp.sqrt(2.0 * wp.log(wp.max(o, ALPHA_MIN_) / ALPHA_MIN_)), MAX_EXTENT_)
+            rx = extent * wp.sqrt(wp.max(a, 0.0))
+            ry = extent * wp.sqrt(wp.max(c, 0.0))
+            lu = wp.max(wp.ceil(wp.clamp(u - rx - 0.5 - 1.0e-3, -big, big)), 0.0)
+            hu = wp.min(wp.floor(wp.clamp(u + rx - 0.5 + 1.0e-3, -big, big)), float(W - 1))
+            lv = wp.max(wp.ceil(wp.clamp(v - ry - 0.5 - 1.0e-3, -big, big)), 0.0)
+            hv = wp.min(wp.floor(wp.clamp(v + ry - 0.5 + 1.0e-3, -big, big)), float(H - 1))
+            if lu > hu or lv > hv:
+                return
+            key[i] = z
+            uv[i] = wp.vec2(u, v)
+            inv = 1.0 / det
+            conic[i] = wp.vec3(c * inv, -b * inv, a * inv)
+            logo[i] = wp.log(o)
+            lo[i] = wp.vec2i(int(lu), int(lv))
+            hi[i] = wp.vec2i(int(hu), int(hv))
+
+        _built = (wp, count, fill, composite, project)
         return _built
 
 
+
+
+def attempt(fn, *args, **kwargs):
+    """``fn(*args, **kwargs)``, or None when it fails with anything but an InputError (a failed Warp build or
+    launch): this path is then off for the rest of the process (``mark_failed``) and the caller takes the
+    PyTorch one."""
+    try:
+        return fn(*args, **kwargs)
+    except InputError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - any failure of the compiled path falls back
+        mark_failed(exc)
+        return None
 
 
 def _view(wp, t: torch.Tensor, dtype):
@@ -250,7 +329,7 @@ def composite_warp(proj: Projected, features: torch.Tensor, width: int, height: 
     """``composite_tiles`` without gradients, on the CPU: (H, W, C + 1), the composited features Σ f w then
     alpha Σ w, of the projected splats ``proj`` (front to back) with features (M, C) in the same order.
     ``pixels`` (H, W) bool: only these pixels (the others stay 0). Computed in float32."""
-    wp, count, fill, composite = _build()
+    wp, count, fill, composite, _ = _build()
     f32 = torch.float32
     M, C = features.shape
     ts = int(tile_size)
@@ -301,6 +380,55 @@ def composite_warp(proj: Projected, features: torch.Tensor, width: int, height: 
         wp.synchronize_device("cpu")
         img = torch.cat([out[:, :C], alpha[:, None]], 1) if 4 * Q != C else torch.cat([out, alpha[:, None]], 1)
     return img.view(height, width, C + 1)
+
+
+def project_warp(means: torch.Tensor, cov3d: torch.Tensor, opacities: torch.Tensor, w2c: torch.Tensor, fx: float,
+                 fy: float, cx: float, cy: float, width: int, height: int, near: float, far: float,
+                 eps2d: float) -> tuple[Projected, torch.Tensor]:
+    """``project_gaussians`` compiled, for CPU float32 inputs without gradients: the same culling, projection and
+    front-to-back order (a stable sort by z), in one loop over the splats instead of some forty whole-array
+    tensor operations and batched 2x3 / 3x3 matrix products (56k splats: 25 -> 5 ms on one core). Values equal
+    the tensor path's to float32 round-off (the order of a few sums differs)."""
+    wp, _, _, _, project = _build()
+    f32 = torch.float32
+    with torch.no_grad():
+        means = means.detach().to(f32).contiguous()
+        N = int(means.shape[0])
+        keep = []
+
+        def view(t, dtype):
+            a, t = _view(wp, t, dtype)
+            keep.append(t)
+            return a
+
+        mc = torch.empty(N, 3, dtype=f32)
+        key = torch.empty(N, dtype=f32)
+        uv = torch.empty(N, 2, dtype=f32)
+        conic = torch.empty(N, 3, dtype=f32)
+        logo = torch.empty(N, dtype=f32)
+        lo = torch.empty(N, 2, dtype=torch.int32)
+        hi = torch.empty(N, 2, dtype=torch.int32)
+        if N:
+            w = w2c.detach().to(f32)
+            R = wp.mat33(*[float(v) for v in w[:3, :3].reshape(-1).tolist()])
+            t = wp.vec3(*[float(v) for v in w[:3, 3].tolist()])
+            tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
+            lim = wp.vec4(cx / fx + 0.3 * tan_x, (width - cx) / fx + 0.3 * tan_x,
+                          cy / fy + 0.3 * tan_y, (height - cy) / fy + 0.3 * tan_y)
+            big = float(max(width, height) * 4 + 16)
+            wp.launch(project, dim=N, device="cpu",
+                      inputs=[view(means, wp.vec3), view(cov3d.detach().to(f32), wp.mat33),
+                              view(opacities.detach().to(f32).reshape(-1), float), R, t, float(fx), float(fy),
+                              float(cx), float(cy), int(width), int(height), float(near), float(far), float(eps2d),
+                              lim, big, view(mc, wp.vec3), view(key, float), view(uv, wp.vec2), view(conic, wp.vec3),
+                              view(logo, float), view(lo, wp.vec2i), view(hi, wp.vec2i)])
+            wp.synchronize_device("cpu")
+        ok = (key < math.inf).nonzero().squeeze(1)
+        order = ok.index_select(0, torch.argsort(key.index_select(0, ok), stable=True))  # front to back
+        proj = Projected(index=order, uv=uv.index_select(0, order), conic=conic.index_select(0, order),
+                         log_opacity=logo.index_select(0, order), pix_lo=lo.index_select(0, order).long(),
+                         pix_hi=hi.index_select(0, order).long())
+    return proj, mc
 
 
 def usable(device: torch.device, dtype: torch.dtype, *tensors: Optional[torch.Tensor]) -> bool:

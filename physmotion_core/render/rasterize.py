@@ -193,14 +193,12 @@ def rasterize(gaussians: Gaussians, camera: Camera, *, colors: Optional[torch.Te
 
         if _warp_raster.usable(device, work, gaussians.means, gaussians.covars, gaussians.quats, gaussians.scales,
                                colors, opac, extra):
-            try:
-                out = _rasterize_with_torch(gaussians, camera, colors, opac, extra, depth_mode, eps2d,
-                                            compositor=_warp_raster.composite_warp)
+            # A failed kernel build or launch: the tensor path, from now on.
+            out = _warp_raster.attempt(_rasterize_with_torch, gaussians, camera, colors, opac, extra, depth_mode,
+                                       eps2d, compositor=_warp_raster.composite_warp,
+                                       projector=_warp_raster.project_warp)
+            if out is not None:
                 out.backend = "warp"
-            except InputError:
-                raise
-            except Exception as exc:  # a failed kernel build or launch: the tensor path, from now on
-                _warp_raster.mark_failed(exc)
         elif backend == "warp":
             _warn_once("backend='warp' renders CPU float32 tensors without gradients; these are not, so the "
                        "PyTorch rasterizer renders them.")
@@ -329,8 +327,13 @@ def probe(gaussians: Gaussians, camera: Camera, pixels: torch.Tensor, *, depth_m
             diff.index_put_((ys, xs), one * sign, accumulate=True)
         footprint = diff.cumsum(0).cumsum(1)[:H, :W] > 0
         cand = b[reaches(bx0, by0, bx1, by1)]
-        proj, mc = project_gaussians(means[cand], cov[cand], opac[cand], w2c, camera.fx, camera.fy, camera.cx,
-                                     camera.cy, W, H, camera.near, camera.far, eps2d)
+        from . import _warp_raster
+
+        compiled = _warp_raster.usable(device, work)  # as rasterize projects and composites a frame without gradients
+        args = (means[cand], cov[cand], opac[cand], w2c, camera.fx, camera.fy, camera.cx, camera.cy, W, H, camera.near,
+                camera.far, eps2d)
+        found = _warp_raster.attempt(_warp_raster.project_warp, *args) if compiled else None
+        proj, mc = found if found is not None else project_gaussians(*args)
         mcv = mc[proj.index]
         depth = mcv[:, 2] if depth_mode == "z" else torch.linalg.vector_norm(mcv, dim=-1)
         ref = float(depth.mean()) if depth.numel() else 0.0  # the reference rasterize_torch takes
@@ -338,17 +341,11 @@ def probe(gaussians: Gaussians, camera: Camera, pixels: torch.Tensor, *, depth_m
         keep = reaches(lo[:, 0], lo[:, 1], hi[:, 0], hi[:, 1]).nonzero().squeeze(1)  # still front to back
         sub = Projected(index=proj.index[keep], uv=proj.uv[keep], conic=proj.conic[keep],
                         log_opacity=proj.log_opacity[keep], pix_lo=lo[keep], pix_hi=hi[keep])
-        from . import _warp_raster
-
         feats = (depth[keep] - ref)[:, None]
         img = None
-        if _warp_raster.usable(device, work):  # as rasterize composites a frame without gradients
-            try:
-                img = _warp_raster.composite_warp(sub, feats, W, H, tile_size=ts, pixels=pixels.to(device))
-            except InputError:
-                raise
-            except Exception as exc:
-                _warp_raster.mark_failed(exc)
+        if compiled and _warp_raster.usable(device, work):
+            img = _warp_raster.attempt(_warp_raster.composite_warp, sub, feats, W, H, tile_size=ts,
+                                       pixels=pixels.to(device))
         if img is None:
             # Longer chunks than a whole frame's: few tiles, so the per-step overhead, not the work, dominates.
             img = composite_tiles(sub, feats, W, H, tile_size=ts, chunk=PROBE_CHUNK, pixels=pixels.to(device))
