@@ -144,27 +144,32 @@ def _build():
         @wp.kernel(enable_backward=False)
         def count(uv: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3), logo: wp.array(dtype=float),
                   lo: wp.array(dtype=wp.vec2i), hi: wp.array(dtype=wp.vec2i), ts: int, TX: int,
-                  per_tile: wp.array(dtype=int)):
-            # One splat: +1 to every tile it goes in (the counts do not depend on the order).
+                  hold: wp.array(dtype=wp.uint8), per_tile: wp.array(dtype=int)):
+            # One splat: +1 to every tile it goes in (the counts do not depend on the order). ``hold`` (empty: every
+            # tile): only the tiles that hold an asked pixel get lists.
             m = wp.tid()
             for ty in range(lo[m][1] / ts, hi[m][1] / ts + 1):
                 for tx in range(lo[m][0] / ts, hi[m][0] / ts + 1):
-                    if listed(uv, conic, logo, lo, hi, ts, m, tx, ty):
-                        wp.atomic_add(per_tile, ty * TX + tx, 1)
+                    t = ty * TX + tx
+                    if hold.shape[0] == 0 or hold[t] != wp.uint8(0):
+                        if listed(uv, conic, logo, lo, hi, ts, m, tx, ty):
+                            wp.atomic_add(per_tile, t, 1)
 
         @wp.kernel(enable_backward=False)
         def fill(uv: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3), logo: wp.array(dtype=float),
                  lo: wp.array(dtype=wp.vec2i), hi: wp.array(dtype=wp.vec2i), ts: int, TX: int, M: int,
-                 cursor: wp.array(dtype=int), lists: wp.array(dtype=int)):
-            # Launched once (dim 1): the splats in depth order, each appended to the tiles it goes in, so every
-            # tile's list is in depth order. ``cursor`` starts at each tile's first slot.
+                 hold: wp.array(dtype=wp.uint8), cursor: wp.array(dtype=int), lists: wp.array(dtype=int)):
+            # Launched once (dim 1): the splats in depth order, each appended to the tiles it goes in (of those
+            # ``hold`` names, as count), so every tile's list is in depth order. ``cursor`` starts at each tile's
+            # first slot.
             for m in range(M):
                 for ty in range(lo[m][1] / ts, hi[m][1] / ts + 1):
                     for tx in range(lo[m][0] / ts, hi[m][0] / ts + 1):
-                        if listed(uv, conic, logo, lo, hi, ts, m, tx, ty):
-                            t = ty * TX + tx
-                            lists[cursor[t]] = m
-                            cursor[t] = cursor[t] + 1
+                        t = ty * TX + tx
+                        if hold.shape[0] == 0 or hold[t] != wp.uint8(0):
+                            if listed(uv, conic, logo, lo, hi, ts, m, tx, ty):
+                                lists[cursor[t]] = m
+                                cursor[t] = cursor[t] + 1
 
         @wp.func
         def span(a: float, b: float, c: float, r2: float, u: float, v: float, y: int, x0: int, x1: int):
@@ -350,12 +355,21 @@ def composite_warp(proj: Projected, features: torch.Tensor, width: int, height: 
         logo = view(proj.log_opacity.to(f32), float)
         lo = view(proj.pix_lo.to(torch.int32), wp.vec2i)
         hi = view(proj.pix_hi.to(torch.int32), wp.vec2i)
+        if pixels is None:
+            asked = hold = torch.zeros(0, dtype=torch.uint8)
+        else:
+            asked = pixels.to(torch.bool).reshape(-1).to(torch.uint8)
+            # Only the tiles holding an asked pixel get lists; the others stay empty.
+            grid = torch.nn.functional.pad(pixels.to(torch.bool), (0, TX * ts - width, 0, TY * ts - height))
+            hold = grid.view(TY, ts, TX, ts).any(3).any(1).reshape(-1).to(torch.uint8)
+        holds = view(hold, wp.uint8)
         per_tile = torch.zeros(TX * TY + 1, dtype=torch.int32)
-        wp.launch(count, dim=M, device="cpu", inputs=[uv, conic, logo, lo, hi, ts, TX, view(per_tile[1:], int)])
+        wp.launch(count, dim=M, device="cpu", inputs=[uv, conic, logo, lo, hi, ts, TX, holds,
+                                                      view(per_tile[1:], int)])
         start = torch.cumsum(per_tile, 0, dtype=torch.int32)  # start[t] .. start[t + 1]: tile t's list
         lists = torch.empty(max(int(start[-1]), 1), dtype=torch.int32)
         cursor = start[:-1].clone()
-        wp.launch(fill, dim=1, device="cpu", inputs=[uv, conic, logo, lo, hi, ts, TX, M, view(cursor, int),
+        wp.launch(fill, dim=1, device="cpu", inputs=[uv, conic, logo, lo, hi, ts, TX, M, holds, view(cursor, int),
                                                      view(lists, int)])
         # Features in groups of four (vec4), zero-padded.
         Q = -(-C // 4)
@@ -365,14 +379,6 @@ def composite_warp(proj: Projected, features: torch.Tensor, width: int, height: 
         alpha = torch.zeros(height * width, dtype=f32)
         trans = torch.empty(height * width, dtype=f32)
         first, last = start[:-1], start[1:]
-        if pixels is None:
-            asked = torch.zeros(0, dtype=torch.uint8)
-        else:
-            asked = pixels.to(torch.bool).reshape(-1).to(torch.uint8)
-            # Only the tiles holding an asked pixel: the others get an empty list.
-            grid = torch.nn.functional.pad(pixels.to(torch.bool), (0, TX * ts - width, 0, TY * ts - height))
-            hold = grid.view(TY, ts, TX, ts).any(3).any(1).reshape(-1)
-            last = torch.where(hold, last, first)
         wp.launch(composite, dim=TX * TY, device="cpu",
                   inputs=[view(first, int), view(last, int), view(lists, int), uv, conic, logo, lo, hi,
                           view(fq.view(M, Q, 4), wp.vec4), ts, TX, width, height, view(asked, wp.uint8),
