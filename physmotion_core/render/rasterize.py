@@ -33,6 +33,7 @@ import inspect
 import logging
 import math
 from dataclasses import dataclass
+from functools import partial
 from typing import Optional
 
 import torch
@@ -195,7 +196,7 @@ def rasterize(gaussians: Gaussians, camera: Camera, *, colors: Optional[torch.Te
                                colors, opac, extra):
             # A failed kernel build or launch: the tensor path, from now on.
             out = _warp_raster.attempt(_rasterize_with_torch, gaussians, camera, colors, opac, extra, depth_mode,
-                                       eps2d, compositor=_warp_raster.composite_warp,
+                                       eps2d, compositor=partial(_warp_raster.composite_warp, split=True),
                                        projector=_warp_raster.project_warp)
             if out is not None:
                 out.backend = "warp"
@@ -222,6 +223,11 @@ def _rasterize_with_torch(gaussians: Gaussians, camera: Camera, colors: torch.Te
         height=camera.height, near=camera.near, far=camera.far, eps2d=eps2d, depth_mode=depth_mode,
         **tiling)
     c = feats.shape[1]
+    if isinstance(img, tuple):  # the Warp compositor's own buffers (``composite_warp(split=True)``): no joining copy
+        fimg, alpha = img
+        return _finish(fimg[..., :3].contiguous(), alpha, fimg[..., c],
+                       None if extra is None else fimg[..., 3:c].contiguous(), backend="torch", anchor=means,
+                       depth_ref=depth_ref)
     return _finish(img[..., :3].contiguous(), img[..., c + 1].contiguous(), img[..., c],
                    None if extra is None else img[..., 3:c].contiguous(), backend="torch",
                    anchor=means, depth_ref=depth_ref)
@@ -236,8 +242,12 @@ def _finish(rgb, alpha, depth_acc, extra, *, backend: str, anchor: torch.Tensor,
         rgb, alpha, depth_acc = rgb + zero, alpha + zero, depth_acc + zero
         extra = None if extra is None else extra + zero
     has = alpha > ALPHA_EPS
-    depth = torch.where(has, depth_ref + depth_acc / torch.where(has, alpha, torch.ones_like(alpha)),
-                        torch.zeros_like(alpha))
+    if alpha.requires_grad or depth_acc.requires_grad:
+        # Divide only where defined, so no NaN/inf enters the backward pass.
+        depth = torch.where(has, depth_ref + depth_acc / torch.where(has, alpha, torch.ones_like(alpha)),
+                            torch.zeros_like(alpha))
+    else:  # the same values in place, with one frame-sized allocation instead of four
+        depth = (depth_acc / alpha).add_(depth_ref).masked_fill_(~has, 0.0)
     return RenderOutput(rgb=rgb, alpha=alpha, depth=depth, extra=extra, backend=backend)
 
 
