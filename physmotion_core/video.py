@@ -16,7 +16,8 @@ from .fsutil import atomic_output
 
 def _to_uint8_frames(frames) -> np.ndarray:
     if isinstance(frames, torch.Tensor):
-        frames = frames.detach().cpu().float().numpy()
+        frames = frames.detach().cpu()
+        frames = frames.numpy() if frames.dtype == torch.uint8 else frames.float().numpy()
     arr = np.asarray(frames)
     if arr.ndim != 4 or arr.shape[-1] != 3:
         raise InputError(f"video frames must be (T, H, W, 3); got shape {arr.shape}")

@@ -1,6 +1,7 @@
 """Node classes and shipped workflows, checked without ComfyUI (see comfy_harness)."""
 
 import json
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -285,3 +286,34 @@ def test_save_video_also_returns_a_video_the_native_nodes_take(tmp_path, monkeyp
     monkeypatch.setitem(sys.modules, "comfy_api.latest", latest)
     path, video = cls().run(frames, 12.0, "clips/fade", 18)["result"]
     assert isinstance(video, VideoFromFile) and video.file == path
+
+
+def test_video_previews_are_the_area_shrunk_clip(tmp_path, monkeypatch):
+    """A node's preview clip: the frames shrunk to PREVIEW_MAX_SIDE by area averaging, clamped to 0..1 (what
+    OpenCV's INTER_AREA gives for the clamped full-size frames, as the clip holds values in 0..1), encoded at 8 bits;
+    a (T,H,W) mask is previewed grey; NaN frames are refused with the reason."""
+    import cv2
+
+    from physmotion_core.errors import InputError
+
+    util = sys.modules[load_pack().__name__ + ".nodes._util"]
+    monkeypatch.setenv("PHYSMOTION_TEMP_DIR", str(tmp_path))
+    monkeypatch.setattr(util, "temp_directory", lambda: tmp_path)
+    t, h, w = 4, 300, 640
+    yy, xx = torch.meshgrid(torch.linspace(0, 1, h), torch.linspace(0, 1, w), indexing="ij")
+    frames = torch.stack([torch.stack([xx, yy, (xx + yy + 0.2 * i) % 1.0], -1) for i in range(t)])
+    frames[:, 100:140, 200:260] = torch.tensor([1.0, 0.0, 0.0])  # a red block with sharp edges
+    want = np.stack([cv2.resize(f.numpy(), (512, 240), interpolation=cv2.INTER_AREA) for f in frames])
+    ui = util.preview_video(frames, 8.0, "test")
+    video, _ = read_video(tmp_path / ui["images"][0]["filename"])
+    assert video.shape == (t, 240, 512, 3)
+    assert float(np.abs(video / 255.0 - want).mean()) < 0.02
+    mask = (frames[..., 0] > 0.99).float()  # the block (and the right edge of the ramp)
+    ui = util.preview_video(mask, 8.0, "mask")
+    grey, _ = read_video(tmp_path / ui["images"][0]["filename"])
+    want_mask = np.stack([cv2.resize(m.numpy(), (512, 240), interpolation=cv2.INTER_AREA) for m in mask])
+    assert float(np.abs(grey.mean(-1) / 255.0 - want_mask).mean()) < 0.02
+    assert np.abs(grey[..., 0].astype(int) - grey[..., 2].astype(int)).max() <= 6  # grey: equal channels
+    frames[1, 5, 5, 1] = float("nan")
+    with pytest.raises(InputError, match="NaN"):
+        util.preview_video(frames, 8.0, "bad")
