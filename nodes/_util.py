@@ -120,7 +120,8 @@ def preview_video(frames: torch.Tensor, fps: float, stem: str = "PhysMotion_prev
     if f.shape[0] == 1:
         return preview_images(f, stem)
     if not math.isfinite(float(f.sum())):  # clamped to 0..1: only a NaN can make the sum non-finite
-        raise InputError("video frames contain NaN values")
+        raise InputError("The frames to preview contain NaN values: the node (or one upstream of it) produced "
+                         "invalid numbers. Check that node's inputs (e.g. a simulation that reported an error).")
     # To 8 bits here, as write_mp4 would (round to nearest), in one pass of torch's threads over the small frames.
     f8 = f.mul(255.0).add_(0.5).to(torch.uint8)
     name = f"{stem}_{os.urandom(4).hex()}.mp4"

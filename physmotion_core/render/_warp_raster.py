@@ -56,6 +56,7 @@ TILE = 64
 
 _failed = False
 
+
 def _f32(x: float) -> str:
     """A C++ float literal that rounds to the float32 value Warp gives the Python constant ``x``."""
     import numpy as np
@@ -128,7 +129,6 @@ if (Q == 1) {
 return died;
 """.replace("ALPHA_MAX", _f32(ALPHA_MAX)).replace("ALPHA_MIN", _f32(ALPHA_MIN)).replace(
     "T_DONE", _f32(T_DONE)).replace("LN_255", _f32(math.log(255.0)))
-
 
 
 def available() -> bool:
