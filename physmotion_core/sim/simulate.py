@@ -118,15 +118,19 @@ def check_memory(num_particles: int, domain: Domain, frames: int, recorded: int,
     dev_free = device_available_bytes(device)
     if device.startswith("cuda"):
         if need["device"] > 0.9 * dev_free:
-            raise InputError(f"The simulation needs about {fmt_bytes(need['device'])} on {device} but only "
-                             f"{fmt_bytes(dev_free)} is free. Lower grid_res, particles_per_cell or domain_margin.")
+            from ..memory import over_limit_message
+
+            raise InputError(f"The simulation {over_limit_message(need['device'], dev_free, 0.9, 'memory on ' + device)}. "
+                             "Lower grid_res, particles_per_cell or domain_margin, or free GPU memory.")
         host_need = need["host"]
     else:
         host_need = need["host"] + need["device"]
-    if host_need > 0.8 * host_available_bytes():
-        raise InputError(f"The simulation needs about {fmt_bytes(host_need)} of RAM but only "
-                         f"{fmt_bytes(host_available_bytes())} is available. Lower frames, grid_res or "
-                         "particles_per_cell.")
+    have = host_available_bytes()
+    if host_need > 0.8 * have:
+        from ..memory import over_limit_message
+
+        raise InputError(f"The simulation {over_limit_message(host_need, have, 0.8)}. Lower frames, grid_res or "
+                         "particles_per_cell, or free memory (close other programs or models).")
 
 
 @dataclass
@@ -272,6 +276,7 @@ def simulate(
     progress: Optional[ProgressFn] = None,
     record_all: bool = False,
     make_room: Optional[Callable[[int, str], None]] = None,
+    on_start: Optional[Callable] = None,
 ) -> SimResult:
     """Simulate the object(s) the Gaussians describe and return their trajectory.
 
@@ -281,7 +286,9 @@ def simulate(
     substep; frames are recorded at t = k / fps for k = 0..frames-1. ``record_all`` keeps every
     particle's trajectory (default: only those carrying Gaussians). ``make_room(bytes, device)`` is
     called on CUDA with the device memory the run needs before it checks that it fits (ComfyUI's
-    nodes free cached models there).
+    nodes free cached models there). ``on_start(facts)`` is called once the objects are filled and
+    weighed, before the first substep, with a ``feedback.BodyFacts`` (particle positions and masses):
+    what the user is told before the wait.
 
     The steps: fill the objects with particles (``fill_objects``), check the run fits in memory
     (``check_memory``), turn the Conditions into per-particle arrays (``initial_state``) and a
@@ -323,6 +330,10 @@ def simulate(
                 float(np.linalg.norm(np.asarray(init.v0), axis=1).max()) if init.v0 is not None and len(x0) else 0.0)
     solver.set_limits(max_dt=min(frame_dt / settings.min_substeps, settings.fixed_dt or math.inf),
                       max_frame_substeps=settings.max_substeps_per_frame)
+    if on_start is not None:
+        from ..feedback import BodyFacts
+
+        on_start(BodyFacts(x0, solver.mass_np.astype(np.float64)))
 
     rec, rest_from, loop_s = run_frames(solver, schedule, settings, recorded, x0, progress)
     wall = time.perf_counter() - t_start

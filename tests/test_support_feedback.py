@@ -1,0 +1,223 @@
+"""What holds a cut-off object (support.py) and what the user is told before and after the wait
+(feedback.py): issue 33, items 4 and 5.
+
+The hold is checked through ``simulate()``: a leaning oval cut off by the frame's bottom edge (a head
+filling the frame, leaning right) stays within 1 % of its height for 1 s under gravity when held at
+that edge, and, as a control, sags and topples when it is stood on the cut instead. The material is
+rubber (E = 1 MPa, ρ = 1100 kg/m³): its static sag under its own weight, ρ·g·h²/(2E) = 0.5 mm for a
+0.3 m body, is 0.16 % of its height, so the 1 % bound is about the hold, not the elasticity.
+"""
+
+from types import SimpleNamespace
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+from physmotion_core.feedback import BodyFacts, after_run, forecast
+from physmotion_core.support import edge_band, edge_contact, plan_support, touched_edges
+from physmotion_core.types import Conditions, Force, Ground, InitialVelocity, Material, SimSettings
+from physmotion_core.types.camera import Camera
+
+
+def disc(h=120, w=160, cx=80, cy=60, r=30):
+    yy, xx = np.mgrid[:h, :w]
+    return ((xx - cx) ** 2 + (yy - cy) ** 2 <= r * r).astype(np.float32)
+
+
+def oval(h=120, w=160, lean=0.0):
+    """A head-like oval filling the frame's height, cut off by the bottom edge (its neck). With
+    ``lean`` (pixels right per pixel up) its centre of mass lies right of the cut, so stood on the
+    cut it topples."""
+    yy, xx = np.mgrid[:h, :w].astype(np.float64)
+    cx = 80 + lean * (h - yy) - lean * 60
+    return ((((xx - cx) / 34.0) ** 2 + ((yy - 66) / 60.0) ** 2) <= 1.0).astype(np.float32)
+
+
+# -- which edges cut the object ----------------------------------------------------------------
+
+
+def test_an_object_inside_the_frame_touches_no_edge():
+    assert touched_edges(disc()) == ()
+
+
+def test_the_edges_that_cut_an_object_are_found():
+    m = disc(cx=80, cy=110, r=30)  # cut by the bottom edge
+    assert touched_edges(m) == ("bottom",)
+    m = disc(cx=5, cy=5, r=40)  # a corner: top and left
+    assert touched_edges(m) == ("top", "left")
+    assert set(edge_contact(m)) == {"top", "left"}
+
+
+def test_a_stray_border_pixel_is_not_a_cut():
+    m = disc()
+    m[0, 80] = 1.0  # one pixel of the top row
+    assert touched_edges(m) == ()
+
+
+def test_the_band_is_the_object_next_to_the_cut_edge():
+    m = disc(cx=80, cy=110, r=30)
+    band = edge_band(m, ("bottom",), band_px=5)
+    assert band.sum() > 0 and np.all(band <= m)
+    assert np.all(band[:-5] == 0)  # only the last 5 rows
+    assert np.array_equal(band[-5:] > 0, m[-5:] > 0)
+
+
+# -- the support plan ----------------------------------------------------------------------------
+
+
+def test_plan_holds_a_cut_object_and_moves_the_ground_out_of_the_way():
+    plan = plan_support(disc(cx=80, cy=110, r=30), ground=Ground(0.0, "friction", 0.5), object_height=0.3)
+    assert plan.hold and plan.anchor is not None and plan.edges == ("bottom",)
+    assert plan.ground.height == pytest.approx(-0.3)
+    text = " ".join(plan.lines)
+    assert "bottom" in text and "held" in text and "--no-hold-edges" in text
+    assert "0.3 m (assumed)" in text and "--object-height" in text
+
+
+def test_plan_puts_the_ground_under_an_object_inside_the_frame():
+    plan = plan_support(disc(), ground=Ground(0.0, "friction", 0.5), object_height=0.5, height_given=True)
+    assert not plan.hold and plan.anchor is None and plan.ground.height == 0.0 and plan.ground_under_object
+    assert "under the object's lowest visible point" in " ".join(plan.lines)
+    assert "0.5 m (given)" in " ".join(plan.lines)
+
+
+def test_plan_with_the_hold_off_holds_nothing_and_says_so():
+    plan = plan_support(disc(cx=80, cy=110, r=30), ground=Ground(0.0, "friction", 0.5), object_height=0.3,
+                        hold_edges=False)
+    assert plan.anchor is None and not plan.hold
+    assert "holding it there is off" in " ".join(plan.lines)
+
+
+def _cut_off_run(hold: bool, lean: float = 0.0):
+    from physmotion_core.lift import silhouette_lift
+    from physmotion_core.sim import simulate
+
+    mask = oval(lean=lean)
+    assert touched_edges(mask) == ("bottom",)
+    img = np.full(mask.shape + (3,), 0.6, np.float32)
+    height = 0.3
+    ground = Ground(0.0, "friction", 0.5)
+    plan = plan_support(mask, ground=ground, object_height=height, hold_edges=hold)
+    lift = silhouette_lift(img, mask, object_height=height, max_gaussians=3000, fit_colors=False)
+    conds = Conditions([plan.ground] + ([plan.anchor] if plan.anchor is not None else []))
+    res = simulate(lift.gaussians, Material.preset("rubber"), conds,
+                   SimSettings(frames=25, fps=24.0, grid_res=10, device="cpu"), camera=lift.camera, record_all=True)
+    x = res.x.numpy().astype(np.float64)
+    return float(np.linalg.norm(x - x[0], axis=2).max()), height
+
+
+def test_a_cut_off_object_held_at_the_frame_edge_stays_put_for_a_second():
+    motion, height = _cut_off_run(hold=True)
+    assert motion < 0.01 * height, f"held object moved {motion:.4f} m (> 1 % of {height} m)"
+
+
+def test_a_leaning_cut_off_object_is_held_where_stood_on_its_cut_it_topples():
+    held, height = _cut_off_run(hold=True, lean=0.4)
+    free, _ = _cut_off_run(hold=False, lean=0.4)
+    assert free > 0.1 * height, f"unheld leaning object moved only {free:.4f} m"
+    assert held < 0.3 * free, (held, free)
+
+
+# -- the forecast before the wait ------------------------------------------------------------------
+
+
+def slab(size=(0.5, 0.1, 0.5), mass=25.0, n=10):
+    """Particles of a box on the ground (y from 0), total ``mass`` kg."""
+    g = [np.linspace(-s / 2, s / 2, n) for s in size]
+    x = np.stack(np.meshgrid(*g, indexing="ij"), -1).reshape(-1, 3)
+    x[:, 1] += size[1] / 2
+    return BodyFacts(x, np.full(len(x), mass / len(x)))
+
+
+def _lines(facts, force, ground=Ground(0.0, "friction", 0.5), clip_s=2.0, held=False):
+    mat = Material.preset("rigid")
+    conds = Conditions([Force(force, t_start=0.0, t_end=0.25), ground])
+    return " ".join(forecast(conds, facts, mat, clip_s=clip_s, held=held))
+
+
+def test_forecast_says_a_weak_push_will_not_beat_static_friction():
+    text = _lines(slab(), (40.0, 0.0, 0.0))
+    assert "25 kg" in text
+    assert "will not slide" in text and "123 N" in text  # μ m g = 0.5 · 25 · 9.81 = 122.6 N
+    assert "Δv ≈ 0.4 m/s" in text  # 40 N · 0.25 s / 25 kg
+
+
+def test_forecast_says_a_strong_push_slides():
+    text = _lines(slab(), (300.0, 0.0, 0.0))
+    assert "beats static friction" in text and "will not slide" not in text
+
+
+def test_forecast_on_a_frictionless_ground_says_it_slides_and_sticky_says_it_does_not():
+    assert "slides" in _lines(slab(), (1.0, 0.0, 0.0), ground=Ground(0.0, "slip"))
+    assert "sticky: it will not slide" in _lines(slab(), (1000.0, 0.0, 0.0), ground=Ground(0.0, "sticky"))
+
+
+def test_forecast_tipping_for_a_tall_thin_block_and_not_for_a_flat_slab():
+    tall = slab(size=(0.1, 0.6, 0.1), mass=2.0)  # a whole-body push acts at the centre: h = 0.3, b = 0.05
+    # F·h > m·g·b  <=>  F > 2 · 9.81 · 0.05 / 0.3 = 3.27 N; friction μ m g = 9.81 N
+    assert "can tip over" in _lines(tall, (5.0, 0.0, 0.0))
+    assert "can tip over" not in _lines(slab(), (100.0, 0.0, 0.0))
+
+
+def test_forecast_for_a_held_object_says_the_push_bends_it():
+    text = _lines(slab(), (40.0, 0.0, 0.0), held=True)
+    assert "held" in text and "will not slide" not in text
+
+
+def test_forecast_warns_when_the_push_throws_it_off_screen():
+    facts = slab(size=(0.1, 0.1, 0.1), mass=0.1)
+    cam = Camera.from_fov(160, 120, 40.0, c2w=torch.tensor([[1.0, 0, 0, 0], [0, 1, 0, 0.05], [0, 0, 1, 1.0],
+                                                             [0, 0, 0, 1]]))
+    conds = Conditions([Force((30.0, 0.0, 0.0), t_start=0.0, t_end=0.25), Ground(0.0, "friction", 0.5)])
+    text = " ".join(forecast(conds, facts, Material.preset("jelly"), clip_s=2.0, camera=cam))
+    assert "may leave the frame" in text
+    conds = Conditions([Force((0.6, 0.0, 0.0), t_start=0.0, t_end=0.25), Ground(0.0, "friction", 0.5)])
+    assert "may leave the frame" not in " ".join(forecast(conds, facts, Material.preset("jelly"), clip_s=2.0,
+                                                          camera=cam))
+
+
+def test_forecast_reports_a_throw_and_a_torque():
+    from physmotion_core.types import Torque
+
+    facts = slab(size=(0.2, 0.2, 0.2), mass=8.0)
+    conds = Conditions([Torque((0.0, 1.0, 0.0), t_start=0.0, t_end=0.5), InitialVelocity((1.0, 0.0, 0.0))])
+    text = " ".join(forecast(conds, facts, Material.preset("rigid"), clip_s=1.0))
+    # I = m (a² + a²) / 12 = 8 · 0.08 / 12 = 0.0533 for a cube of side 0.2 (particles on a grid: a bit more)
+    inertia = float((facts.mass * (facts.x[:, 0] ** 2 + facts.x[:, 2] ** 2)).sum())
+    assert f"{0.5 / inertia:.3g} rad/s" in text
+    assert "throw 1: starts at 1 m/s" in text
+
+
+# -- after the run -----------------------------------------------------------------------------------
+
+
+def _fake_sim(offsets):
+    x0 = np.stack(np.meshgrid(np.linspace(-0.05, 0.05, 4), np.linspace(0.0, 0.1, 4), np.linspace(-0.05, 0.05, 4),
+                              indexing="ij"), -1).reshape(-1, 3)
+    x = np.stack([x0 + np.asarray(o) for o in offsets]).astype(np.float32)
+    return SimpleNamespace(x=torch.from_numpy(x), times=torch.arange(len(offsets)) / 24.0)
+
+
+CAM = Camera.from_fov(160, 120, 40.0, c2w=torch.tensor([[1.0, 0, 0, 0], [0, 1, 0, 0.05], [0, 0, 1, 1.0],
+                                                         [0, 0, 0, 1]]))
+
+
+def test_nothing_moved_warns_only_when_nothing_moved():
+    still = after_run(_fake_sim([(0, 0, 0)] * 10), CAM)
+    assert still.max_motion_px < 1.0 and any("nothing moved" in w for w in still.warnings)
+    px_per_m = CAM.fy / 1.0  # at 1 m from the camera
+    moved = after_run(_fake_sim([(0, 0, 0)] + [(5.0 / px_per_m, 0, 0)] * 9), CAM)  # 5 px to the right
+    assert moved.max_motion_px == pytest.approx(5.0, rel=0.1)
+    assert not moved.warnings
+
+
+def test_leaving_the_frame_warns_with_the_frame():
+    half_width = 80 / CAM.fx  # metres from the centre to the frame's edge at 1 m
+    offs = [(k * half_width * 0.4, 0, 0) for k in range(8)]  # inside up to frame 2, outside from frame 3
+    rep = after_run(_fake_sim(offs), CAM)
+    assert rep.left_frame_at == 3
+    assert any("left the frame" in w and "frame 3" in w for w in rep.warnings)
+    assert after_run(_fake_sim([(0.01 * k, 0, 0) for k in range(8)]), CAM).left_frame_at is None
