@@ -40,6 +40,7 @@ from __future__ import annotations
 import dataclasses
 import logging
 import math
+import numbers
 from dataclasses import dataclass
 from typing import Optional
 
@@ -122,6 +123,13 @@ def sim_fps(sim: SimResult) -> float:
 def wan_length(num_frames: int, fps_in: float, fps_out: float = WAN_FPS) -> int:
     """The 4k+1 frame count covering a clip of ``num_frames`` at ``fps_in`` (its duration taken as
     num_frames / fps_in) at ``fps_out``: 48 frames at 24 fps -> 33 frames at 16 fps."""
+    for name, value in (("fps_in", fps_in), ("fps_out", fps_out)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Real) or not (math.isfinite(value)
+                                                                                  and 0 < value <= 1000):
+            raise InputError(f"wan_length: {name} must be a frame rate in (0, 1000] frames per second; got {value!r}. "
+                             "Give the clip's real frame rate (e.g. 24).")
+    if isinstance(num_frames, bool) or not isinstance(num_frames, numbers.Integral) or num_frames < 1:
+        raise InputError(f"wan_length: num_frames must be a whole number of frames >= 1; got {num_frames!r}")
     k = int(math.floor(num_frames * fps_out / fps_in / 4 + 1e-9))
     return 4 * max(k, 1) + 1
 

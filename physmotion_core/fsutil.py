@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
+import errno
 import os
 import shutil
 import stat
@@ -30,6 +31,56 @@ from .errors import InputError
 class OutputLocationError(InputError):
     """An output's folder cannot be created or written (permissions, a read-only disk, a path
     through a file): a file-system problem the user fixes outside the program."""
+
+
+class DiskFullError(OutputLocationError):
+    """An output does not fit on its disk (found before writing where its size is known, or when a
+    write fails with "no space left"): nothing under the output's name was written."""
+
+
+#: errno values that mean "the disk (or the user's quota, or the file-size limit) is full".
+_FULL_ERRNOS = {getattr(errno, n) for n in ("ENOSPC", "EDQUOT", "EFBIG") if hasattr(errno, n)}
+
+
+def free_bytes(folder) -> Optional[int]:
+    """Bytes free to this user in ``folder`` (or the nearest existing folder above it); None when the
+    file system does not say."""
+    try:
+        return int(shutil.disk_usage(_nearest_existing(Path(folder))).free)
+    except (OSError, ValueError):
+        return None
+
+
+def _fmt(n: float) -> str:
+    from .memory import fmt_bytes
+
+    return fmt_bytes(n)
+
+
+def check_free_space(folder, need_bytes: int, what: str) -> None:
+    """Refuse (DiskFullError) before writing ``need_bytes`` into ``folder`` when its disk has less free."""
+    free = free_bytes(folder)
+    if free is not None and int(need_bytes) > free:
+        raise DiskFullError(f"{what} needs about {_fmt(need_bytes)} of disk space in '{folder}' but only "
+                            f"{_fmt(free)} is free there. Free at least {_fmt(int(need_bytes) - free)} on that disk, "
+                            "or write to a folder on another disk.")
+
+
+def is_disk_full(exc: BaseException) -> bool:
+    return isinstance(exc, OSError) and getattr(exc, "errno", None) in _FULL_ERRNOS
+
+
+def disk_full_error(target, written: int, exc: Optional[BaseException] = None,
+                    need_bytes: Optional[int] = None) -> DiskFullError:
+    """The error for an output that ran out of disk space after ``written`` bytes."""
+    target = Path(target)
+    free = free_bytes(target.parent)
+    need = f"about {_fmt(need_bytes)}" if need_bytes else f"more than the {_fmt(written)} written before the disk filled"
+    why = f" ({exc.strerror or exc})" if isinstance(exc, OSError) else ""
+    return DiskFullError(f"'{target}' could not be written: its disk is full{why}. It needs {need}; "
+                         f"{_fmt(free) if free is not None else 'an unknown amount'} is free in '{target.parent}'. "
+                         "Nothing was written under that name (the partial file was removed). Free space on that "
+                         "disk, or write to a folder on another disk.")
 
 
 #: Inputs of the run in progress (device, inode) -> path: no output may replace them.
@@ -194,20 +245,38 @@ def check_outputs(outputs: Mapping[str, object], inputs: Iterable = (), *, folde
 
 
 @contextlib.contextmanager
-def atomic_output(path: str | os.PathLike, suffix: str = ".tmp") -> Iterator[Path]:
+def atomic_output(path: str | os.PathLike, suffix: str = ".tmp", need_bytes: Optional[int] = None) -> Iterator[Path]:
     """Yield a temporary path to write; on success it replaces ``path``, on error it is removed.
 
     Refuses (InputError) when ``path`` is a folder, a device, a pipe or a socket, or an input
     protected by ``protect_inputs``: checked before the write and again right before the rename.
+    ``need_bytes`` (the file's size, where the writer knows it): refused up front (DiskFullError)
+    when the disk has less free, and the written file must have at least that size. A write that
+    fails because the disk is full becomes a DiskFullError naming the file and the space.
     """
     target = Path(path)
     _check_replaceable(target, "output")
     target.parent.mkdir(parents=True, exist_ok=True)
+    if need_bytes is not None:
+        check_free_space(target.parent, need_bytes, f"'{target.name}'")
     prefix, suffix = _tmp_name_parts(target, suffix)
     fd, tmp = tempfile.mkstemp(dir=target.parent, prefix=prefix, suffix=suffix)
     os.close(fd)
     try:
-        yield Path(tmp)
+        try:
+            yield Path(tmp)
+            if need_bytes is not None and os.path.getsize(tmp) < need_bytes:
+                raise OSError(errno.ENOSPC, f"only {os.path.getsize(tmp)} of {need_bytes} bytes reached the disk")
+        except OSError as exc:
+            if not is_disk_full(exc):
+                raise
+            try:
+                written = os.path.getsize(tmp)
+            except OSError:
+                written = 0
+            with contextlib.suppress(OSError):
+                os.unlink(tmp)
+            raise disk_full_error(target, written, exc, need_bytes) from exc
         # mkstemp makes the file private (0600); give it the mode a plain open() would have given it
         # (an existing file's mode, else 0666 minus the umask), so servers and viewers can read it.
         try:

@@ -154,8 +154,10 @@ def check_image_size(width: int, height: int, name: str = "image") -> None:
                          "$PHYSMOTION_MAX_IMAGE_PIXELS.")
     need, have = px * DECODE_BYTES_PER_PIXEL, host_available_bytes()
     if need > 0.8 * have:
-        raise InputError(f"{name} is {width}x{height} pixels: decoding it needs about {fmt_bytes(need)} of RAM but "
-                         f"only {fmt_bytes(have)} is available. Scale the image down first.")
+        from .memory import over_limit_message
+
+        raise InputError(f"{name} is {width}x{height} pixels: decoding it {over_limit_message(need, have, 0.8)}. "
+                         "Scale the image down first, or free memory.")
 
 
 def load_image(path: PathLike) -> tuple[torch.Tensor, Optional[torch.Tensor]]:

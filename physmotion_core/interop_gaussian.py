@@ -54,6 +54,33 @@ def is_native_gaussian(value: Any) -> bool:
     return not isinstance(value, Gaussians) and all(hasattr(value, f) for f in NATIVE_FIELDS)
 
 
+def check_splat_values(where: str, means, scales, quats, opacities, sh) -> None:
+    """The checks every entry of splats into the library makes (the .ply reader, both converters): no
+    NaN or infinite value in any field, positive scales (linear, not log), opacities in [0, 1] (not
+    logits), quaternions that are not all zero. ``where`` names the input in the message."""
+    n = int(means.shape[0])
+    for name, t in (("positions", means), ("scales", scales), ("rotations", quats), ("opacities", opacities),
+                    ("sh", sh)):
+        if t.numel() and not bool(torch.isfinite(t).all()):
+            rows = t.reshape(t.shape[0], -1) if t.ndim > 1 else t[:, None]
+            bad = int((~torch.isfinite(rows)).any(dim=1).sum())
+            raise InputError(f"{where}: {bad} of {n} splats have a NaN or infinite {name} value; the splat is "
+                             "damaged or came from a diverged optimisation. Re-create or re-export it (the .ply "
+                             "reader refuses the same values).")
+    if scales.numel() and bool((scales <= 0).any()):
+        bad = int((scales <= 0).any(dim=-1).sum())
+        raise InputError(f"{where}: {bad} of {n} splats have a scale <= 0; scales must be positive linear sizes in "
+                         "metres (log-scales, as a .ply stores them, must be exponentiated first).")
+    if opacities.numel() and bool(((opacities < 0) | (opacities > 1)).any()):
+        bad = int(((opacities < 0) | (opacities > 1)).reshape(n, -1).any(dim=-1).sum())
+        raise InputError(f"{where}: {bad} of {n} splats have an opacity outside [0, 1]; opacities must be "
+                         "probabilities (logits, as a .ply stores them, must go through a sigmoid first).")
+    if quats.numel() and bool((quats.abs().sum(dim=-1) == 0).any()):
+        bad = int((quats.abs().sum(dim=-1) == 0).sum())
+        raise InputError(f"{where}: {bad} of {n} splats have an all-zero rotation quaternion, which is no "
+                         "rotation; the splat is damaged. Re-create it (unit quaternions, w x y z).")
+
+
 def _check_axes(axes: str) -> None:
     if axes not in AXES:
         raise InputError(f"axes must be one of {AXES}; got {axes!r}")
@@ -132,15 +159,21 @@ def to_native_tensors(items: Gaussians | Sequence[Gaussians], *, axes: str = "y_
     if not items:
         raise InputError("no Gaussians to convert (an empty list)")
     rows = []
-    for g in items:
+    for i, g in enumerate(items):
         if not isinstance(g, Gaussians):
             raise InputError(f"expected physmotion Gaussians, got {type(g).__name__}")
+        where = "the Gaussians to convert" + (f" (item {i} of {len(items)})" if len(items) > 1 else "")
         g = g.with_covariance_as_rotscale()
+        check_splat_values(where, g.means, g.scales, g.quats, g.opacities, g.sh)
         means, quats, sh = g.means, g.quats, g.sh
         if axes == "y_down":
             means, quats, sh = _to_native_axes(means, quats, sh)
         rows.append((means, g.scales, quats, g.opacities[:, None], sh))
     n = max(r[0].shape[0] for r in rows)
+    if n == 0:  # an empty item among others is a real (zero-length) batch item; nothing at all is not
+        raise InputError(f"the Gaussians to convert hold no splats ({'every item is empty' if len(rows) > 1 else '0 Gaussians'}):"
+                         " a GAUSSIAN needs at least one splat. The lift, fit or selection upstream produced "
+                         "nothing; check its mask or settings.")
     k = max(r[4].shape[1] for r in rows)
     lengths = [r[0].shape[0] for r in rows]
     ref = rows[0][0]
@@ -186,9 +219,12 @@ def sim_to_native_tensors(sim: SimResult, *, axes: str = "y_down", every: int = 
     need = len(frames) * n * (3 + 3 + 4 + 1 + 3 * k) * sim.rest.means.element_size()
     have = host_available_bytes()
     if need > 0.5 * have:  # the per-frame items and the stacked batch exist at once for a moment
-        raise InputError(f"A GAUSSIAN batch of {len(frames)} frames x {n} splats needs about {fmt_bytes(need)} "
-                         f"of RAM but only {fmt_bytes(have)} is available; raise every_nth_frame (at most "
-                         f"about {max(int(0.5 * have // max(need // len(frames), 1)), 0)} frames fit).")
+        from .memory import over_limit_message
+
+        raise InputError(f"A GAUSSIAN batch of {len(frames)} frames x {n} splats "
+                         f"{over_limit_message(need, have, 0.5)} (the frames and the stacked batch exist at once); "
+                         f"raise every_nth_frame (at most about {max(int(0.5 * have // max(need // len(frames), 1)), 0)} "
+                         "frames fit), or free memory.")
     items = []
     for i, f in enumerate(frames):
         items.append(sim.gaussians_at(f).detach().to("cpu").with_covariance_as_rotscale())
@@ -246,6 +282,7 @@ def from_native(obj, *, axes: str = "y_down") -> list[Gaussians]:
     out = []
     for i, c in enumerate(lengths):
         p, r, s = pos[i, :c], rot[i, :c], sh[i, :c]
+        check_splat_values(f"the GAUSSIAN's item {i}" if b > 1 else "the GAUSSIAN", p, scl[i, :c], r, opa[i, :c, 0], s)
         if axes == "y_down":
             p, r, s = _from_native_axes(p, r, s)
         out.append(Gaussians(means=p, quats=r, scales=scl[i, :c], opacities=opa[i, :c, 0], sh=s))

@@ -48,6 +48,14 @@ def fmt_bytes(n: float) -> str:
     return f"{n:.1f} TiB"
 
 
+def over_limit_message(need: float, have: float, fraction: float, where: str = "RAM") -> str:
+    """"needs about X of RAM; Y is available and a run may use at most F % of it (Z), to leave room
+    for the system and the other programs": what the limit really is, so a need below what is
+    available but over the limit does not read as a contradiction."""
+    return (f"needs about {fmt_bytes(need)} of {where}; {fmt_bytes(have)} is available now and a run may use at most "
+            f"{fraction:.0%} of it ({fmt_bytes(fraction * have)}), to leave room for the system and other programs")
+
+
 def check_device_fits(need_bytes: int, device, what: str, fraction: float = 0.95) -> None:
     """Refuse before moving ``need_bytes`` of model weights onto ``device`` when they cannot fit
     (on CUDA: the free memory now; on the CPU: the available RAM)."""
@@ -57,9 +65,8 @@ def check_device_fits(need_bytes: int, device, what: str, fraction: float = 0.95
     have = device_available_bytes(dev if dev.startswith("cuda") else "cpu")
     if need_bytes > fraction * have:
         where = "GPU memory" if dev.startswith("cuda") else "RAM"
-        raise InputError(f"{what} needs about {fmt_bytes(need_bytes)} of {where} for its weights alone but only "
-                         f"{fmt_bytes(have)} is free on {dev}. Close other models (ComfyUI: unload models / "
-                         "--lowvram), or run this stage on the CPU.")
+        raise InputError(f"{what} (its weights alone, on {dev}) {over_limit_message(need_bytes, have, fraction, where)}. "
+                         "Close other models (ComfyUI: unload models / --lowvram), or run this stage on the CPU.")
 
 
 class oom_as_input_error:
@@ -129,6 +136,6 @@ def check_pipeline_fits(width: int, height: int, frames: int, what: str = "This 
     if need > fraction * have:
         per_frame = NEED_MARGIN * NEED_BYTES_PER_PIXEL_FRAME * int(width) * int(height)
         fit = max(int((fraction * have - pipeline_need_bytes(width, height, 0)) // max(per_frame, 1)), 0)
-        raise InputError(f"{what} needs about {fmt_bytes(need)} of RAM for {frames} frames of {width}x{height} "
-                         f"but only {fmt_bytes(have)} is available. Lower the frame count (at most about {fit} at "
-                         "this size) or the image size (max_side / --max-side, or scale the photo down).")
+        raise InputError(f"{what} ({frames} frames of {width}x{height}) {over_limit_message(need, have, fraction)}. "
+                         f"Lower the frame count (at most about {fit} at this size) or the image size (max_side / "
+                         "--max-side, or scale the photo down), or free memory (close other programs or models).")

@@ -61,14 +61,38 @@ def write_ply(path: str | os.PathLike, gaussians: Gaussians) -> Path:
     header += "comment written by physmotion (3DGS layout)\n"
     header += f"element vertex {n}\n" + "".join(f"property float {name}\n" for name in names) + "end_header\n"
     path = Path(path)
-    with atomic_output(path) as tmp:
+    head = header.encode("ascii")
+    with atomic_output(path, need_bytes=len(head) + data.nbytes) as tmp:
         with open(tmp, "wb") as fh:
-            fh.write(header.encode("ascii"))
-            fh.write(data.tobytes())
+            fh.write(head)
+            fh.write(memoryview(data).cast("B"))
     return path
 
 
 _MAX_HEADER_LINES = 10_000
+#: The longest header line read in one piece; longer comment lines are skipped to their end (a tool
+#: may store its settings or a licence in one), any other keyword line that long is refused.
+_MAX_LINE_BYTES = 4096
+#: A header larger than this (comments included) is refused: no real file comes near it.
+_MAX_HEADER_BYTES = 16 << 20
+
+
+def _header_line(fh, path, lineno: int, start: int) -> bytes:
+    """The next header line, with a comment or obj_info line of any length cut to its first
+    _MAX_LINE_BYTES bytes (the rest is read and dropped, within _MAX_HEADER_BYTES)."""
+    line = fh.readline(_MAX_LINE_BYTES)
+    if line.endswith(b"\n") or len(line) < _MAX_LINE_BYTES:
+        return line
+    if line.split(None, 1)[:1] not in ([b"comment"], [b"obj_info"]):
+        raise InputError(f"{path}, header line {lineno}: longer than {_MAX_LINE_BYTES} bytes and not a comment; "
+                         "the header is damaged (or this is not a .ply file)")
+    while True:
+        rest = fh.readline(1 << 16)
+        if fh.tell() - start > _MAX_HEADER_BYTES:
+            raise InputError(f"{path}: the .ply header is larger than {_MAX_HEADER_BYTES >> 20} MiB; the file is "
+                             "damaged")
+        if not rest or rest.endswith(b"\n"):
+            return line
 
 
 def _parse_header(fh, path) -> tuple[str, int, list[tuple[str, str]], int]:
@@ -81,8 +105,9 @@ def _parse_header(fh, path) -> tuple[str, int, list[tuple[str, str]], int]:
         raise InputError(f"{path} is not a .ply file (it does not start with 'ply')")
     fmt, count, props, in_vertex = None, None, [], False
     pre, current, seen_vertex = [], None, False  # [count, bytes per item] of elements before the vertices
+    start = fh.tell()
     for lineno in range(2, _MAX_HEADER_LINES):
-        line = fh.readline(4096)
+        line = _header_line(fh, path, lineno, start)
         if not line:
             raise InputError(f"{path}: the .ply header has no end_header line (truncated file?)")
         text = line.decode("ascii", errors="replace").strip()
@@ -149,6 +174,35 @@ def _parse_header(fh, path) -> tuple[str, int, list[tuple[str, str]], int]:
     return fmt, count, props, fh.tell() + sum(n * size for n, size in pre)
 
 
+#: Bytes read_ply holds per Gaussian at its peak besides the file's own bytes: a float64 column
+#: at a time for the checks, float64 means / scales / quaternions / opacities (and their norms), the
+#: float32 tensors of the result. Rounded up from counting the arrays (see read_ply).
+PLY_BYTES_PER_GAUSSIAN = 24 * 3 + 32 + 8 + 8 + 48 + 16
+PLY_BYTES_PER_SH_COEFF = 4 + 8  # the float32 SH array, plus the float64 rest block it is built from
+
+
+def _sh_k(names) -> int:
+    rest = sum(1 for nm in names if re.fullmatch(r"f_rest_\d+", nm))
+    return 1 + rest // 3
+
+
+def ply_need_bytes(count: int, itemsize: int, k: int = 1) -> int:
+    """Bytes of RAM reading ``count`` Gaussians of ``itemsize`` bytes each (SH of ``k`` coefficients
+    per channel) needs at its peak."""
+    return int(count) * (int(itemsize) + PLY_BYTES_PER_GAUSSIAN + 3 * int(k) * PLY_BYTES_PER_SH_COEFF)
+
+
+def check_ply_fits(path, count: int, itemsize: int, k: int = 1, fraction: float = 0.8) -> None:
+    """Refuse, before reading, a .ply whose Gaussians would not fit in the RAM available now."""
+    from .memory import host_available_bytes, over_limit_message
+
+    need, have = ply_need_bytes(count, itemsize, k), host_available_bytes()
+    if need > fraction * have:
+        raise InputError(f"{path}: reading its {count:,} Gaussians {over_limit_message(need, have, fraction)}. "
+                         "Use a smaller splat (fewer Gaussians: prune or downsample it in the tool that made it), "
+                         "or free memory (close other programs or models) and try again.")
+
+
 def read_ply(path: str | os.PathLike) -> Gaussians:
     """Read a 3DGS-layout .ply (binary little/big endian) into Gaussians."""
     path = Path(path)
@@ -165,7 +219,10 @@ def read_ply(path: str | os.PathLike) -> Gaussians:
         if count == 0:
             raise InputError(f"{path} holds no Gaussians (its header says 0 vertices)")
         available = max(os.fstat(fh.fileno()).st_size - offset, 0)
-        # Never read more than the file holds: a header may promise any count.
+        # Never read more than the file holds: a header may promise any count. And never start reading
+        # what will not fit in memory (the file's bytes plus the columns and tensors made from them).
+        if available >= count * dtype.itemsize:
+            check_ply_fits(path, count, dtype.itemsize, _sh_k(dtype.names))
         raw = b"" if available < count * dtype.itemsize else (fh.seek(offset), fh.read(count * dtype.itemsize))[1]
     if len(raw) < count * dtype.itemsize:
         raise InputError(f"{path} is truncated: the header promises {count} vertices "
@@ -224,11 +281,19 @@ def write_ply_sequence(folder: str | os.PathLike, sim, every: int = 1, progress=
 
     folder = Path(folder)
     frames = list(range(0, sim.num_frames, max(1, int(every))))
+    # Every file's size is known before the first is written: refuse a sequence the disk cannot hold.
+    from .fsutil import check_free_space
+
+    first = sim.gaussians_at(frames[0]) if frames else None
+    if first is not None:
+        props = 17 + 3 * (first.sh.shape[1] - 1)
+        check_free_space(folder.parent, len(frames) * (1024 + len(first) * props * 4),
+                         f"The .ply sequence ({len(frames)} files of {len(first):,} Gaussians)")
     # Written into a hidden temporary folder that is renamed to ``folder`` only when every frame is
     # there: a Cancel half-way leaves no folder under that name that a later run would take as a
     # complete sequence.
     with atomic_folder(folder) as tmp:
         for i, k in enumerate(frames):
-            write_ply(tmp / f"frame_{k:05d}.ply", sim.gaussians_at(k))
+            write_ply(tmp / f"frame_{k:05d}.ply", first if i == 0 else sim.gaussians_at(k))
             report(progress, i + 1, len(frames))
     return [folder / f"frame_{k:05d}.ply" for k in frames]

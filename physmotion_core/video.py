@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import errno
 import os
 from fractions import Fraction
 from pathlib import Path
@@ -111,12 +112,45 @@ def write_video(path: str | os.PathLike, frames, fps: float = 24.0, crf: int = 1
             else:  # mpeg4: a bit rate that keeps crf 18's look (about 0.5 bit per pixel at 24 fps)
                 bits_per_pixel = 0.5 * 2.0 ** ((18 - int(crf)) / 6.0)
                 stream.bit_rate = int(min(80e6, max(1e6, bits_per_pixel * arr.shape[1] * arr.shape[2] * fps)))
+            payload = 0  # bytes of encoded video handed to the muxer
             for frame in arr:
                 for packet in stream.encode(av.VideoFrame.from_ndarray(frame, format="rgb24")):
+                    payload += packet.size
                     container.mux(packet)
             for packet in stream.encode():
+                payload += packet.size
                 container.mux(packet)
+        _check_complete(Path(tmp), path, payload, t)
     return path
+
+
+def _check_complete(tmp: Path, target: Path, payload: int, frames: int) -> None:
+    """FFmpeg's muxers do not report every failed write: on a disk that fills while a clip is
+    encoded the container closes "successfully" around a cut-off file. So the file is checked
+    before it is renamed into place: at least as many bytes as the encoder produced, and every
+    frame readable back (the index that mp4 writes last is there). Otherwise it is removed and the
+    error says whether the disk is full (and how much the clip needs)."""
+    import av
+
+    size = tmp.stat().st_size
+    readable = 0
+    if size >= payload:
+        try:
+            with av.open(str(tmp), mode="r") as c:
+                readable = sum(1 for p in c.demux(c.streams.video[0]) if p.size)
+        except (av.error.FFmpegError, OSError, IndexError):
+            readable = 0
+    if size >= payload and readable >= frames:
+        return
+    from .fsutil import disk_full_error, free_bytes
+
+    free = free_bytes(tmp.parent)
+    if free is not None and free < max(payload, 1 << 20):  # the disk is (nearly) full: that is why
+        raise disk_full_error(target, size, OSError(errno.ENOSPC, os.strerror(errno.ENOSPC)), need_bytes=payload)
+    raise InputError(f"The video '{target}' came out incomplete ({size} bytes on disk for {payload} bytes of "
+                     f"encoded video, {readable} of {frames} frames readable back): the write failed without an "
+                     "error from the encoder. Check the disk and the folder, then run again; nothing was written "
+                     "under that name.")
 
 
 def _write_gif(path: Path, arr: np.ndarray, fps: float) -> Path:

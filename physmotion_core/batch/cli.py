@@ -33,18 +33,29 @@ def add_parser(sub) -> None:
     b.add_argument("--kernel-cache", help="Warp kernel cache folder every local worker shares (default: Warp's, "
                                           "$WARP_CACHE_PATH or the user cache)")
     b.add_argument("--list", action="store_true", help="print the jobs (id, name, image, swept settings) and exit")
+    b.add_argument("--max-jobs", type=int, default=None, metavar="N",
+                   help="the most jobs the spec may expand to (default 10000; a grid's size is the product of its "
+                        "axes' lengths): a larger spec is refused before any work unless N confirms it; 0 = no limit")
     b.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
 
 
 def run(args) -> int:
     from .runner import run_batch
-    from .spec import DEFAULTS, load_spec
+    from .spec import DEFAULTS, MAX_JOBS, load_spec
 
+    max_jobs = getattr(args, "max_jobs", None)
+    if max_jobs is not None and max_jobs < 0:
+        from ..errors import InputError
+
+        raise InputError(f"--max-jobs must be 0 (no limit) or a positive number of jobs; got {max_jobs}")
+    max_jobs = MAX_JOBS if max_jobs is None else max_jobs
     if args.list:
-        spec = load_spec(args.spec, comfy=bool(args.comfy))
-        for j in spec.jobs:
+        spec = load_spec(args.spec, comfy=bool(args.comfy), max_jobs=max_jobs)
+        print(f"# {spec.count} jobs (at most; two spellings of one video are listed once)", flush=True)
+        for j in spec.iter_jobs():  # one line per job as it is built: the first within a second
             changed = {k: v for k, v in j.settings.items() if DEFAULTS.get(k, object()) != v}
-            print(f"{j.id}  {j.name}  {j.image.name}  {changed}{'  INVALID: ' + j.error if j.error else ''}")
+            print(f"{j.id}  {j.name}  {j.image.name}  {changed}{'  INVALID: ' + j.error if j.error else ''}",
+                  flush=True)
         return 0
     if args.output is None:
         from ..errors import InputError
@@ -53,7 +64,8 @@ def run(args) -> int:
     try:
         s = run_batch(args.spec, args.output, ray=args.ray, comfy=args.comfy, workers=args.workers,
                       threads=args.threads, retries=args.retries, retry_failed=args.retry_failed,
-                      gpus_per_job=args.gpus_per_job, kernel_cache=args.kernel_cache, progress=not args.quiet)
+                      gpus_per_job=args.gpus_per_job, kernel_cache=args.kernel_cache, progress=not args.quiet,
+                      max_jobs=max_jobs)
     except KeyboardInterrupt:
         print(f"physmotion batch: interrupted; finished jobs are kept in {args.output}, nothing half-written. Run the "
               "same command again to finish the rest.", file=sys.stderr)

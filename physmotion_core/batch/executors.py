@@ -180,10 +180,27 @@ class RayExecutor:
         self.ray = ray
         if not ray.is_initialized():
             kw = dict(include_dashboard=False, log_to_driver=False, logging_level="WARNING")
-            if self.address == "auto":
-                ray.init(num_cpus=self.cpus, **kw)
-            else:
-                ray.init(address=self.address, **kw)
+            try:
+                if self.address == "auto":
+                    ray.init(num_cpus=self.cpus, **kw)
+                else:
+                    ray.init(address=self.address, **kw)
+            except (ImportError, ValueError, RuntimeError) as exc:
+                text = str(exc)
+                if isinstance(exc, ImportError) or "ray[client]" in text or "Ray Client" in text:
+                    # ray:// is Ray Client, which needs extra packages (grpcio, ...) a plain `pip install ray` lacks
+                    raise InputError(f"--ray {self.address} needs Ray Client, which this Ray installation lacks. "
+                                     "Install it with: pip install 'ray[client]' (the same Ray version as the "
+                                     "cluster), or run on the head node with --ray auto or --ray HOST:6379. (Ray: "
+                                     f"{text.splitlines()[0][:200] if text else type(exc).__name__})") from None
+                if isinstance(exc, ValueError):
+                    raise InputError(f"--ray {self.address}: Ray does not accept this address ({text[:200]}). Use "
+                                     "auto, ray://HEAD:10001 (Ray Client) or HEAD:6379.") from None
+                raise
+            except (ConnectionError, TimeoutError) as exc:
+                raise InputError(f"--ray {self.address}: cannot connect to the Ray cluster ({exc}). Check the "
+                                 "address (ray://HEAD:10001 for Ray Client, HEAD:6379 on the cluster's network) and "
+                                 "that the cluster is up.") from None
             self._started = True
         res = ray.cluster_resources()
         cluster_gpus = float(res.get("GPU", 0.0))

@@ -174,7 +174,7 @@ def _make_executor(out: Path, *, ray: Optional[str], comfy: Optional[str], spec:
 def run_batch(spec_path, out, *, ray: Optional[str] = None, comfy: Optional[str] = None,
               workers: Optional[int] = None, threads: Optional[int] = None, retries: int = 2,
               retry_failed: bool = False, gpus_per_job: Optional[float] = None, kernel_cache: Optional[str] = None,
-              progress: bool = True, stream=None) -> BatchSummary:
+              progress: bool = True, stream=None, max_jobs: Optional[int] = None) -> BatchSummary:
     """Run every job of the spec at ``spec_path`` that ``out`` does not already hold, verified.
 
     Raises KeyboardInterrupt after a clean stop (finished jobs stay finished, nothing half-written)."""
@@ -184,11 +184,16 @@ def run_batch(spec_path, out, *, ray: Optional[str] = None, comfy: Optional[str]
     if not (isinstance(retries, int) and 0 <= retries <= 100):
         raise InputError(f"--retries must be an integer in [0, 100]; got {retries!r}")
     t0 = time.monotonic()
-    spec = load_spec(spec_path, comfy=bool(comfy))
+    from .spec import MAX_JOBS
+
+    spec = load_spec(spec_path, comfy=bool(comfy), max_jobs=MAX_JOBS if max_jobs is None else max_jobs)
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise InputError(f"-o {out} is a file; give a folder for the batch's outputs")
     out.mkdir(parents=True, exist_ok=True)
+    if progress:  # said at once: building and checking many jobs against the manifest takes a while
+        stream.write(f"batch: {spec.count} jobs from {spec.path}; checking them against {out}\n")
+        stream.flush()
     summary = BatchSummary(out=out, total=len(spec.jobs))
     with _lock(out), _sigterm_as_interrupt():
         return _run(spec, out, summary, t0, ray=ray, comfy=comfy, workers=workers, threads=threads, retries=retries,

@@ -68,6 +68,15 @@ FORCE_KEYS = {"vector", "at", "radius", "window"}
 # that lacks one the spec now asks for runs again.
 OUTPUT_DEFAULTS = {"ply": "none", "ply_every": 1, "tracks": False, "tracks_points": 64, "flow": False}
 COMBINE = ("grid", "zip", "list")
+#: A spec file larger than this is refused unread (specs are a few kB; a larger file is a mistake or an attack).
+MAX_SPEC_BYTES = 4 << 20
+#: The most values (scalars, lists and tables, counted as if every YAML alias were written out) a spec
+#: document may hold once expanded: a few hundred bytes of nested aliases can otherwise stand for
+#: billions of values, which hashing a job would walk one by one.
+MAX_SPEC_VALUES = 100_000
+#: The most jobs a spec may expand to unless the caller raises the limit (``--max-jobs``): a grid's
+#: size is the product of its axes' lengths, so a short spec can name millions of videos.
+MAX_JOBS = 10_000
 
 
 class SpecError(InputError):
@@ -92,11 +101,30 @@ class Job:
 
 @dataclass
 class BatchSpec:
+    """A read and checked spec. ``count`` is the number of jobs it expands to (known before any job
+    is built: at most that many, fewer when two spellings make one video); ``iter_jobs()`` builds
+    them one at a time (``--list`` prints the first at once), ``jobs`` is the whole list, built on
+    first use."""
+
     path: Path
     sha256: str
-    jobs: list
     outputs: dict
     comfy: Optional[dict] = None  # {"workflow": Path, "map": {setting: NODE.INPUT or [..]}}
+    count: int = 0
+    _make_jobs: Any = field(default=None, repr=False)
+    _jobs: Optional[list] = field(default=None, repr=False)
+
+    def iter_jobs(self):
+        if self._jobs is not None:
+            yield from self._jobs
+            return
+        yield from self._make_jobs()
+
+    @property
+    def jobs(self) -> list:
+        if self._jobs is None:
+            self._jobs = list(self._make_jobs())
+        return self._jobs
 
 
 # ----------------------------------------------------------------------------------------------
@@ -104,7 +132,79 @@ class BatchSpec:
 # ----------------------------------------------------------------------------------------------
 
 
+def _expanded_values(node, path: Path, limit: int) -> int:
+    """How many values a composed YAML node stands for with every alias written out (shared nodes
+    counted once per use), stopping as soon as the count passes ``limit``. Composed nodes share an
+    aliased node rather than copying it, so this walks each node once (memoised): a billion-value
+    alias bomb is counted in microseconds. A node that contains itself (a recursive alias) is
+    refused."""
+    import yaml
+
+    sizes: dict[int, int] = {}
+    on_path: set[int] = set()
+    stack: list[tuple[Any, bool]] = [(node, False)]
+    while stack:
+        n, children_done = stack.pop()
+        key = id(n)
+        if children_done:
+            on_path.discard(key)
+            if isinstance(n, yaml.SequenceNode):
+                kids = n.value
+            elif isinstance(n, yaml.MappingNode):
+                kids = [x for pair in n.value for x in pair]
+            else:
+                kids = []
+            total = 1 + sum(sizes[id(k)] for k in kids)
+            sizes[key] = total
+            if total > limit:
+                return total
+            continue
+        if key in sizes:
+            continue
+        if key in on_path:
+            raise SpecError(f"{path}: a YAML alias refers to a list or table that contains it (a recursive "
+                            "alias); a spec must be finite. Write the values out.")
+        on_path.add(key)
+        stack.append((n, True))
+        if isinstance(n, yaml.SequenceNode):
+            kids = n.value
+        elif isinstance(n, yaml.MappingNode):
+            kids = [x for pair in n.value for x in pair]
+        else:
+            kids = []
+        for k in kids:
+            if id(k) in on_path:
+                raise SpecError(f"{path}: a YAML alias refers to a list or table that contains it (a recursive "
+                                "alias); a spec must be finite. Write the values out.")
+            if id(k) not in sizes:
+                stack.append((k, False))
+    return sizes[id(node)]
+
+
+def _load_yaml(text: str, path: Path):
+    """The YAML document, refused before it is built when its aliases expand past MAX_SPEC_VALUES."""
+    import yaml
+
+    loader = yaml.SafeLoader(text)
+    try:
+        node = loader.get_single_node()
+        if node is None:
+            return None
+        n = _expanded_values(node, path, MAX_SPEC_VALUES)
+        if n > MAX_SPEC_VALUES:
+            raise SpecError(f"{path}: the YAML document stands for more than {MAX_SPEC_VALUES:,} values once its "
+                            f"aliases (*name) are expanded (at least {n:,}); a batch spec needs a few hundred. Remove "
+                            "the nested aliases (repeat a value by writing it out, or use an axis), or split the spec.")
+        return loader.construct_document(node)
+    finally:
+        loader.dispose()
+
+
 def _read_document(path: Path) -> dict:
+    size = path.stat().st_size
+    if size > MAX_SPEC_BYTES:
+        raise SpecError(f"{path} is {size:,} bytes; a batch spec may be at most {MAX_SPEC_BYTES:,} bytes (specs list "
+                        "axes of values, not the values of every job). Use axes, or split it into several specs.")
     text = path.read_bytes()
     suffix = path.suffix.lower()
     if suffix == ".toml":
@@ -127,9 +227,11 @@ def _read_document(path: Path) -> dict:
             raise SpecError(f"Reading {path} needs PyYAML (pip install pyyaml, or pip install "
                             "'physmotion[batch]'), or write the spec as TOML") from None
         try:
-            doc = yaml.safe_load(text.decode("utf-8"))
+            doc = _load_yaml(text.decode("utf-8"), path)
         except (yaml.YAMLError, UnicodeDecodeError) as exc:
             raise SpecError(f"{path} is not valid YAML: {exc}") from None
+        except RecursionError:
+            raise SpecError(f"{path}: the YAML document is nested too deeply to be a batch spec") from None
         if not isinstance(doc, dict):
             raise SpecError(f"{path}: the YAML document must be a mapping with batch/defaults/axes/jobs keys")
         return doc
@@ -299,7 +401,9 @@ def _check_keys(d: dict, where: str, allow_sets: bool) -> None:
         raise SpecError(f"{where}: unknown setting {key!r}{hint}. Settings: {', '.join(DEFAULTS)}")
 
 
-def _combinations(doc: dict, combine: str) -> list[dict]:
+def _combinations(doc: dict, combine: str) -> tuple[int, Any]:
+    """(how many combinations, a function giving an iterator over them): nothing is expanded here,
+    so a grid of a million combinations costs no memory until its jobs are built one by one."""
     defaults = doc.get("defaults", {}) or {}
     axes = doc.get("axes", {}) or {}
     if not isinstance(defaults, dict) or not isinstance(axes, dict):
@@ -310,7 +414,10 @@ def _combinations(doc: dict, combine: str) -> list[dict]:
             raise SpecError("combine = 'list' needs a non-empty list of [[jobs]] tables")
         if axes:
             raise SpecError("combine = 'list' takes [[jobs]], not [axes]; use grid or zip for axes")
-        return [{**defaults, **j} for j in jobs]
+        for j in jobs:
+            if not isinstance(j, dict):
+                raise SpecError(f"each [[jobs]] entry must be a table of settings; got {j!r:.80}")
+        return len(jobs), lambda: ({**defaults, **j} for j in jobs)
     if doc.get("jobs"):
         raise SpecError(f"[[jobs]] tables need combine = 'list' (this spec says {combine!r})")
     for k, v in axes.items():
@@ -318,16 +425,25 @@ def _combinations(doc: dict, combine: str) -> list[dict]:
             raise SpecError(f"axes.{k} must be a non-empty list of values (one per job along that axis)")
     names = list(axes)
     if combine == "grid":
-        return [{**defaults, **dict(zip(names, combo))} for combo in itertools.product(*(axes[n] for n in names))]
+        return (math.prod(len(axes[n]) for n in names),
+                lambda: ({**defaults, **dict(zip(names, combo))}
+                         for combo in itertools.product(*(axes[n] for n in names))))
     lengths = {n: len(axes[n]) for n in names if len(axes[n]) != 1}
     if len(set(lengths.values())) > 1:
         raise SpecError(f"combine = 'zip' needs axes of one length (or length 1); got {lengths}")
     n = next(iter(lengths.values()), 1)
-    return [{**defaults, **{k: (axes[k][i] if len(axes[k]) > 1 else axes[k][0]) for k in names}} for i in range(n)]
+    return n, lambda: ({**defaults, **{k: (axes[k][i] if len(axes[k]) > 1 else axes[k][0]) for k in names}}
+                       for i in range(n))
 
 
-def load_spec(path, *, comfy: bool = False) -> BatchSpec:
-    """Read and expand a spec. Malformed specs raise SpecError; a bad value makes that job fail only."""
+def _own_image(c: dict):
+    return c.get("image") or c.get("images")
+
+
+def load_spec(path, *, comfy: bool = False, max_jobs: Optional[int] = MAX_JOBS) -> BatchSpec:
+    """Read and check a spec; its jobs are built lazily (``BatchSpec.iter_jobs`` / ``.jobs``). Malformed
+    specs, and specs of more than ``max_jobs`` jobs (None or 0: no limit), raise SpecError before any
+    job is built; a bad value makes that job fail only."""
     path = Path(path)
     if not path.is_file():
         raise SpecError(f"No batch spec at {path}")
@@ -373,67 +489,114 @@ def load_spec(path, *, comfy: bool = False) -> BatchSpec:
             raise SpecError(f"outputs.{key} must be true or false; got {outputs[key]!r}")
 
     images_axis = batch.get("images")
-    combos = _combinations(doc, combine)
+    n_combos, combos = _combinations(doc, combine)
     for key in ("defaults", "axes"):
         _check_keys(doc.get(key, {}) or {}, f"[{key}]", comfy_cfg is not None)
     if combine == "list":
         for j in doc["jobs"]:
             _check_keys(j, "[[jobs]]", comfy_cfg is not None)
     # Images are one more grid axis (or zip column): each combination is taken for each image, except
-    # where a job names its own image (list mode) or images is itself an axis.
-    expanded: list[tuple[Path, dict]] = []
-    image_sha: dict[Path, str] = {}
-    for c in combos:
-        own = c.pop("image", None) or c.pop("images", None)
-        if own is not None:
-            imgs = _resolve_images(own, base)
-        elif images_axis is not None:
-            imgs = _resolve_images(images_axis, base)
-        else:
-            raise SpecError("no images: give batch.images = [...] (or image = ... in each [[jobs]] table)")
-        if combine == "zip" and own is None and len(imgs) > 1 and len(combos) > 1:
-            if len(imgs) != len(combos):
-                raise SpecError(f"combine = 'zip': {len(imgs)} images but {len(combos)} values per axis")
-            imgs = [imgs[len(expanded) % len(imgs)]]
-        for im in imgs:
-            expanded.append((im, dict(c)))
+    # where a job names its own image (list mode) or images is itself an axis. Each distinct pattern is
+    # resolved (globbed) once.
+    resolved: dict[str, list[Path]] = {}
 
-    models_cache: dict[str, dict] = {}
-    jobs = []
-    seen: dict[str, int] = {}
-    for i, (img, raw) in enumerate(expanded):
-        sha = image_sha.get(img) or image_sha.setdefault(img, file_sha256(img))
-        sets = [f"{k}={json.dumps(v)}" for k, v in sorted(raw.items()) if "." in k]
-        plain = {k: v for k, v in raw.items() if "." not in k}
-        error, mask_sha = None, None
-        try:
-            settings = normalise(plain)
-            if settings["mask"] is not None:
-                mpath = Path(settings["mask"]).expanduser()
-                mpath = mpath if mpath.is_absolute() else base / mpath
-                if not mpath.is_file():
-                    raise InputError(f"mask: no file at {mpath}")
-                settings["mask"] = str(mpath)
-                mask_sha = file_sha256(mpath)
-        except InputError as exc:
-            settings, error = {k: plain.get(k) for k in plain}, str(exc)
-        extra: dict = {}
-        if mask_sha:
-            extra["mask"] = mask_sha
-        if comfy_cfg is not None:
-            extra["comfy"] = {"workflow": comfy_cfg["workflow_sha256"], "sets": sets, "map": comfy_cfg["map"]}
-        elif error is None:
-            m = settings["models"]
-            extra["models"] = models_cache.get(m) or models_cache.setdefault(m, models_identity(m))
-        hashed = {k: v for k, v in settings.items() if k != "mask"}
-        try:
-            jid = job_id(sha, hashed, extra)
-        except (TypeError, ValueError):  # an unnormalisable value (NaN, an object): hash its repr
-            jid = job_id(sha, {"invalid": repr(sorted(settings.items()))}, extra)
-        if jid in seen:
-            continue  # the same video twice (e.g. two spellings of one value): made once
-        seen[jid] = i
-        name = f"{img.stem}-{len(jobs):04d}"
-        jobs.append(Job(id=jid, name=name, index=len(jobs), image=img, image_sha256=sha, settings=settings,
-                        sets=sets, error=error, mask_sha256=mask_sha))
-    return BatchSpec(path=path, sha256=file_sha256(path), jobs=jobs, outputs=outputs, comfy=comfy_cfg)
+    def images_of(value) -> list[Path]:
+        key = json.dumps(value, sort_keys=True, default=str)
+        if key not in resolved:
+            resolved[key] = _resolve_images(value, base)
+        return resolved[key]
+
+    defaults = doc.get("defaults", {}) or {}
+    axes = doc.get("axes", {}) or {}
+    image_keys = [k for k in ("image", "images") if k in axes]
+    if combine == "list" or (combine == "zip" and image_keys):
+        count = 0
+        for c in combos():  # a list or a zip: as many combinations as the document holds values
+            own = _own_image(c)
+            if own is None and images_axis is None:
+                raise SpecError("no images: give batch.images = [...] (or image = ... in each [[jobs]] table)")
+            count += len(images_of(own if own is not None else images_axis))
+    elif image_keys:  # grid with the images as an axis
+        rest = math.prod(len(v) for k, v in axes.items() if k not in image_keys)
+        count = sum(len(images_of(v)) for k in image_keys for v in axes[k]) * rest
+    else:
+        own = _own_image(defaults)
+        if own is None and images_axis is None:
+            raise SpecError("no images: give batch.images = [...] (or image = ... in each [[jobs]] table)")
+        imgs = images_of(own if own is not None else images_axis)
+        if combine == "zip" and own is None and len(imgs) > 1 and n_combos > 1:
+            if len(imgs) != n_combos:
+                raise SpecError(f"combine = 'zip': {len(imgs)} images but {n_combos} values per axis")
+            count = n_combos
+        else:
+            count = n_combos * len(imgs)
+    if max_jobs is not None and max_jobs > 0 and count > max_jobs:
+        shape = " x ".join(f"{k} ({len(v)})" for k, v in axes.items()) if combine != "list" else \
+            f"{n_combos} [[jobs]] tables"
+        raise SpecError(f"{path} expands to {count:,} jobs ({shape or 'one combination'}, over the images), more than "
+                        f"the limit of {max_jobs:,} jobs per batch. Narrow the axes or split the spec into several, "
+                        f"or confirm this many videos with --max-jobs {count} (max_jobs={count} in Python).")
+
+    def expanded():
+        for ci, c in enumerate(combos()):
+            c = dict(c)
+            own = c.pop("image", None) or c.pop("images", None)
+            if own is not None:
+                imgs = images_of(own)
+            elif images_axis is not None:
+                imgs = images_of(images_axis)
+            else:
+                raise SpecError("no images: give batch.images = [...] (or image = ... in each [[jobs]] table)")
+            if combine == "zip" and own is None and len(imgs) > 1 and n_combos > 1:
+                imgs = [imgs[ci % len(imgs)]]  # zipped: the ci-th image with the ci-th values
+            for im in imgs:
+                yield im, dict(c)
+
+    def make_jobs():
+        image_sha: dict[Path, str] = {}
+        models_cache: dict[str, dict] = {}
+        seen: set[str] = set()
+        index = 0
+        for img, raw in expanded():
+            job = _make_job(img, raw, base, comfy_cfg, image_sha, models_cache, index)
+            if job.id in seen:
+                continue  # the same video twice (e.g. two spellings of one value): made once
+            seen.add(job.id)
+            index += 1
+            yield job
+
+    return BatchSpec(path=path, sha256=file_sha256(path), outputs=outputs, comfy=comfy_cfg, count=count,
+                     _make_jobs=make_jobs)
+
+
+def _make_job(img: Path, raw: dict, base: Path, comfy_cfg, image_sha: dict, models_cache: dict, index: int) -> Job:
+    sha = image_sha.get(img) or image_sha.setdefault(img, file_sha256(img))
+    sets = [f"{k}={json.dumps(v)}" for k, v in sorted(raw.items()) if "." in k]
+    plain = {k: v for k, v in raw.items() if "." not in k}
+    error, mask_sha = None, None
+    try:
+        settings = normalise(plain)
+        if settings["mask"] is not None:
+            mpath = Path(settings["mask"]).expanduser()
+            mpath = mpath if mpath.is_absolute() else base / mpath
+            if not mpath.is_file():
+                raise InputError(f"mask: no file at {mpath}")
+            settings["mask"] = str(mpath)
+            mask_sha = file_sha256(mpath)
+    except InputError as exc:
+        settings, error = {k: plain.get(k) for k in plain}, str(exc)
+    extra: dict = {}
+    if mask_sha:
+        extra["mask"] = mask_sha
+    if comfy_cfg is not None:
+        extra["comfy"] = {"workflow": comfy_cfg["workflow_sha256"], "sets": sets, "map": comfy_cfg["map"]}
+    elif error is None:
+        m = settings["models"]
+        extra["models"] = models_cache.get(m) or models_cache.setdefault(m, models_identity(m))
+    hashed = {k: v for k, v in settings.items() if k != "mask"}
+    try:
+        jid = job_id(sha, hashed, extra)
+    except (TypeError, ValueError):  # an unnormalisable value (NaN, an object): hash its repr
+        jid = job_id(sha, {"invalid": repr(sorted(settings.items()))[:10000]}, extra)
+    return Job(id=jid, name=f"{img.stem}-{index:04d}", index=index, image=img, image_sha256=sha, settings=settings,
+               sets=sets, error=error, mask_sha256=mask_sha)

@@ -31,9 +31,11 @@ def check_frames_fit(frames: int, width: int, height: int, what: str = "The rend
     have = host_available_bytes()
     if need > fraction * have:
         fit = max(int(fraction * have // max(frames_bytes(1, width, height, per_pixel), 1)), 0)
-        raise InputError(f"{what} needs about {fmt_bytes(need)} of RAM for {frames} frames of {width}x{height} "
-                         f"but only {fmt_bytes(have)} is available. Lower the frame count (at most about {fit} at "
-                         "this size) or the image size (e.g. scale the photo down before lifting).")
+        from ..memory import over_limit_message
+
+        raise InputError(f"{what} ({frames} frames of {width}x{height}) {over_limit_message(need, have, fraction)}. "
+                         f"Lower the frame count (at most about {fit} at this size) or the image size (e.g. scale the "
+                         "photo down before lifting).")
 
 
 def frame_threads(frames: int, device: torch.device) -> int:
