@@ -1,0 +1,407 @@
+// PhysMotion segmentation-prompt picker: draws the input photo inside the Segment nodes
+// (PhysMotionSegment, PhysMotionSAMSegment) and turns clicks on it into their prompt widgets:
+//
+//   click                  an object point (green dot)
+//   Shift-click            a background point (red dot): a pixel that is NOT the object
+//   click on a dot         removes that point
+//   drag                   the box around the object (a new drag replaces the box)
+//   Ctrl-drag (SAM node)   one more box: SAM segments one object per box
+//   "clear" button         removes every point and box
+//
+// The values go into the node's own widgets (object_points / background_points / box, or points /
+// boxes / coordinates on the SAM node, always written in pixels), so they are saved with the workflow
+// and queued as usual; the picker stores nothing of its own, and redraws from the widgets whenever
+// they change (typed by hand, a workflow loaded). Parsing, formatting and geometry live in
+// segment_math.js (unit-tested).
+//
+// The photo comes from the nearest LoadImage (or node showing an image) feeding the node, else the
+// nearest one linked either way. Nothing polls: the picker refreshes on the node's widget callbacks,
+// onWidgetChanged, onConnectionsChange, onConfigure/onAdded, afterConfigureGraph, the api's
+// `graphChanged` and `executed` events, a cheap check on each draw of the graph canvas, and a
+// ResizeObserver on its canvas; everything is released when the node is removed.
+
+import { app } from "../../scripts/app.js";
+import { api } from "../../scripts/api.js";
+import { MIN_DRAG_PX, canvasToImage, fitImage, imageToCanvas } from "./picker_math.js";
+import {
+  PROMPT_WIDGETS,
+  SEGMENT_KINDS,
+  applyBox,
+  applyClick,
+  describePrompt,
+  emptyPrompt,
+  hitTest,
+  isDrag,
+  normaliseBox,
+  pixelPoint,
+  readPrompt,
+  sourceImageURL,
+  writePrompt,
+} from "./segment_math.js";
+
+const PICKER_HEIGHT = 260;
+const OBJECT_COLOUR = "#35d04a";
+const BACKGROUND_COLOUR = "#ff4040";
+const BOX_COLOUR = "#ffd336";
+
+const HINTS = {
+  grabcut: "click: object · Shift-click: background · drag: box · click a dot: remove",
+  sam: "click: object · Shift-click: background · drag: box (Ctrl-drag: another object) · click a dot: remove",
+};
+
+function widget(node, name) {
+  return node.widgets?.find((w) => w.name === name);
+}
+
+function setWidget(node, name, value) {
+  const w = widget(node, name);
+  if (!w || w.value === value) return;
+  w.value = value;
+  w.callback?.(value, app.canvas, node);
+}
+
+class SegmentPicker {
+  constructor(node, kind) {
+    this.node = node;
+    this.kind = kind;
+    this.image = null;
+    this.imageURL = null;
+    this.drag = null; // {startCanvas, endCanvas, start:{u,v}, end:{u,v}, background, add}
+    this.stateKey = "";
+
+    const el = document.createElement("div");
+    el.className = "physmotion-segment-picker";
+    el.style.cssText = "width:100%;height:100%;display:flex;flex-direction:column;";
+    const canvas = document.createElement("canvas");
+    canvas.style.cssText = "flex:1 1 auto;width:100%;min-height:120px;cursor:crosshair;touch-action:none;" +
+      "background:#1b1b1b;border-radius:4px;";
+    canvas.dataset.physmotionPicker = `segment-${kind}`;
+    const row = document.createElement("div");
+    row.style.cssText = "display:flex;align-items:center;gap:6px;padding:2px 4px;";
+    const hint = document.createElement("div");
+    hint.style.cssText = "flex:1 1 auto;font:11px sans-serif;color:#aaa;white-space:nowrap;overflow:hidden;" +
+      "text-overflow:ellipsis;";
+    hint.textContent = HINTS[kind];
+    hint.title = HINTS[kind];
+    const clear = document.createElement("button");
+    clear.type = "button";
+    clear.textContent = "clear";
+    clear.title = "remove every point and box";
+    clear.style.cssText = "flex:0 0 auto;font:11px sans-serif;padding:1px 8px;cursor:pointer;";
+    row.append(hint, clear);
+    el.append(canvas, row);
+    this.el = el;
+    this.canvas = canvas;
+    this.hint = hint;
+    this.clearButton = clear;
+
+    // Everything this picker listens to is released at once on removal.
+    this.listeners = new AbortController();
+    const opts = { signal: this.listeners.signal };
+    canvas.addEventListener("pointerdown", (e) => this.onDown(e), opts);
+    canvas.addEventListener("pointermove", (e) => this.onMove(e), opts);
+    canvas.addEventListener("pointerup", (e) => this.onUp(e), opts);
+    canvas.addEventListener("pointercancel", () => { this.drag = null; this.draw(); }, opts);
+    clear.addEventListener("pointerdown", (e) => e.stopPropagation(), opts);
+    clear.addEventListener("click", (e) => { e.preventDefault?.(); e.stopPropagation?.(); this.clear(); }, opts);
+
+    this.frame = null;
+    this.removed = false;
+    this.resizeObserver = typeof ResizeObserver === "function" ? new ResizeObserver(() => this.invalidate()) : null;
+    this.resizeObserver?.observe(canvas);
+  }
+
+  /** The node's prompt widget values (strings; `coordinates` on the SAM node). */
+  values() {
+    return Object.fromEntries(PROMPT_WIDGETS[this.kind].map((n) => [n, widget(this.node, n)?.value ?? ""]));
+  }
+
+  imageSize() {
+    return { imgW: this.image?.naturalWidth ?? 0, imgH: this.image?.naturalHeight ?? 0 };
+  }
+
+  /** The prompt the widgets say now, in pixels of the shown photo. */
+  prompt() {
+    return readPrompt(this.kind, this.values(), this.imageSize());
+  }
+
+  fit() {
+    if (!this.image?.naturalWidth) return null;
+    return fitImage(this.image.naturalWidth, this.image.naturalHeight, this.canvas.clientWidth, this.canvas.clientHeight);
+  }
+
+  eventPoint(e) {
+    const r = this.canvas.getBoundingClientRect();
+    // The node may be zoomed (a CSS transform): map client pixels to the canvas' own pixels.
+    const x = (e.clientX - r.left) * (this.canvas.clientWidth / (r.width || 1));
+    const y = (e.clientY - r.top) * (this.canvas.clientHeight / (r.height || 1));
+    return { x, y };
+  }
+
+  toImage(p) {
+    const fit = this.fit();
+    if (!fit) return null;
+    return canvasToImage(p.x, p.y, fit, this.image.naturalWidth, this.image.naturalHeight);
+  }
+
+  onDown(e) {
+    if (e.button !== 0) return;
+    const p = this.eventPoint(e);
+    const q = this.toImage(p);
+    if (!q || !q.inside) return;
+    e.preventDefault();
+    e.stopPropagation();
+    this.canvas.setPointerCapture?.(e.pointerId);
+    this.drag = { startCanvas: p, endCanvas: p, start: q, end: q, background: e.shiftKey,
+                  add: e.ctrlKey || e.metaKey };
+    this.draw();
+  }
+
+  onMove(e) {
+    if (!this.drag) return;
+    e.preventDefault();
+    e.stopPropagation();
+    const p = this.eventPoint(e);
+    const q = this.toImage(p);
+    this.drag.endCanvas = p;
+    if (q) this.drag.end = q;
+    this.draw();
+  }
+
+  onUp(e) {
+    const d = this.drag;
+    if (!d) return;
+    e.preventDefault();
+    e.stopPropagation();
+    const p = this.eventPoint(e);
+    const q = this.toImage(p);
+    d.endCanvas = p;
+    if (q) d.end = q;
+    this.drag = null;
+    if (this.image) {
+      const { imgW, imgH } = this.imageSize();
+      const prompt = this.prompt();
+      if (isDrag(d.startCanvas, d.endCanvas, MIN_DRAG_PX)) {
+        const box = normaliseBox(d.start, d.end, imgW, imgH);
+        if (box) this.write(applyBox(prompt, box, { kind: this.kind, add: d.add || e.ctrlKey || e.metaKey }));
+      } else {
+        const fit = this.fit();
+        const hit = hitTest(prompt.points, d.startCanvas, (x, y) => imageToCanvas(x, y, fit));
+        const pixel = pixelPoint(d.start.u, d.start.v, imgW, imgH);
+        this.write(applyClick(prompt, pixel, { hit, background: d.background || e.shiftKey }));
+      }
+    }
+    this.draw();
+  }
+
+  /** Put a prompt into the node's widgets (each through its callback, as a user edit would). */
+  write(prompt) {
+    if (prompt.fraction) return; // fractions of an image of unknown size: nothing sensible to write
+    const node = this.node;
+    for (const [name, value] of Object.entries(writePrompt(this.kind, prompt))) setWidget(node, name, value);
+    node.setDirtyCanvas?.(true, true);
+    node.graph?.setDirtyCanvas?.(true, true);
+    this.invalidate();
+  }
+
+  clear() {
+    const node = this.node;
+    for (const [name, value] of Object.entries(writePrompt(this.kind, emptyPrompt()))) {
+      if (name !== "coordinates") setWidget(node, name, value);
+    }
+    node.setDirtyCanvas?.(true, true);
+    node.graph?.setDirtyCanvas?.(true, true);
+    this.invalidate();
+  }
+
+  /** Refresh on the next frame (many triggers in one frame give one refresh). */
+  invalidate() {
+    if (this.removed || this.frame != null) return;
+    const run = () => { this.frame = null; this.refresh(); };
+    this.frame = typeof requestAnimationFrame === "function" ? requestAnimationFrame(run) : setTimeout(run, 0);
+  }
+
+  /** Follow the graph to the photo (loading it if it changed) and redraw if anything shown changed. */
+  refresh() {
+    if (this.removed || !this.node.graph) return;
+    const url = sourceImageURL(this.node.graph, this.node.id, (route) => api.apiURL(route));
+    if (url !== this.imageURL) {
+      this.imageURL = url;
+      this.image = null;
+      if (url) {
+        const img = new Image();
+        img.onload = () => { if (this.imageURL === url && !this.removed) { this.image = img; this.draw(); } };
+        img.onerror = () => { if (this.imageURL === url && !this.removed) { this.image = null; this.draw(); } };
+        img.src = url;
+      }
+    }
+    const key = JSON.stringify([url, this.values(), this.canvas.clientWidth, this.canvas.clientHeight]);
+    if (key !== this.stateKey) {
+      this.stateKey = key;
+      this.draw();
+    }
+  }
+
+  draw() {
+    if (this.removed) return;
+    const c = this.canvas;
+    const dpr = window.devicePixelRatio || 1;
+    const w = c.clientWidth;
+    const h = c.clientHeight;
+    if (c.width !== Math.round(w * dpr) || c.height !== Math.round(h * dpr)) {
+      c.width = Math.round(w * dpr);
+      c.height = Math.round(h * dpr);
+    }
+    const ctx = c.getContext("2d");
+    ctx.setTransform(dpr, 0, 0, dpr, 0, 0);
+    ctx.clearRect(0, 0, w, h);
+    const fit = this.fit();
+    ctx.font = "12px sans-serif";
+    if (!fit) {
+      ctx.fillStyle = "#888";
+      ctx.fillText("connect the image input to a Load Image node to pick on the photo", 8, 20);
+      return;
+    }
+    ctx.drawImage(this.image, fit.offsetX, fit.offsetY, fit.width, fit.height);
+    const prompt = this.prompt();
+    const toCanvas = (x, y) => imageToCanvas(x, y, fit);
+    let label = describePrompt(prompt);
+    if (prompt.fraction) {
+      label = "fractions: click to rewrite in pixels";
+    } else {
+      prompt.boxes.forEach((b, i) => {
+        const a = toCanvas(b.x0, b.y0);
+        const z = toCanvas(b.x1, b.y1);
+        this.drawBox(ctx, a, z, BOX_COLOUR, prompt.boxes.length > 1 ? String(i) : "");
+      });
+      for (const p of prompt.points) {
+        const q = toCanvas(p.x, p.y);
+        ctx.beginPath();
+        ctx.arc(q.x, q.y, 5, 0, 2 * Math.PI);
+        ctx.fillStyle = p.label === 1 ? OBJECT_COLOUR : BACKGROUND_COLOUR;
+        ctx.fill();
+        ctx.lineWidth = 1.5;
+        ctx.strokeStyle = "#fff";
+        ctx.stroke();
+        if (p.object !== undefined) {
+          ctx.fillStyle = "#fff";
+          ctx.fillText(String(p.object), q.x + 7, q.y - 6);
+        }
+      }
+    }
+    const d = this.drag;
+    if (d && isDrag(d.startCanvas, d.endCanvas, MIN_DRAG_PX)) {
+      const { imgW, imgH } = this.imageSize();
+      const box = normaliseBox(d.start, d.end, imgW, imgH);
+      if (box) {
+        this.drawBox(ctx, toCanvas(box.x0, box.y0), toCanvas(box.x1, box.y1), "#ffffff", "");
+        label = `box ${box.x0}, ${box.y0}, ${box.x1}, ${box.y1}`;
+      }
+    }
+    ctx.fillStyle = "rgba(0,0,0,0.6)";
+    ctx.fillRect(4, h - 20, ctx.measureText(label).width + 8, 16);
+    ctx.fillStyle = "#fff";
+    ctx.fillText(label, 8, h - 8);
+  }
+
+  drawBox(ctx, a, z, colour, tag) {
+    ctx.setLineDash?.([6, 4]);
+    ctx.lineWidth = 2;
+    ctx.strokeStyle = colour;
+    ctx.strokeRect(a.x, a.y, z.x - a.x, z.y - a.y);
+    ctx.setLineDash?.([]);
+    if (tag) {
+      ctx.fillStyle = colour;
+      ctx.fillText(tag, a.x + 4, a.y + 14);
+    }
+  }
+
+  remove() {
+    if (this.removed) return;
+    this.removed = true;
+    if (this.frame != null) {
+      if (typeof cancelAnimationFrame === "function") cancelAnimationFrame(this.frame);
+      clearTimeout(this.frame);
+      this.frame = null;
+    }
+    this.resizeObserver?.disconnect();
+    this.listeners.abort();
+    livePickers.delete(this);
+    this.image = null;
+  }
+}
+
+/** Every segment picker on the page; the graph-wide triggers refresh each of them. */
+const livePickers = new Set();
+
+/** obj[name] = its old value (if any) followed by `after`, same arguments and return value. */
+function chain(obj, name, after) {
+  const prev = obj[name];
+  obj[name] = function (...args) {
+    const r = prev?.apply(this, args);
+    after.apply(this, args);
+    return r;
+  };
+}
+
+let sharedTriggersInstalled = false;
+
+/** Once per page: changes elsewhere in the graph (another node's widget, a link upstream, a new
+ *  preview) refresh every picker: the api's `graphChanged` and `executed` events, and a cheap check
+ *  on each draw of the graph canvas for changes that raise no event. */
+function installSharedTriggers() {
+  if (sharedTriggersInstalled) return;
+  const canvas = app.canvas;
+  if (!canvas) return; // too early: the extension's setup() installs them
+  sharedTriggersInstalled = true;
+  const invalidateAll = () => { for (const p of livePickers) p.invalidate(); };
+  api.addEventListener?.("graphChanged", invalidateAll);
+  api.addEventListener?.("executed", invalidateAll);
+  chain(canvas, "onDrawForeground", () => { for (const p of livePickers) p.refresh(); });
+}
+
+/** The ComfyUI class of a node as the frontend creates it (node.type is set after the constructor). */
+function comfyClassOf(node) {
+  return node.comfyClass ?? node.constructor?.comfyClass ?? node.constructor?.nodeData?.name ?? node.type;
+}
+
+/** Give a Segment node its picker: a DOM widget, and the node's own events wired to refresh it. */
+function attachPicker(node, kind) {
+  const picker = new SegmentPicker(node, kind);
+  for (const w of node.widgets ?? []) chain(w, "callback", () => picker.invalidate());
+  const w = node.addDOMWidget("physmotion_segment_picker", "physmotion_segment_picker", picker.el, {
+    serialize: false,
+    hideOnZoom: false,
+    getMinHeight: () => PICKER_HEIGHT,
+    getHeight: () => PICKER_HEIGHT,
+  });
+  w.serialize = false; // not a backend input: never part of widgets_values or the prompt
+  w.physmotionPicker = picker;
+  node.physmotionSegmentPicker = picker;
+  const invalidate = () => picker.invalidate();
+  chain(node, "onWidgetChanged", invalidate); // a widget of this node changed on the canvas
+  chain(node, "onConnectionsChange", invalidate); // a link to or from this node made or removed
+  chain(node, "onConfigure", invalidate); // widget values loaded from a workflow
+  chain(node, "onAdded", invalidate); // put on a graph
+  chain(node, "onRemoved", () => picker.remove());
+  chain(w, "onRemove", () => picker.remove());
+  livePickers.add(picker);
+  installSharedTriggers();
+  const size = node.computeSize?.();
+  if (size) node.setSize?.([Math.max(node.size?.[0] ?? 0, 340), Math.max(node.size?.[1] ?? 0, size[1])]);
+  return picker;
+}
+
+app.registerExtension({
+  name: "PhysMotion.SegmentPicker",
+  setup() {
+    installSharedTriggers();
+  },
+  nodeCreated(node) {
+    const kind = SEGMENT_KINDS[comfyClassOf(node)];
+    if (kind) attachPicker(node, kind);
+  },
+  afterConfigureGraph() {
+    for (const p of livePickers) p.invalidate();
+  },
+});
