@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from ._gaussian_io import GAUSSIANS_INPUT, GAUSSIANS_TOOLTIP_SUFFIX, as_pm_gaussians
-from ._util import CATEGORY, output_path, progress_callback, sim_device
+from ._util import CATEGORY, log, output_path, progress_callback, sim_device
 
 _VEC = {"default": 0.0, "min": -1e7, "max": 1e7, "step": 0.1}
 
@@ -359,6 +359,11 @@ class PhysMotionMPMSimulate:
                 "conditions": ("PM_CONDITIONS", {"tooltip": "Forces, torques, anchors, ground, gravity... "
                                                             "(default: gravity only)."}),
                 "camera": ("PM_CAMERA", {"tooltip": "The input camera; needed by image-point and mask regions."}),
+                "hold_cut_edges": ("BOOLEAN", {"default": True,
+                                               "tooltip": "Hold the object where the photo's edge cuts it off (a face "
+                                                          "filling the frame, a branch entering from the side): the "
+                                                          "rest of the body, outside the frame, holds it there. Needs "
+                                                          "the camera. Off: only the ground holds it."}),
             },
         }
 
@@ -368,8 +373,10 @@ class PhysMotionMPMSimulate:
     CATEGORY = f"{CATEGORY}/physics"
 
     def run(self, gaussians, material, frames, fps, quality, grid_res, particles_per_cell, cfl, domain_margin,
-            device, seed, conditions=None, camera=None):
+            device, seed, conditions=None, camera=None, hold_cut_edges=True):
+        from physmotion_core.feedback import after_run, forecast
         from physmotion_core.sim import simulate
+        from physmotion_core.support import edge_hold
         from physmotion_core.types.settings import SimSettings
 
         from ._memory import make_room
@@ -377,8 +384,28 @@ class PhysMotionMPMSimulate:
         settings = SimSettings(frames=int(frames), fps=float(fps), grid_res=int(grid_res), quality=quality,
                                particles_per_cell=int(particles_per_cell), cfl=float(cfl),
                                domain_margin=float(domain_margin), device=sim_device(device), seed=int(seed))
-        return (simulate(as_pm_gaussians(gaussians), material, _chain(conditions), settings, camera=camera,
-                         progress=progress_callback(), make_room=make_room),)
+        g = as_pm_gaussians(gaussians)
+        conds = _chain(conditions)
+        held = False
+        if hold_cut_edges and camera is not None and (g.object_ids is None or len(set(g.object_ids.tolist())) == 1):
+            anchor, _, line = edge_hold(g, camera, material if not isinstance(material, (list, tuple)) else None)
+            log.info("%s", line)
+            if anchor is not None:
+                conds = conds + anchor
+                held = True
+
+        def told(facts) -> None:  # what the user reads in the console before the wait
+            mat = material[0] if isinstance(material, (list, tuple)) else material
+            for line in forecast(conds, facts, mat, clip_s=(settings.frames - 1) / settings.fps, camera=camera,
+                                 held=held):
+                log.info("%s", line)
+
+        sim = simulate(g, material, conds, settings, camera=camera, progress=progress_callback(), make_room=make_room,
+                       on_start=told)
+        if camera is not None:
+            for w in after_run(sim, camera).warnings:
+                log.warning("%s", w)
+        return (sim,)
 
 
 class PhysMotionSaveGaussianSequence:

@@ -12,9 +12,13 @@ from ._util import CATEGORY, first_image, first_mask, log, preview_images
 class PhysMotionSegment:
     """Split the image into the object (mask, foreground) and an inpainted background."""
 
-    DESCRIPTION = ("Finds the object to animate: uses the given mask (or LoadImage's alpha mask), otherwise "
-                   "OpenCV GrabCut around the salient centre. The background has the object's region inpainted, "
-                   "so what the moving object uncovers looks plausible.")
+    DESCRIPTION = ("Finds the object to animate: uses the given mask (LoadImage's alpha mask, or a MASK from any "
+                   "other node: ComfyUI's own SAM or background-removal nodes), otherwise OpenCV GrabCut seeded by "
+                   "your prompts: click on the picture in the node for an object point, Shift-click for a "
+                   "background point, drag for a box. Without prompts GrabCut looks around the salient centre, "
+                   "and a mask that does not look like one object (it touches three frame edges, covers most of "
+                   "the picture, falls apart in pieces) is refused with the overlay to look at. The background "
+                   "has the object's region inpainted, so what the moving object uncovers looks plausible.")
 
     @classmethod
     def INPUT_TYPES(cls):
@@ -35,21 +39,32 @@ class PhysMotionSegment:
                                                "tooltip": "GrabCut refinement iterations (more = slower, tighter)."}),
             },
             "optional": {
-                "mask": ("MASK", {"tooltip": "Optional object mask, e.g. LoadImage's alpha mask."}),
+                "mask": ("MASK", {"tooltip": "Optional object mask: LoadImage's alpha mask, or the MASK of any other "
+                                             "node (ComfyUI's SAM, a background-removal node, the mask editor)."}),
+                "object_points": ("STRING", {"default": "", "tooltip": "Pixels (column, row) on the object, 'x, y; "
+                                                                       "x, y'. Click on the picture to add one."}),
+                "background_points": ("STRING", {"default": "", "tooltip": "Pixels that are NOT the object, 'x, y; "
+                                                                           "x, y'. Shift-click on the picture."}),
+                "box": ("STRING", {"default": "", "tooltip": "A box around the object 'x0, y0, x1, y1' in pixels. "
+                                                             "Drag on the picture."}),
             },
         }
 
-    RETURN_TYPES = ("IMAGE", "MASK", "IMAGE")
-    RETURN_NAMES = ("foreground", "mask", "background")
-    OUTPUT_TOOLTIPS = ("The object over black.", "1 on the object.", "The photo with the object inpainted away.")
+    RETURN_TYPES = ("IMAGE", "MASK", "IMAGE", "IMAGE")
+    RETURN_NAMES = ("foreground", "mask", "background", "overlay")
+    OUTPUT_TOOLTIPS = ("The object over black.", "1 on the object.", "The photo with the object inpainted away.",
+                       "The mask's outline and your prompts over the photo, beside the filled background.")
     FUNCTION = "run"
     CATEGORY = f"{CATEGORY}/segment"
 
-    def run(self, image, method, mask_polarity, grabcut_iterations, mask=None):
+    def run(self, image, method, mask_polarity, grabcut_iterations, mask=None, object_points="",
+            background_points="", box=""):
         from physmotion_core.masks import orient_object_mask
         from physmotion_core.segment import segment
 
         img = first_image(image)
+        H, W = img.shape[:2]
+        obj_pts, bg_pts, box_t = parse_grabcut_prompts(object_points, background_points, box, W, H)
         m = first_mask(mask)
         if method == "mask" and m is None:
             raise InputError("method is 'mask' but no mask is connected: connect a MASK or choose 'auto'")
@@ -64,15 +79,56 @@ class PhysMotionSegment:
             m = None
         if m is not None:
             m = orient_object_mask(m, mask_polarity)
-        seg = segment(img, mask=m, method="mask" if m is not None else "grabcut",
-                      grabcut_iters=int(grabcut_iterations))
-        return {"ui": _segment_preview(seg.foreground, seg.background),
-                "result": (seg.foreground[None], seg.mask[None], seg.background[None])}
+        pts = obj_pts + bg_pts
+        labels = [1] * len(obj_pts) + [0] * len(bg_pts)
+        seg = segment(img, mask=m, method="mask" if m is not None else "grabcut", grabcut_iters=int(grabcut_iterations),
+                      box=box_t, points=pts or None, point_labels=labels or None)
+        prompted = m is not None or bool(obj_pts) or box_t is not None
+        return checked_segmentation(seg, prompted, obj_pts, bg_pts, box_t)
 
 
-def _segment_preview(foreground: torch.Tensor, background: torch.Tensor) -> dict:
-    """The object over black beside the inpainted background, as one still preview."""
-    return preview_images(torch.cat([foreground, background], dim=1)[None], "PhysMotion_segment")
+def parse_grabcut_prompts(object_points: str, background_points: str, box: str, width: int, height: int):
+    """The no-model Segment node's prompt fields as (object points, background points, box or None),
+    read and checked with the SAM node's parser (same formats, same messages)."""
+    from physmotion_core.segment.sam import parse_prompts
+
+    entries = [e for e in (object_points or "").replace("\n", ";").split(";") if e.strip()]
+    bg = [e for e in (background_points or "").replace("\n", ";").split(";") if e.strip()]
+    for e in entries + bg:
+        if len([v for v in e.replace(",", " ").split() if v]) != 2:
+            raise InputError(f"A point is 'x, y' (pixels: column, row); got {e.strip()!r}. Separate points with ';'")
+    if bg and not entries and not (box or "").strip():
+        raise InputError("Only background points were given: add an object point (click on the object) or a box")
+    text = ";".join([e for e in entries] + [f"{e}, 0" for e in bg])
+    prompts = parse_prompts(text, box or "", width=width, height=height)
+    if len([p for p in prompts if p.box is not None]) > 1:
+        raise InputError("Give one box around the object ('x0, y0, x1, y1'); for several objects use the SAM node")
+    obj, neg, the_box = [], [], None
+    for p in prompts:
+        the_box = p.box if p.box is not None else the_box
+        for (x, y), lab in zip(p.points, p.labels):
+            (obj if lab == 1 else neg).append((float(x), float(y)))
+    return obj, list(dict.fromkeys(neg)), the_box
+
+
+def checked_segmentation(seg, prompted: bool, obj_pts=(), bg_pts=(), box=None) -> dict:
+    """The Segment nodes' result: the mask's plausibility check (refused when nobody said which object,
+    warned otherwise), the overlay as an IMAGE output and as the node's preview."""
+    from physmotion_core.segment.check import NODE_HOW_TO_FIX, check_mask, enforce_plausible
+    from physmotion_core.segment.overlay import mask_overlay
+
+    report = check_mask(seg.mask, object_points=obj_pts, background_points=bg_pts)
+    overlay = torch.as_tensor(mask_overlay(seg.image, seg.mask, seg.background, object_points=obj_pts,
+                                           background_points=bg_pts, box=box)).float()
+    preview = preview_images(overlay[None], "PhysMotion_segment")
+    if not report.ok:
+        shown = preview["images"][0]["filename"] if preview.get("images") else None
+        from ._util import temp_directory
+
+        enforce_plausible(report, prompted=prompted, overlay=(temp_directory() / shown) if shown else None,
+                          how_to_fix=NODE_HOW_TO_FIX)
+    log.info("mask: %s", "; ".join(report.summary_lines()))
+    return {"ui": preview, "result": (seg.foreground[None], seg.mask[None], seg.background[None], overlay[None])}
 
 
 class PhysMotionSAMLoader:
@@ -132,17 +188,24 @@ class PhysMotionSAMSegment:
                                "(templates that work at any image size)."}),
                 "clean": ("BOOLEAN", {"default": True, "tooltip": "Fill small holes and drop specks."}),
             },
+            "optional": {
+                "mask": ("MASK", {"tooltip": "A mask from any other node (ComfyUI's own SAM, background removal, the "
+                                             "mask editor): used as the object's mask instead of running SAM "
+                                             "(checked and inpainted the same way)."}),
+            },
         }
 
-    RETURN_TYPES = ("IMAGE", "MASK", "IMAGE", "MASK")
-    RETURN_NAMES = ("foreground", "mask", "background", "object_masks")
+    RETURN_TYPES = ("IMAGE", "MASK", "IMAGE", "MASK", "IMAGE")
+    RETURN_NAMES = ("foreground", "mask", "background", "object_masks", "overlay")
     OUTPUT_TOOLTIPS = ("Every object over black.", "All objects (1 on an object).",
                        "The photo with every object inpainted away.",
-                       "One mask per object, in prompt order (a batch), for multi-object scenes.")
+                       "One mask per object, in prompt order (a batch), for multi-object scenes.",
+                       "The mask's outline and the prompts over the photo, beside the filled background.")
     FUNCTION = "run"
     CATEGORY = f"{CATEGORY}/segment"
 
-    def run(self, sam, image, points, boxes, coordinates, clean):
+    def run(self, sam, image, points, boxes, coordinates, clean, mask=None):
+        from physmotion_core.segment import segment
         from physmotion_core.segment.sam import parse_prompts, sam_segment
 
         from ._memory import models_on_device
@@ -150,11 +213,22 @@ class PhysMotionSAMSegment:
         img = first_image(image)
         H, W = img.shape[:2]
         prompts = parse_prompts(points, boxes, width=W, height=H, fraction=coordinates == "fraction")
+        obj = [(float(x), float(y)) for p in prompts for (x, y), lab in zip(p.points, p.labels) if lab == 1]
+        neg = list(dict.fromkeys((float(x), float(y)) for p in prompts for (x, y), lab in zip(p.points, p.labels)
+                                 if lab == 0))
+        box = next((p.box for p in prompts if p.box is not None), None)
+        m = first_mask(mask)
+        if m is not None and float(m.max() - m.min()) >= 0.5:
+            seg = segment(img, mask=m, method="mask")
+            out = checked_segmentation(seg, True, obj, neg, box)
+            out["result"] = out["result"][:3] + (seg.mask[None], out["result"][3])
+            return out
         with models_on_device(sam, what="SAM Segment"):
             res = sam_segment(sam, img, prompts, clean=bool(clean))
         seg = res.segmentation
-        return {"ui": _segment_preview(seg.foreground, seg.background),
-                "result": (seg.foreground[None], seg.mask[None], seg.background[None], res.masks)}
+        out = checked_segmentation(seg, bool(prompts), obj, neg, box)
+        out["result"] = out["result"][:3] + (res.masks, out["result"][3])
+        return out
 
 
 NODE_CLASS_MAPPINGS = {

@@ -47,13 +47,29 @@ def _build_parser() -> argparse.ArgumentParser:
     g.add_argument("--at", action="append", default=[], metavar="U,V",
                    help="pixel (column,row) of the input image where the matching --force is applied; "
                         "omitted = the whole object")
-    g.add_argument("--radius", type=float, default=25.0, help="pixel radius of the --at region (default 25)")
+    g.add_argument("--radius", type=float, default=25.0, help="pixel radius of the --at / --torque-at region (default 25)")
     g.add_argument("--force-time", default=None, metavar="T0,T1",
                    help="time window of every --force in seconds (default 0,0.25)")
+    g.add_argument("--torque", action="append", default=[], metavar="TX,TY,TZ",
+                   help="a twist in N·m about the region's centre of mass (world axes; +y turns it about the vertical); "
+                        "repeatable")
+    g.add_argument("--torque-at", action="append", default=[], metavar="U,V",
+                   help="pixel where the matching --torque acts (the part under it, through the depth); omitted = the "
+                        "whole object")
+    g.add_argument("--torque-time", default=None, metavar="T0,T1",
+                   help="time window of every --torque in seconds (default 0,0.25)")
+    g.add_argument("--velocity", metavar="VX,VY,VZ", help="initial velocity of the whole object in m/s (a throw)")
+    g.add_argument("--spin", metavar="WX,WY,WZ",
+                   help="initial angular velocity in rad/s about the object's centre of mass (right-hand rule)")
     g.add_argument("--frames", type=int, default=48, help="number of frames (default 48)")
     g.add_argument("--fps", type=float, default=24.0, help="frames per second (default 24)")
-    g.add_argument("--grid-res", type=int, default=None, help="MPM cells across the object (default: 24 on CPU, 48 on CUDA)")
-    g.add_argument("--object-height", type=float, default=0.3, help="real height of the object in metres")
+    g.add_argument("--quality", default="standard", choices=["draft", "standard", "high"],
+                   help="simulation resolution when --grid-res is not given: draft (0.67x), standard (24 cells across "
+                        "the object on CPU, 48 on CUDA), high (1.5x) (default standard)")
+    g.add_argument("--grid-res", type=int, default=None, help="MPM cells across the object (default: from --quality)")
+    g.add_argument("--object-height", type=float, default=None,
+                   help="real height in metres of what the photo shows of the object (default: 0.3, assumed); it "
+                        "sets how fast everything happens (a 3 m statue moves slower than a 0.3 m toy)")
     g.add_argument("--ground", default="friction", choices=["friction", "slip", "sticky", "none"],
                    help="ground contact under the object (default: Coulomb friction)")
     g.add_argument("--friction", type=float, default=0.5, help="ground friction coefficient μ (default 0.5)")
@@ -62,14 +78,31 @@ def _build_parser() -> argparse.ArgumentParser:
                    help="auto: use SAM / LGM + ImageDream when their weights are in the models folder "
                         "($PHYSMOTION_MODELS, default ./models); none: never load a model (default auto)")
     g.add_argument("--seed", type=int, default=0, help="seed of the learned stages (default 0)")
-    g.add_argument("--object-point", metavar="U,V", help="a pixel on the object for SAM (default: SAM picks the "
-                                                           "most salient object)")
+    _add_prompt_args(g)
+    g.add_argument("--no-hold-edges", dest="hold_edges", action="store_false",
+                   help="do not hold the object where the photo's edge cuts it off (by default such parts are held: "
+                        "the rest of the body outside the frame holds them)")
+    g.add_argument("--preview", action="store_true",
+                   help="segment, lift and weigh only: write the mask overlay (--overlay, default OUTPUT.mask.png), "
+                        "print the summary (mask, support, mass, what each force will do) and stop before simulating")
+    g.add_argument("--overlay", type=Path, help="also write the mask overlay PNG here (the outline over the photo "
+                                                "beside the filled background)")
     g.add_argument("--max-side", type=int, default=1024,
                    help="scale a larger photo down so its long side is this many pixels (--at points are in the "
                         "original photo's pixels); 0 keeps the full size (default 1024)")
     g.add_argument("--save-ply", type=Path, help="also write the lifted Gaussians as a 3DGS .ply")
     g.add_argument("--stats", type=Path, help="write timings and simulation statistics as JSON")
     g.add_argument("-q", "--quiet", action="store_true", help="no progress bars")
+    sg = sub.add_parser("segment", help="show the object mask a run would use, drawn over the photo",
+                        description="Segment the object in IMAGE as generate would (alpha channel, --mask, SAM when "
+                                    "its weights are present, else GrabCut seeded by your points and box), write the "
+                                    "outline over the photo beside the filled background, and check the mask.")
+    sg.add_argument("image", type=Path, help="input photo")
+    sg.add_argument("-o", "--output", type=Path, default=Path("overlay.png"), help="overlay PNG (default overlay.png)")
+    sg.add_argument("--mask", type=Path, help="an object mask image (white = object), checked and drawn")
+    _add_prompt_args(sg)
+    sg.add_argument("--max-side", type=int, default=None, help="as generate's --max-side (default 1024)")
+    sg.add_argument("--models", default="auto", choices=["auto", "none"], help="as generate's --models")
     _add_check_parsers(sub)
     from .batch.cli import add_parser as _add_batch_parser
 
@@ -77,10 +110,77 @@ def _build_parser() -> argparse.ArgumentParser:
     return p
 
 
+def _add_prompt_args(p) -> None:
+    p.add_argument("--object-point", action="append", default=[], metavar="U,V",
+                   help="a pixel (column,row) on the object you mean; repeatable. Seeds GrabCut, or prompts SAM when "
+                        "its weights are present")
+    p.add_argument("--background-point", action="append", default=[], metavar="U,V",
+                   help="a pixel that is NOT the object (e.g. a neighbouring object that got included); repeatable")
+    p.add_argument("--box", metavar="X0,Y0,X1,Y1", help="a box around the object, in pixels (left, top, right, bottom)")
+
+
+def _prompts(args) -> dict:
+    return {"object_points": [_floats(t, 2, "--object-point") for t in args.object_point],
+            "background_points": [_floats(t, 2, "--background-point") for t in args.background_point],
+            "box": _floats(args.box, 4, "--box") if args.box else None}
+
+
+def _segment_cmd(args) -> int:
+    """`physmotion segment`: the mask the run would simulate, drawn over the photo, and its check."""
+    from .fsutil import check_outputs, protect_inputs
+    from .image_io import load_image
+    from .pipeline import DEFAULT_MAX_SIDE, _resize, available_models, segment_photo
+    from .segment.check import check_mask
+    from .segment.overlay import mask_overlay, write_overlay
+
+    check_outputs({"-o/--output": args.output}, inputs=[args.image, args.mask])
+    rgb, alpha = load_image(args.image)
+    if alpha is not None and float(alpha.min()) >= 1.0 - 0.5 / 255.0:
+        alpha = None
+    pr = _prompts(args)
+    H, W = int(rgb.shape[0]), int(rgb.shape[1])
+    mask = None
+    if args.mask is not None:
+        m_rgb, _ = load_image(args.mask)
+        mask = (m_rgb.mean(dim=-1) > 0.5).float()
+        if tuple(mask.shape) != (H, W):
+            raise PhysMotionError(f"--mask is {mask.shape[1]}x{mask.shape[0]} but the photo is {W}x{H}; give a mask "
+                                  "of the photo's size")
+    max_side = DEFAULT_MAX_SIDE if args.max_side is None else args.max_side
+    s = 1.0
+    if max_side and max(H, W) > max_side:
+        s = max_side / max(H, W)
+        w, h = max(1, round(W * s)), max(1, round(H * s))
+        rgb = _resize(rgb, w, h)
+        alpha = None if alpha is None else _resize(alpha, w, h)
+        mask = None if mask is None else _resize(mask, w, h)
+    scale_pts = [[(u * s, v * s) for u, v in pr[k]] for k in ("object_points", "background_points")]
+    box = None if pr["box"] is None else tuple(c * s for c in pr["box"])
+    sam = available_models()["sam"] if args.models == "auto" else None
+    import time
+
+    t0 = time.perf_counter()
+    seg, how = segment_photo(rgb, alpha=alpha, mask=mask, box=box, object_points=scale_pts[0],
+                             background_points=scale_pts[1], sam_name=sam)
+    seconds = time.perf_counter() - t0
+    report = check_mask(seg.mask, object_points=scale_pts[0], background_points=scale_pts[1])
+    with protect_inputs(args.image, args.mask):
+        write_overlay(args.output, mask_overlay(seg.image, seg.mask, seg.background, object_points=scale_pts[0],
+                                                background_points=scale_pts[1], box=box))
+    prompted = bool(pr["object_points"]) or box is not None or how in ("alpha", "mask")
+    print(f"wrote {args.output} ({how}, {seconds:.1f}s)")
+    for line in report.summary_lines():
+        print(line)
+    if not report.ok:
+        print("generate would " + ("warn about this mask" if prompted else
+                                   "refuse this mask: give --object-point U,V, --box X0,Y0,X1,Y1 or --mask FILE"))
+    return 0
+
+
 def _generate(args) -> int:
     from .pipeline import generate
     from .progress import TextBar
-    from .types.conditions import Conditions, Force, Ground, Region
+    from .types.conditions import Conditions, Force, Ground, InitialVelocity, Region, Torque
     from .types.settings import SimSettings
 
     from .fsutil import atomic_write_text, check_outputs, protect_inputs
@@ -92,10 +192,17 @@ def _generate(args) -> int:
         raise PhysMotionError("--force-time sets the time window of the --force pushes, but no --force is given; "
                               "add one (e.g. --force 20,0,0) or drop --force-time")
     t0, t1 = _floats(args.force_time or "0,0.25", 2, "--force-time")
+    if len(args.torque_at) > len(args.torque):
+        raise PhysMotionError("each --torque-at needs a matching --torque (they pair up in order)")
+    if args.torque_time is not None and not args.torque:
+        raise PhysMotionError("--torque-time sets the time window of the --torque twists, but no --torque is given; "
+                              "add one (e.g. --torque 0,0.5,0) or drop --torque-time")
+    q0, q1 = _floats(args.torque_time or "0,0.25", 2, "--torque-time")
     # Every output is checked before any work: a writable folder, a name the file system takes, a
     # video format this writes, no output replacing an input or another output, never a device.
     inputs = [args.image, args.mask]
-    check_outputs({"-o/--output": args.output, "--stats": args.stats, "--save-ply": args.save_ply}, inputs=inputs)
+    check_outputs({"-o/--output": args.output, "--stats": args.stats, "--save-ply": args.save_ply,
+                   "--overlay": args.overlay}, inputs=inputs)
     video_format(args.output)
     conds = []
     for i, f in enumerate(args.force):
@@ -105,8 +212,18 @@ def _generate(args) -> int:
             u, v = _floats(args.at[i], 2, "--at")
             region = Region.at_pixel(u, v, args.radius)
         conds.append(Force(vec, region, t0, t1))
+    for i, tq in enumerate(args.torque):
+        vec = _floats(tq, 3, "--torque")
+        region = Region()
+        if i < len(args.torque_at):
+            u, v = _floats(args.torque_at[i], 2, "--torque-at")
+            region = Region.at_pixel(u, v, args.radius)
+        conds.append(Torque(vec, region, q0, q1))
+    if args.velocity or args.spin:
+        conds.append(InitialVelocity(_floats(args.velocity, 3, "--velocity") if args.velocity else (0.0, 0.0, 0.0),
+                                     _floats(args.spin, 3, "--spin") if args.spin else (0.0, 0.0, 0.0)))
     ground = None if args.ground == "none" else Ground(0.0, args.ground, args.friction)
-    settings = SimSettings(frames=args.frames, fps=args.fps, device=args.device)
+    settings = SimSettings(frames=args.frames, fps=args.fps, device=args.device, quality=args.quality)
     if args.grid_res is not None:
         settings.grid_res = args.grid_res
     mask = None
@@ -117,12 +234,25 @@ def _generate(args) -> int:
         mask = (m_rgb.mean(dim=-1) > 0.5).float()
     params = {k: getattr(args, k) for k in ("E", "nu", "density") if getattr(args, k) is not None}
     progress = None if args.quiet else (lambda name: TextBar(name))
+
+    def report(line: str) -> None:
+        if not args.quiet:
+            print(line, file=sys.stderr, flush=True)
+
     with protect_inputs(*inputs):
         res = generate(args.image, conditions=Conditions(conds), material=args.material, material_params=params,
                        mask=mask, ground=ground, object_height=args.object_height, settings=settings,
-                       output=args.output, progress=progress, max_side=args.max_side, models=args.models,
-                       seed=args.seed,
-                       object_point=_floats(args.object_point, 2, "--object-point") if args.object_point else None)
+                       output=None if args.preview else args.output, progress=progress, max_side=args.max_side,
+                       models=args.models, seed=args.seed, hold_edges=args.hold_edges, report=report,
+                       overlay=args.overlay or (args.output.with_name(args.output.stem + ".mask.png")
+                                                if args.preview else None),
+                       preview=args.preview, **_prompts(args))
+        if args.preview:
+            print(f"preview: stopped before simulating; the mask overlay is {res.overlay_path}", file=sys.stderr)
+            if args.stats is not None:
+                atomic_write_text(args.stats, json.dumps({"preview": True, "notes": res.lines, "stages": res.stages,
+                                                          "mass_kg": res.mass_kg}, indent=2))
+            return 0
         if args.save_ply is not None:
             from .ply import write_ply
 
@@ -130,7 +260,7 @@ def _generate(args) -> int:
     summary = {"output": str(res.video_path), "frames": int(res.frames.shape[0]), "stages": res.stages,
                "size": [int(res.frames.shape[2]), int(res.frames.shape[1])],
                "timings_s": {k: round(v, 3) for k, v in res.timings.items()},
-               "simulation": {k: v for k, v in res.sim.stats.items()}}
+               "simulation": {k: v for k, v in res.sim.stats.items()}, "notes": res.notes}
     if args.stats is not None:
         with protect_inputs(*inputs):
             atomic_write_text(args.stats, json.dumps(summary, indent=2))
@@ -259,7 +389,8 @@ def _comfy_run(args) -> int:
 
 #: Options whose value is a comma-separated vector: a value such as "-20,0,0" starts with "-" and
 #: argparse would take it for an option, so it is joined to its option ("--force=-20,0,0") first.
-VECTOR_OPTIONS = ("--force", "--at", "--force-time", "--object-point", "--torque", "--velocity", "--point")
+VECTOR_OPTIONS = ("--force", "--at", "--force-time", "--object-point", "--background-point", "--box", "--torque",
+                  "--torque-at", "--torque-time", "--velocity", "--spin", "--point")
 _NUMBERS = re.compile(r"^-[0-9.]?[0-9.eE+\-]*(,\s*[-+]?[0-9.eE+\-]*)*$")
 
 
@@ -321,6 +452,8 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     try:
         if args.command == "generate":
             return _generate(args)
+        if args.command == "segment":
+            return _segment_cmd(args)
         if args.command == "validate":
             return _validate(args)
         if args.command == "stress":

@@ -42,6 +42,10 @@ class PipelineResult:
     timings: dict = field(default_factory=dict)
     video_path: Optional[Path] = None
     stages: dict = field(default_factory=dict)  # which path each stage took, e.g. {"segment": "sam", "lift": "lgm"}
+    notes: list = field(default_factory=list)  # what the user was told: mask, support, mass, forecast, warnings
+    mask_report: object = None  # segment.check.MaskReport of the mask that was simulated
+    support: object = None  # support.SupportPlan: what held the object
+    motion: object = None  # feedback.MotionReport: largest motion, whether it left the frame
 
 
 MODEL_CHOICES = ("auto", "none")
@@ -132,7 +136,140 @@ def _check_condition_windows(conditions: Optional[Conditions], settings: SimSett
                 "earlier (--force-time T0,T1) or make the clip longer (more frames).")
 
 
-def generate(
+@dataclass
+class Prepared:
+    """Everything decided before the simulation: what ``generate(preview=True)`` returns and
+    ``physmotion generate --preview`` prints. ``lines`` are the sentences the user is told (the
+    mask's summary, what holds the object, its mass and what each load will roughly do)."""
+
+    segmentation: object
+    mask_report: object  # segment.check.MaskReport
+    support: object  # support.SupportPlan
+    gaussians: Optional[Gaussians]
+    camera: Optional[Camera]
+    material: Material
+    conditions: Conditions
+    settings: SimSettings
+    stages: dict
+    lines: list = field(default_factory=list)
+    overlay_path: Optional[Path] = None
+    mass_kg: Optional[float] = None
+    lift: object = None
+    timings: dict = field(default_factory=dict)
+
+
+def _prompt_points(points, what: str) -> list[tuple[float, float]]:
+    out = []
+    for p in points or ():
+        try:
+            u, v = (float(c) for c in p)
+        except (TypeError, ValueError):
+            raise InputError(f"each {what} is a pair (u, v) of pixel coordinates; got {p!r}") from None
+        if not (np.isfinite(u) and np.isfinite(v)):
+            raise InputError(f"{what} ({u}, {v}) is not finite")
+        out.append((u, v))
+    return out
+
+
+def _check_prompts_inside(points, box, W: int, H: int) -> None:
+    for what, pts in points.items():
+        for u, v in pts:
+            if not (0 <= u <= W and 0 <= v <= H):
+                raise InputError(f"the {what} ({u:g}, {v:g}) lies outside the {W}x{H} photo; give pixel coordinates "
+                                 "(column, row) of the photo as given")
+    if box is not None:
+        try:
+            x0, y0, x1, y1 = (float(c) for c in box)
+        except (TypeError, ValueError):
+            raise InputError(f"the box is four numbers X0,Y0,X1,Y1 in pixels; got {box!r}") from None
+        if not all(np.isfinite([x0, y0, x1, y1])):
+            raise InputError(f"the box {box!r} has a non-finite number")
+        if not (x1 > x0 and y1 > y0):
+            raise InputError(f"the box ({x0:g}, {y0:g}, {x1:g}, {y1:g}) is empty: X1 must exceed X0 and Y1 exceed Y0")
+        if x1 <= 0 or y1 <= 0 or x0 >= W or y0 >= H:
+            raise InputError(f"the box ({x0:g}, {y0:g}, {x1:g}, {y1:g}) lies outside the {W}x{H} photo")
+
+
+def _force_points(conditions: Optional[Conditions]) -> list[tuple[float, float]]:
+    pts = []
+    for c in conditions or ():
+        r = getattr(c, "region", None)
+        if r is not None and getattr(r, "kind", None) == "image":
+            pts.extend((float(u), float(v)) for u, v in r.points)
+    return pts
+
+
+def _check_regions_reach(conditions: Conditions, mask: torch.Tensor, back: float = 1.0) -> None:
+    """A push, twist or throw placed off the object is refused now, with where the object is, not after
+    the lift and the fill."""
+    m = mask.detach().cpu().numpy() > 0.5
+    if not m.any():
+        return
+    ys, xs = np.nonzero(m)
+    box = [int(round(b * back)) for b in (xs.min(), ys.min(), xs.max() + 1, ys.max() + 1)]
+    for c in conditions:
+        r = getattr(c, "region", None)
+        if r is None or getattr(r, "kind", None) != "image" or not r.points:
+            continue
+        rad = float(r.radius_px)
+        for u, v in r.points:
+            d2 = (xs - float(u)) ** 2 + (ys - float(v)) ** 2
+            if float(d2.min()) > rad * rad:
+                cx, cy = float(xs.mean()) * back, float(ys.mean()) * back
+                raise InputError(
+                    f"The {type(c).__name__.lower()} at pixel ({float(u) * back:.0f}, {float(v) * back:.0f}) (radius "
+                    f"{rad * back:.0f} px) does not touch the object: its mask spans x {box[0]}..{box[2]}, y "
+                    f"{box[1]}..{box[3]} (centre about ({cx:.0f}, {cy:.0f})), "
+                    f"{float(np.sqrt(d2.min())) * back:.0f} px away at the nearest. Put the point on the object, or "
+                    "look at the mask first with `physmotion segment IMAGE -o overlay.png`.")
+
+
+def segment_photo(rgb: torch.Tensor, *, alpha=None, mask=None, box=None, object_points=(), background_points=(),
+                  sam_name: Optional[str] = None, device=None) -> tuple[object, str]:
+    """The object's segmentation and which path made it ("alpha", "mask", "sam", "grabcut"):
+    an alpha channel or a mask is taken as given; else SAM when ``sam_name`` names its weights (the
+    prompts, or its most salient object without any); else GrabCut seeded by the box and points (or
+    the automatic box). Points and the box are pixels of ``rgb``."""
+    from .segment import segment
+
+    prompted = bool(object_points) or box is not None
+    if alpha is not None or mask is not None:
+        seg = segment(rgb, alpha=alpha, mask=mask)
+        return seg, ("alpha" if alpha is not None and mask is None else "mask")
+    if sam_name:
+        from .segment.sam import ObjectPrompt, load_sam, sam_segment
+
+        prompts = []
+        if prompted or background_points:
+            pts = list(object_points) + list(background_points)
+            prompts = [ObjectPrompt(points=pts, labels=[1] * len(object_points) + [0] * len(background_points),
+                                    box=None if box is None else tuple(float(c) for c in box))]
+            if not object_points and box is None:
+                raise InputError("only background points were given: add an object point or a box")
+        log.info("segmenting with SAM (%s): %s", sam_name, "the prompts" if prompts else "the most salient object")
+        sam = load_sam(sam_name, device=device)
+        try:
+            return sam_segment(sam, rgb, prompts).segmentation, "sam"
+        except InputError as exc:
+            if prompts:
+                raise
+            log.warning("SAM: %s; segmenting with GrabCut instead", exc)
+        finally:
+            del sam
+    pts = list(object_points) + list(background_points)
+    labels = [1] * len(object_points) + [0] * len(background_points)
+    seg = segment(rgb, box=box, points=pts or None, point_labels=labels or None)
+    return seg, "grabcut"
+
+
+def _overlay_default(output) -> Optional[Path]:
+    if output is None:
+        return None
+    out = Path(output)
+    return out.with_name(out.stem + ".mask.png")
+
+
+def prepare(
     image: Union[str, Path, torch.Tensor, np.ndarray],
     *,
     conditions: Conditions | None = None,
@@ -140,7 +277,7 @@ def generate(
     material_params: Optional[dict] = None,
     mask: Optional[torch.Tensor] = None,
     ground: Optional[Ground] = Ground(0.0, "friction", 0.5),
-    object_height: float = 0.3,
+    object_height: Optional[float] = None,
     fov_y_deg: float = 40.0,
     max_gaussians: int = 60_000,
     settings: SimSettings | None = None,
@@ -152,44 +289,46 @@ def generate(
     multiview_steps: int = 30,
     lgm_input_size: int = 256,
     object_point: Optional[tuple[float, float]] = None,
-) -> PipelineResult:
-    """Animate the object in ``image`` under ``conditions`` and return (and optionally save) the video.
-
-    ``ground`` is added to the conditions unless they already contain a Ground; pass None for no
-    ground (the object then falls out of the domain floor's reach only as far as its walls allow).
-
-    ``max_side``: a photo whose long side is larger is scaled down to it first (logged), with its
-    alpha and mask, and pixel regions (``Region.at_pixel``) refer to the scaled image; 0 keeps the
-    full size. The clip's memory is checked before the simulation starts.
-
-    ``models="auto"`` uses the learned stages whose weights are in the models root and skips what
-    the scene does not need: an alpha channel or a mask → no segmentation model; else SAM (its
-    most salient object) if present, else GrabCut. LGM + ImageDream both present → the learned lift
-    (``seed``, ``multiview_steps``, ``lgm_input_size``), else the silhouette lift. ``"none"`` never
-    loads a model. ``result.stages`` says which path each stage took. ``object_point`` (u, v pixels
-    of the photo as given) prompts SAM with a point on the object instead of its automatic mode; when
-    SAM's automatic mode finds no object, GrabCut takes over (logged).
-    """
+    object_points=(),
+    background_points=(),
+    box: Optional[tuple[float, float, float, float]] = None,
+    hold_edges: bool = True,
+    overlay: Union[str, Path, None] = None,
+    report: Optional[Callable[[str], None]] = None,
+    _weigh: bool = True,
+):
+    """Everything before the simulation (see ``generate``); returns a ``Prepared``."""
     from .image_io import load_image
     from .lift import silhouette_lift
-    from .render.frames import render_frames
-    from .segment import segment
-    from .sim import simulate
+    from .segment.check import CLI_HOW_TO_FIX, check_mask, enforce_plausible
 
     def stage(name: str) -> Optional[ProgressFn]:
         return progress(name) if progress is not None else None
 
-    from .fsutil import check_outputs, protect_inputs
+    lines: list[str] = []
+
+    def say(text: str) -> None:
+        lines.append(text)
+        if report is not None:
+            report(text)
+        else:
+            log.info("%s", text)
+
+    from .fsutil import check_outputs
 
     timings: dict[str, float] = {}
     t0 = time.perf_counter()
-    if output is not None:
+    if output is not None or overlay is not None:
         # Every output location is checked before any work (a writable folder, a name the file
         # system takes, a video extension this writes, never the input photo itself).
-        from .video import video_format
+        check_outputs({"output": output, "overlay": overlay},
+                      inputs=[image if isinstance(image, (str, Path)) else None])
+        if output is not None:
+            from .video import video_format
 
-        check_outputs({"output": output}, inputs=[image if isinstance(image, (str, Path)) else None])
-        video_format(output)
+            video_format(output)
+    height_given = object_height is not None
+    object_height = 0.3 if object_height is None else object_height
     alpha = None
     if isinstance(image, (str, Path)):
         rgb, alpha = load_image(image)
@@ -205,13 +344,21 @@ def generate(
     if models not in MODEL_CHOICES:
         raise InputError(f"models must be one of {MODEL_CHOICES} ('auto' uses the weights found in the models "
                          f"folder, 'none' never loads a model); got {models!r}")
+    obj_pts = _prompt_points(object_points, "object point")
+    if object_point is not None:
+        obj_pts += _prompt_points([object_point], "object point")
+    bg_pts = _prompt_points(background_points, "background point")
+    if bg_pts and not obj_pts and box is None and mask is None and alpha is None:
+        raise InputError("only background points were given: add an object point (--object-point U,V) or a box "
+                         "(--box X0,Y0,X1,Y1) so the segmentation knows which object you mean")
     found = available_models() if models == "auto" else {"sam": None, "lgm": None, "imagedream": None}
     if isinstance(max_side, bool) or not isinstance(max_side, int) or max_side < 0 or 0 < max_side < 16:
         raise InputError(f"max_side must be 0 (keep the photo's size) or an integer >= 16 pixels; got {max_side!r}")
     if not torch.isfinite(rgb).all():
         raise InputError("image contains NaN or Inf values; pass an image with values in 0..1")
     H, W = int(rgb.shape[0]), int(rgb.shape[1])
-    H0, W0 = H, W
+    W0 = W
+    _check_prompts_inside({"object point": obj_pts, "background point": bg_pts}, box, W, H)
     if max_side and max(H, W) > max_side:
         scale = max_side / max(H, W)
         w, h = max(1, round(W * scale)), max(1, round(H * scale))
@@ -221,9 +368,14 @@ def generate(
         alpha = None if alpha is None else _resize(alpha, w, h)
         if mask is not None:
             mask = _resize(torch.as_tensor(np.asarray(mask), dtype=torch.float32), w, h)
-        H, W = h, w
         if conditions is not None:
             conditions = _scale_image_regions(conditions, scale, (h, w))
+        sx, sy = w / W, h / H
+        obj_pts = [(u * sx, v * sy) for u, v in obj_pts]
+        bg_pts = [(u * sx, v * sy) for u, v in bg_pts]
+        if box is not None:
+            box = (box[0] * sx, box[1] * sy, box[2] * sx, box[3] * sy)
+        H, W = h, w
     # The whole run (segment, lift, simulate, render colour/alpha/depth, composite, encode) must fit
     # before anything runs: an estimate calibrated on measured peaks (memory.pipeline_need_bytes).
     from .memory import check_pipeline_fits
@@ -238,35 +390,49 @@ def generate(
     from .models import default_dtype, pick_device
 
     device = pick_device()
-    if alpha is None and mask is None and found["sam"]:
-        from .segment.sam import load_sam, sam_segment
-
-        from .segment.sam import ObjectPrompt
-
-        prompts = []
-        if object_point is not None:
-            u, v = float(object_point[0]) * W / W0, float(object_point[1]) * H / H0  # into the scaled photo
-            prompts = [ObjectPrompt(points=[(u, v)], labels=[1])]
-        log.info("segmenting with SAM (%s): %s", found["sam"], "the prompted point" if prompts else
-                 "the most salient object")
-        sam = load_sam(found["sam"], device=device)
-        try:
-            seg = sam_segment(sam, rgb, prompts).segmentation
-            stages["segment"] = "sam"
-        except InputError as exc:
-            if prompts:
-                raise
-            log.warning("SAM: %s; segmenting with GrabCut instead", exc)
-            seg = segment(rgb)
-            stages["segment"] = "grabcut"
-        del sam
-    else:
-        seg = segment(rgb, alpha=alpha, mask=mask)
-        stages["segment"] = "alpha" if alpha is not None and mask is None else "mask" if mask is not None else "grabcut"
+    if alpha is not None and float(alpha.min()) >= 1.0 - 0.5 / 255.0:
+        alpha = None  # fully opaque: it says nothing about the object
+    seg, stages["segment"] = segment_photo(rgb, alpha=alpha, mask=mask, box=box, object_points=obj_pts,
+                                           background_points=bg_pts, sam_name=found["sam"], device=device)
     timings["segment_s"] = time.perf_counter() - t0
 
+    _check_regions_reach(conditions, seg.mask, back=W0 / W)
+    # Is it plausibly one object? Checked for every mask; refused only when nobody said which object.
+    given = stages["segment"] in ("alpha", "mask") or bool(obj_pts) or box is not None
+    force_pts = _force_points(conditions)
+    mask_report = check_mask(seg.mask, object_points=obj_pts, background_points=bg_pts, force_points=force_pts)
+    overlay_path = Path(overlay) if overlay is not None else None
+    if overlay_path is None and not mask_report.ok:
+        overlay_path = _overlay_default(output)
+    if overlay_path is not None:
+        from .fsutil import protect_inputs
+        from .segment.overlay import mask_overlay, write_overlay
+
+        with protect_inputs(image if isinstance(image, (str, Path)) else None):
+            write_overlay(overlay_path, mask_overlay(seg.image, seg.mask, seg.background, object_points=obj_pts,
+                                                     background_points=bg_pts, box=box, force_points=force_pts))
+    say(f"mask ({stages['segment']}): " + "; ".join(mask_report.summary_lines()))
+    if overlay_path is not None:
+        say(f"mask overlay: {overlay_path}")
+    enforce_plausible(mask_report, prompted=given, overlay=overlay_path, how_to_fix=CLI_HOW_TO_FIX)
+
+    # What holds it up: the ground, or the frame's edge where the photo cuts it off.
+    from .support import plan_support
+
+    user_ground = conditions.ground()
+    support = plan_support(seg.mask, ground=user_ground, object_height=float(object_height),
+                           hold_edges=bool(hold_edges) and mat.model != "rigid", height_given=height_given)
+    if hold_edges and mat.model == "rigid" and support.edges:
+        support.lines.insert(0, "support: the photo cuts the object at the frame's edge, but a rigid object is not "
+                                "held there (a held rigid body could not move at all); it rests on the ground.")
+    for line in support.lines:
+        say(line)
+    if support.anchor is not None:
+        conditions = conditions + support.anchor
+    if support.ground is not user_ground:
+        conditions = Conditions([c for c in conditions if not isinstance(c, Ground)] + [support.ground])
+
     t = time.perf_counter()
-    g_ground = conditions.ground()
     if found["lgm"] and found["imagedream"]:
         from .lift.imagedream import load_imagedream
         from .lift.learned import learned_lift
@@ -277,7 +443,8 @@ def generate(
         lgm = load_lgm(found["lgm"], device=device, dtype=dtype, input_size=int(lgm_input_size))
         dream = load_imagedream(found["imagedream"], device=device, dtype=dtype)
         lift = learned_lift(rgb, seg.mask, lgm=lgm, imagedream=dream, object_height=object_height,
-                            on_ground=g_ground is not None, ground_height=g_ground.height if g_ground is not None else 0.0,
+                            on_ground=user_ground is not None,
+                            ground_height=user_ground.height if user_ground is not None else 0.0,
                             seed=int(seed), steps=int(multiview_steps), max_gaussians=int(max_gaussians),
                             progress=stage("lift"))
         del lgm, dream
@@ -287,14 +454,125 @@ def generate(
             log.warning("the learned lift needs both LGM and ImageDream weights (found only %s): using the "
                         "silhouette lift", "LGM" if found["lgm"] else "ImageDream")
         lift = silhouette_lift(seg.image, seg.mask, object_height=object_height, fov_y_deg=fov_y_deg,
-                               max_gaussians=max_gaussians, on_ground=g_ground is not None,
-                               ground_height=g_ground.height if g_ground is not None else 0.0)
+                               max_gaussians=max_gaussians, on_ground=user_ground is not None,
+                               ground_height=user_ground.height if user_ground is not None else 0.0)
         stages["lift"] = "silhouette"
     timings["lift_s"] = time.perf_counter() - t
+    prep = Prepared(segmentation=seg, mask_report=mask_report, support=support, gaussians=lift.gaussians,
+                    camera=lift.camera, material=mat, conditions=conditions, settings=settings, stages=stages,
+                    lines=lines, overlay_path=overlay_path, lift=lift, timings=timings)
+    prep._say = say  # the same reporter for what generate says later
+    if _weigh:
+        from .feedback import body_facts, forecast
+        from .sim.mpm import resolve_device
+
+        facts = body_facts(lift.gaussians, mat, settings, conditions.ground(), resolve_device(settings.device))
+        prep.mass_kg = facts.total_mass
+        for line in forecast(conditions, facts, mat, clip_s=(settings.frames - 1) / settings.fps,
+                             camera=lift.camera, held=support.anchor is not None):
+            say(line)
+    return prep
+
+
+def generate(
+    image: Union[str, Path, torch.Tensor, np.ndarray],
+    *,
+    conditions: Conditions | None = None,
+    material: Union[str, Material] = "jelly",
+    material_params: Optional[dict] = None,
+    mask: Optional[torch.Tensor] = None,
+    ground: Optional[Ground] = Ground(0.0, "friction", 0.5),
+    object_height: Optional[float] = None,
+    fov_y_deg: float = 40.0,
+    max_gaussians: int = 60_000,
+    settings: SimSettings | None = None,
+    output: Union[str, Path, None] = None,
+    progress: Optional[StageProgress] = None,
+    max_side: int = DEFAULT_MAX_SIDE,
+    models: str = "auto",
+    seed: int = 0,
+    multiview_steps: int = 30,
+    lgm_input_size: int = 256,
+    object_point: Optional[tuple[float, float]] = None,
+    object_points=(),
+    background_points=(),
+    box: Optional[tuple[float, float, float, float]] = None,
+    hold_edges: bool = True,
+    overlay: Union[str, Path, None] = None,
+    report: Optional[Callable[[str], None]] = None,
+    preview: bool = False,
+):
+    """Animate the object in ``image`` under ``conditions`` and return (and optionally save) the video.
+
+    ``ground`` is added to the conditions unless they already contain a Ground; pass None for no
+    ground (the object then falls out of the domain floor's reach only as far as its walls allow).
+
+    ``max_side``: a photo whose long side is larger is scaled down to it first (logged), with its
+    alpha and mask, and pixel regions (``Region.at_pixel``) refer to the scaled image; 0 keeps the
+    full size. The clip's memory is checked before the simulation starts.
+
+    Which object: an alpha channel or ``mask`` is taken as given. Otherwise ``object_points`` /
+    ``background_points`` ((u, v) pixels of the photo as given; ``object_point`` is one more object
+    point) and ``box`` (x0, y0, x1, y1 pixels) prompt SAM when its weights are in the models root
+    (``models="auto"``), else GrabCut; with no prompt SAM's most salient object, else GrabCut around
+    the automatic box. Every mask is checked (``segment.check.check_mask``: frame edges touched, area,
+    separate parts, missed points); an automatic one that fails is refused with a message naming the
+    overlay (``overlay``, default ``<output>.mask.png``) and how to give a point, a box or a mask; a
+    prompted or given one only warns.
+
+    What holds it: the parts the frame's edge cuts are held there (``hold_edges``), and the ground
+    goes under the lowest visible point unless that is on the frame's edge (``support.plan_support``).
+    ``object_height`` (metres, default 0.3, said to be assumed) sets the object's real size.
+
+    Before the simulation the mass, material and what each load will roughly do are told through
+    ``report`` (a callable taking one line; default: the log), and after it a warning when nothing
+    moved or the object left the frame. ``preview=True`` stops before simulating and returns the
+    ``Prepared`` state (mask report, support, mass, lines).
+
+    ``models="auto"`` uses the learned stages whose weights are in the models root and skips what
+    the scene does not need. LGM + ImageDream both present → the learned lift (``seed``,
+    ``multiview_steps``, ``lgm_input_size``), else the silhouette lift. ``"none"`` never loads a
+    model. ``result.stages`` says which path each stage took.
+    """
+    from .render.frames import render_frames
+    from .sim import simulate
+
+    def stage(name: str) -> Optional[ProgressFn]:
+        return progress(name) if progress is not None else None
+
+    t0 = time.perf_counter()
+    prep = prepare(image, conditions=conditions, material=material, material_params=material_params, mask=mask,
+                   ground=ground, object_height=object_height, fov_y_deg=fov_y_deg, max_gaussians=max_gaussians,
+                   settings=settings, output=output, progress=progress, max_side=max_side, models=models, seed=seed,
+                   multiview_steps=multiview_steps, lgm_input_size=lgm_input_size, object_point=object_point,
+                   object_points=object_points, background_points=background_points, box=box,
+                   hold_edges=hold_edges, overlay=overlay, report=report, _weigh=preview)
+    if preview:
+        prep.timings["total_s"] = time.perf_counter() - t0
+        return prep
+    say = prep._say
+    seg, settings, conditions, mat = prep.segmentation, prep.settings, prep.conditions, prep.material
+    timings = prep.timings
+    lift = prep.lift
+
+    def told(facts) -> None:
+        from .feedback import forecast
+
+        prep.mass_kg = facts.total_mass
+        for line in forecast(conditions, facts, mat, clip_s=(settings.frames - 1) / settings.fps,
+                             camera=lift.camera, held=prep.support.anchor is not None):
+            say(line)
 
     t = time.perf_counter()
-    sim = simulate(lift.gaussians, mat, conditions, settings, camera=lift.camera, progress=stage("simulate"))
+    sim = simulate(lift.gaussians, mat, conditions, settings, camera=lift.camera, progress=stage("simulate"),
+                   on_start=told)
     timings["simulate_s"] = time.perf_counter() - t
+    from .feedback import after_run
+
+    motion = after_run(sim, lift.camera)
+    for w in motion.warnings:
+        log.warning("%s", w)
+        say("warning: " + w)
 
     t = time.perf_counter()
     frames = render_frames(sim, lift.camera, progress=stage("render"))
@@ -302,8 +580,11 @@ def generate(
 
     video = composite(frames.rgb, frames.alpha, seg.background)
     result = PipelineResult(frames=video, fps=settings.fps, segmentation=seg, gaussians=lift.gaussians,
-                            camera=lift.camera, sim=sim, render=frames, timings=timings, stages=stages)
+                            camera=lift.camera, sim=sim, render=frames, timings=timings, stages=prep.stages,
+                            notes=list(prep.lines), mask_report=prep.mask_report, support=prep.support,
+                            motion=motion)
     if output is not None:
+        from .fsutil import protect_inputs
         from .video import write_mp4
 
         t = time.perf_counter()

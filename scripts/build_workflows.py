@@ -21,9 +21,13 @@ from physmotion_core.comfy.workflow import api_to_ui  # noqa: E402
 TITLES = {  # friendlier titles for the core nodes in the templates
     "LoadImage": "Load the photo",
     "PhysMotionLoadGaussians": "Load your splat (.ply in output/, or an absolute path)",
+    "PhysMotionSegment": "Segment: click the object, Shift-click background, drag a box (or connect any node's MASK)",
+    "PhysMotionSAMSegment": "SAM Segment: click the object, Shift-click background, drag a box (or connect a MASK)",
 }
-# Nodes with the force/torque picker (web/force_picker.js) are taller: their widgets plus the photo.
-SIZES = {"PhysMotionForce": [360, 600], "PhysMotionTorque": [360, 600]}
+# Nodes with the force/torque picker (web/force_picker.js) or the segmentation picker
+# (web/segment_picker.js) are taller: their widgets plus the photo.
+SIZES = {"PhysMotionForce": [360, 600], "PhysMotionTorque": [360, 600], "PhysMotionSegment": [380, 620],
+         "PhysMotionSAMSegment": [380, 680]}
 
 
 def schemas() -> dict:

@@ -90,3 +90,60 @@ def test_same_inputs_give_bit_identical_frames_on_cpu(red_ball_png):
     assert torch.equal(x1, x2)
     assert torch.equal(f1, f2)
     assert float((f1[-1] - f1[0]).abs().max()) > 0.05  # and the object did move
+
+
+# -- issue 33: prompts, preview, parity with the nodes ----------------------------------------------
+
+
+def _captured_generate(monkeypatch):
+    import physmotion_core.pipeline as pipeline
+
+    seen = {}
+
+    def fake(image, **kw):
+        seen.update(kw)
+        seen["image"] = image
+        raise SystemExit(0)  # stop before any work: only what reached generate() matters here
+
+    monkeypatch.setattr(pipeline, "generate", fake)
+    return seen
+
+
+def test_generate_passes_every_prompt_and_condition_flag(red_ball_png, tmp_path, monkeypatch):
+    from physmotion_core.types import Force, InitialVelocity, Torque
+
+    seen = _captured_generate(monkeypatch)
+    with pytest.raises(SystemExit):
+        main(["generate", str(red_ball_png), "-o", str(tmp_path / "o.mp4"), "--object-point", "70,55",
+              "--object-point", "75,60", "--background-point", "5,5", "--box", "40,30,100,90",
+              "--quality", "draft", "--velocity", "-0.5,1,0", "--spin", "0,0,3",
+              "--torque", "0,0.2,0", "--torque-at", "70,55", "--torque-time", "0.1,0.3",
+              "--force", "-2,0,0", "--no-hold-edges", "--object-height", "1.5"])
+    assert seen["object_points"] == [(70.0, 55.0), (75.0, 60.0)]
+    assert seen["background_points"] == [(5.0, 5.0)]
+    assert seen["box"] == (40.0, 30.0, 100.0, 90.0)
+    assert seen["settings"].quality == "draft"
+    assert seen["hold_edges"] is False and seen["object_height"] == 1.5 and seen["preview"] is False
+    conds = seen["conditions"]
+    (tq,) = conds.of(Torque)
+    assert tq.vector == (0.0, 0.2, 0.0) and (tq.t_start, tq.t_end) == (0.1, 0.3)
+    assert tq.region.kind == "image" and tq.region.points == ((70.0, 55.0),)
+    (iv,) = conds.of(InitialVelocity)
+    assert iv.velocity == (-0.5, 1.0, 0.0) and iv.angular_velocity == (0.0, 0.0, 3.0)
+    (f,) = conds.of(Force)
+    assert f.vector == (-2.0, 0.0, 0.0)
+
+
+@pytest.mark.parametrize("argv, words", [
+    (["--box", "1,2,3"], "--box must be 4"),
+    (["--object-point", "1"], "--object-point must be 2"),
+    (["--torque-at", "3,4"], "--torque-at needs a matching --torque"),
+    (["--torque-time", "0,1"], "no --torque is given"),
+    (["--spin", "1,2"], "--spin must be 3"),
+])
+def test_bad_prompt_and_condition_flags_are_refused_clearly(red_ball_png, tmp_path, capsys, argv, words):
+    with pytest.raises(SystemExit) as exc:
+        code = main(["generate", str(red_ball_png), "-o", str(tmp_path / "o.mp4"), "-q", *argv])
+        raise SystemExit(code)
+    assert exc.value.code == 2
+    assert words in capsys.readouterr().err
