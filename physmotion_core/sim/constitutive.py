@@ -11,7 +11,8 @@ speed the CFL step must respect:
   neo_hookean       neo_hookean (rubber)        none; the volume stops at MIN_J
   von_mises         Hencky StVK                 von Mises radial return, linear hardening (metal)
   plasticine        Hencky StVK                 von Mises, linear softening (plasticine, clay)
-  viscoplastic      Hencky StVK                 von Mises with a Perzyna rate (honey, toothpaste)
+  viscoplastic      Hencky StVK                 von Mises with a Perzyna rate (honey, toothpaste;
+                                                relaxation time η/μ: Bingham viscosity η)
   drucker_prager    Hencky StVK                 Drucker-Prager cone with cohesion (sand)
   snow              corotated, hardened         clamped principal stretches (Stomakhin et al. 2013)
   fracture          corotated                   tears past a principal stretch (bread, cookie)
@@ -418,7 +419,14 @@ def von_mises_flow(mat: MaterialParams, n: float, state: float, dt: float) -> fl
     if dgamma <= 0.0 or n <= TINY:
         return 0.0
     if mat.model == MODEL_VISCOPLASTIC:
-        dgamma = dgamma * dt / (dt + mat.viscosity / (2.0 * mat.mu))
+        # Perzyna / Bingham: the deviatoric Kirchhoff stress is s = 2μ ε (ε the deviatoric Hencky
+        # strain) and the plastic strain rate is (|s| − k) / (2η) along s, k = √(2/3) σ_y, so the
+        # excess strain e = n − k/(2μ) relaxes as de/dt = D − (μ/η) e: relaxation time η/μ (not
+        # η/2μ, which makes the viscosity η/2). Backward Euler over the substep keeps
+        # e / (1 + dt μ/η) and removes the fraction dt/(dt + η/μ) of the excess, for any dt. In
+        # steady simple shear at rate γ̇ this gives τ = σ_y/√3 + η γ̇: Bingham, viscosity η, shear
+        # yield stress σ_y/√3 (σ_y the von Mises equivalent yield stress).
+        dgamma = dgamma * dt / (dt + mat.viscosity / mat.mu)
     return dgamma
 
 
