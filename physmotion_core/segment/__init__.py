@@ -5,9 +5,11 @@ by an automatic box. A learned segmenter (SAM) produces a mask and hands it to `
 ``method="mask"``.
 """
 
+from .check import CLI_HOW_TO_FIX, NODE_HOW_TO_FIX, MaskReport, check_mask, enforce_plausible
 from .classic import (
     Segmentation,
     auto_box,
+    check_points,
     clean_mask,
     default_dilate_px,
     grabcut,
@@ -16,9 +18,19 @@ from .classic import (
     segment,
 )
 
+from .overlay import mask_overlay, write_overlay
+
 __all__ = [
+    "CLI_HOW_TO_FIX",
+    "MaskReport",
+    "NODE_HOW_TO_FIX",
     "Segmentation",
     "auto_box",
+    "check_mask",
+    "check_points",
+    "enforce_plausible",
+    "mask_overlay",
+    "write_overlay",
     "clean_mask",
     "default_dilate_px",
     "grabcut",
