@@ -139,10 +139,14 @@ def repeated_frames(sim: SimResult) -> list:
 
 
 def render_frames(sim: SimResult, camera: Camera, *, device: Optional[torch.device | str] = None,
-                  progress: Optional[ProgressFn] = None, backend: str = "auto") -> FrameSet:
+                  progress: Optional[ProgressFn] = None, backend: str = "auto", photo=None) -> FrameSet:
     """RGB (premultiplied), alpha and expected depth for every simulated frame (on the CPU, several frames at
     once: ``frame_threads``). A frame posed exactly as the one before it (``SimResult.same_pose``: the object at
     rest) gets that frame's render, copied, not drawn again.
+
+    ``photo``: a ``photo_texture.PhotoTexture`` of the input photo: the surface the photo saw shows the photo's
+    own pixels, carried back to rest by each splat's motion (``photo_texture``); None renders the splats'
+    colours only.
 
     The clip's memory is checked before the first frame (``check_frames_fit``) and the frames are
     written into preallocated tensors, so a clip that fits never needs twice its size.
@@ -158,6 +162,12 @@ def render_frames(sim: SimResult, camera: Camera, *, device: Optional[torch.devi
     depth = torch.empty(total, H, W)
 
     repeated = repeated_frames(sim)
+    poser = None
+    if photo is not None:
+        from .photo_texture import TexturedPoser
+
+        with torch.no_grad():
+            poser = TexturedPoser(sim, camera, photo, backend=backend)
 
     def work(a: int, b: int, done) -> None:
         with torch.no_grad():
@@ -166,10 +176,15 @@ def render_frames(sim: SimResult, camera: Camera, *, device: Optional[torch.devi
                     rgb[k], alpha[k], depth[k] = rgb[k - 1], alpha[k - 1], depth[k - 1]
                     done(k)
                     continue
-                g = sim.gaussians_at(k).to(dev)
-                out = rasterize(g, camera, backend=backend)
-                rgb[k] = out.rgb.cpu()
-                alpha[k] = out.alpha.cpu()
+                g = sim.gaussians_at(k)
+                if poser is None:
+                    out = rasterize(g.to(dev), camera, backend=backend)
+                    rgb[k] = out.rgb.cpu()
+                    alpha[k] = out.alpha.cpu()
+                else:
+                    feats, one = poser.features(k, g)
+                    out = rasterize(g.to(dev), camera, extra_features=feats.to(dev), backend=backend)
+                    rgb[k], alpha[k] = poser.shade(out, one)
                 depth[k] = out.depth.cpu()
                 done(k)
 

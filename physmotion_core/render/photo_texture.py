@@ -1,0 +1,250 @@
+"""Photo-textured rendering: the surface the input camera saw shows the photo's own pixels as it moves.
+
+The splats' colours are a low-resolution copy of the photo (one colour per splat), so a splat render of
+frame 0 is visibly not the photo, and the object's detail is lost the moment it moves. Instead, every output
+pixel asks which point of the object it shows, where that point was at rest (frame 0) and where the photo
+shows it, and reads the photo there:
+
+* Each Gaussian moves from frame t back to frame 0 by an affine map x -> A x + b (``controls._flow_maps``:
+  A = R L_0 L_t^-1 Rᵀ of the deformation its splat follows, in camera coordinates). As the exact flow does
+  (``controls._flow_features``), the 9 numbers G = [z A | z A e_z + b] composited like colour give, at pixel
+  p, the rest-pose surface point X_0 = G(p) r(p) / Σw, r(p) the pixel's ray: exact for rigid motion, first
+  order in the splat size for deforming material. A frame whose splats all move by one map (a rigid body, a
+  still frame: ``controls._one_map``) needs no channels: X_0 = A (depth · r) + b.
+* X_0, projected through the camera that took the photo, is the photo coordinate; the photo is sampled there
+  bilinearly (exact at frame 0: the maps are the identity and the coordinate is the pixel's own centre).
+* Which splats the photo saw ("seen", per Gaussian, in [0, 1]) comes from a depth test in the input view at
+  rest (``seen_weights``): a splat whose centre lies on the rendered front surface was photographed, one
+  behind it (the back, a hidden side, the inside a tear opens) was not. It is composited as a channel too
+  (and the G channels are weighted by it, so the photo coordinate comes from seen splats only); a pixel
+  shows the photo in proportion to the seen splats' share of it and the splats' own colours for the rest,
+  so photo and Gaussian colours meet across the splats' own soft footprints, with no seam.
+* Coverage follows the photo's matte for the seen part: alpha = s·m(X_0) + (1 − s)·alpha_splats, and the
+  photo's colour is its premultiplied foreground (the matting equation solved with the inpainted background,
+  ``make_photo_texture``), so frame 0 composited over that background is the photo itself, soft edge included.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+from typing import Optional
+
+import torch
+
+from ..errors import InputError
+from ..types.camera import Camera
+from ..types.gaussians import Gaussians
+
+#: Texture modes of the renderers: the photo where it saw the surface ("photo"), or the splats' colours only.
+TEXTURES = ("photo", "splat")
+
+#: Below this share of splat coverage a pixel's photo coordinate is unreliable (a far splat tail): the photo's
+#: weight ramps in linearly up to it.
+MIN_COVERAGE = 0.02
+
+
+@dataclass
+class PhotoTexture:
+    """The photo as a texture: ``premult`` (H,W,3) its premultiplied foreground, ``matte`` (H,W) the object's
+    soft coverage, ``camera`` the camera that took it (the lift's input camera: the Gaussians line up with the
+    photo through it), ``seen`` (N,) per-Gaussian seen weights once computed (``seen_weights``)."""
+
+    premult: torch.Tensor
+    matte: torch.Tensor
+    camera: Camera
+    seen: Optional[torch.Tensor] = None
+
+    @property
+    def height(self) -> int:
+        return int(self.matte.shape[0])
+
+    @property
+    def width(self) -> int:
+        return int(self.matte.shape[1])
+
+
+def _as_hw3(x: torch.Tensor, what: str) -> torch.Tensor:
+    x = torch.as_tensor(x)
+    if x.ndim == 4 and x.shape[0] == 1:
+        x = x[0]
+    if x.ndim != 3 or x.shape[-1] < 3:
+        raise InputError(f"the {what} must be one image (H,W,3); got shape {tuple(x.shape)}")
+    return x[..., :3].detach().float().cpu()
+
+
+def make_photo_texture(photo: torch.Tensor, matte: torch.Tensor, camera: Camera,
+                       background: Optional[torch.Tensor] = None) -> PhotoTexture:
+    """The texture of ``photo`` (H,W,3 in 0..1) for the object covered by ``matte`` (H,W, soft or hard).
+
+    With the ``background`` the object was cut from (the inpainted one it will be composited over), the
+    foreground is unmixed by the matting equation, I = m F + (1 − m) B, so a soft edge pixel keeps only the
+    object's share of its colour and frame 0 composited over B gives back I exactly; without it the photo's
+    colours are taken as they are (I m)."""
+    img = _as_hw3(photo, "photo")
+    m = torch.as_tensor(matte).detach().float().cpu()
+    if m.ndim == 3 and m.shape[0] == 1:
+        m = m[0]
+    if m.ndim == 3 and m.shape[-1] == 1:
+        m = m[..., 0]
+    if tuple(m.shape) != tuple(img.shape[:2]):
+        raise InputError(f"the matte {tuple(m.shape)} does not match the photo {tuple(img.shape[:2])}: give the "
+                         "object's mask at the photo's size")
+    if (camera.width, camera.height) != (img.shape[1], img.shape[0]):
+        camera = camera.resized(int(img.shape[1]), int(img.shape[0]))
+    m = m.clamp(0.0, 1.0)
+    if background is not None:
+        bg = _as_hw3(background, "background")
+        if bg.shape != img.shape:
+            bg = torch.nn.functional.interpolate(bg.permute(2, 0, 1)[None], size=tuple(img.shape[:2]),
+                                                 mode="bilinear", align_corners=False)[0].permute(1, 2, 0)
+        premult = torch.minimum((img - (1.0 - m)[..., None] * bg).clamp_min(0.0), m[..., None].expand_as(img))
+    else:
+        premult = img * m[..., None]
+    return PhotoTexture(premult=premult.contiguous(), matte=m.contiguous(), camera=camera)
+
+
+def seen_weights(gaussians: Gaussians, camera: Camera, *, backend: str = "auto") -> torch.Tensor:
+    """(N,) in [0, 1]: how surely the camera that took the photo saw each Gaussian (its rest pose).
+
+    A depth test against the rest render in that view, for any lift: the splat's centre, projected, must land
+    on the object (alpha > 0.3) and lie no deeper than the rendered (expected) depth there plus a tolerance
+    of its own depth extent (2 σ along the ray) and 1 % of the depth; the weight falls to 0 over as much
+    again. The front surface of a silhouette lift, LGM's visible splats and a fitted GAUSSIAN's front all pass;
+    the back, hidden sides and the inside do not."""
+    from .rasterize import rasterize
+
+    g = gaussians.to("cpu") if gaussians.means.device.type != "cpu" else gaussians
+    n = g.means.shape[0]
+    if n == 0:
+        return torch.zeros(0)
+    with torch.no_grad():
+        out = rasterize(g, camera, backend=backend)
+        D, A = out.depth.float(), out.alpha.float()
+        w2c = camera.w2c_opencv().double()
+        R = w2c[:3, :3]
+        mc = g.means.double() @ R.T + w2c[:3, 3]
+        z = mc[:, 2]
+        u = camera.fx * mc[:, 0] / z.clamp_min(1e-9) + camera.cx
+        v = camera.fy * mc[:, 1] / z.clamp_min(1e-9) + camera.cy
+        H, W = D.shape
+        ix, iy = torch.floor(u).long(), torch.floor(v).long()
+        inside = (z > camera.near) & (ix >= 0) & (ix < W) & (iy >= 0) & (iy < H)
+        ixc, iyc = ix.clamp(0, W - 1), iy.clamp(0, H - 1)
+        # The farthest covered depth over the 3x3 pixels (lenient at grazing angles and edges), and coverage.
+        Dp = torch.nn.functional.pad(torch.where(A > 0.3, D, torch.zeros_like(D))[None, None], (1, 1, 1, 1))
+        Dmax = torch.nn.functional.max_pool2d(Dp, 3, stride=1)[0, 0]
+        d_front = Dmax[iyc, ixc].double()
+        covered = A[iyc, ixc] > 0.3
+        cov = g.covariance().double()
+        sig_z = torch.einsum("i,nij,j->n", R[2], cov, R[2]).clamp_min(0).sqrt()
+        tol = 2.0 * sig_z + 0.01 * d_front
+        s = (1.0 - (z - d_front - tol) / tol.clamp_min(1e-9)).clamp(0.0, 1.0)
+        s = torch.where(inside & covered & (d_front > 0), s, torch.zeros_like(s))
+    return s.float()
+
+
+def texture_features(seen: torch.Tensor, G: Optional[torch.Tensor]) -> torch.Tensor:
+    """The per-Gaussian channels a textured frame composites: s·G (9, when each splat has its own map) and s."""
+    s = seen.reshape(-1, 1)
+    return s if G is None else torch.cat([G * s.to(G.dtype), s.to(G.dtype)], 1)
+
+
+def _ray_grid(camera: Camera, y0: int, y1: int, x0: int, x1: int) -> torch.Tensor:
+    ys = torch.arange(y0, y1, dtype=torch.float64) + 0.5
+    xs = torch.arange(x0, x1, dtype=torch.float64) + 0.5
+    yy, xx = torch.meshgrid(ys, xs, indexing="ij")
+    return torch.stack([(xx - camera.cx) / camera.fx, (yy - camera.cy) / camera.fy, torch.ones_like(xx)], -1)
+
+
+def _to_photo_camera(camera: Camera, photo_camera: Camera) -> tuple[torch.Tensor, torch.Tensor]:
+    """(M, c): the render camera's coordinates to the photo camera's, X_p = M X + c (OpenCV axes, float64)."""
+    a = camera.w2c_opencv().double()
+    b = photo_camera.w2c_opencv().double()
+    M = b[:3, :3] @ a[:3, :3].T
+    return M, b[:3, 3] - M @ a[:3, 3]
+
+
+def shade(texture: PhotoTexture, camera: Camera, rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor,
+          extra: torch.Tensor, one_map=None) -> tuple[torch.Tensor, torch.Tensor]:
+    """A frame's premultiplied colour and alpha with the photo texture: ``rgb``, ``alpha``, ``depth`` the splat
+    render (H,W[,3]), ``extra`` its composited ``texture_features`` (H,W,1 or 10), ``one_map`` (A, b) when every
+    splat goes back to rest by that one map (then ``extra`` holds s only). Returns new tensors (CPU, float32)."""
+    rgb, alpha, depth, extra = rgb.float().cpu(), alpha.float().cpu(), depth.float().cpu(), extra.float().cpu()
+    S = extra[..., -1]
+    has = S > 1e-6
+    rows, cols = has.any(1).nonzero(), has.any(0).nonzero()
+    out_rgb, out_a = rgb.clone(), alpha.clone()
+    if rows.numel() == 0:
+        return out_rgb, out_a
+    y0, y1, x0, x1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
+    a = alpha[y0:y1, x0:x1].double()
+    Sb = S[y0:y1, x0:x1].double()
+    r = _ray_grid(camera, y0, y1, x0, x1)
+    if one_map is not None:
+        A0, b0 = one_map
+        X = depth[y0:y1, x0:x1].double()[..., None] * (r @ A0.double().T) + b0.double()
+    else:
+        e = (extra[y0:y1, x0:x1, :9].double() / Sb.clamp_min(1e-12)[..., None]).view(y1 - y0, x1 - x0, 3, 3)
+        X = e[..., 0] * r[..., 0:1] + e[..., 1] * r[..., 1:2] + e[..., 2]
+    pc = texture.camera
+    M, c = _to_photo_camera(camera, pc)
+    Xp = X @ M.T + c
+    zp = Xp[..., 2]
+    front = zp > 1e-9
+    zs = torch.where(front, zp, torch.ones_like(zp))
+    u = pc.fx * Xp[..., 0] / zs + pc.cx
+    v = pc.fy * Xp[..., 1] / zs + pc.cy
+    Ht, Wt = texture.height, texture.width
+    grid = torch.stack([2.0 * u / Wt - 1.0, 2.0 * v / Ht - 1.0], -1).float()
+    tex = torch.cat([texture.premult, texture.matte[..., None]], -1).permute(2, 0, 1)[None]
+    smp = torch.nn.functional.grid_sample(tex, grid[None], mode="bilinear", padding_mode="zeros",
+                                          align_corners=False)[0].permute(1, 2, 0).double()
+    # The photo's share of the pixel: the seen splats' share of its coverage, ramped in over faint tails.
+    w = (Sb / a.clamp_min(1e-12)).clamp(0.0, 1.0) * (a / MIN_COVERAGE).clamp(0.0, 1.0)
+    w = torch.where(has[y0:y1, x0:x1] & front, w, torch.zeros_like(w))
+    m_s = smp[..., 3]
+    out_a[y0:y1, x0:x1] = (w * m_s + (1.0 - w) * a).float()
+    out_rgb[y0:y1, x0:x1] = (w[..., None] * smp[..., :3] + (1.0 - w)[..., None] * rgb[y0:y1, x0:x1].double()).float()
+    return out_rgb, out_a
+
+
+class TexturedPoser:
+    """Per frame of a simulation: the texture channels for the rasterizer and, after it, the shaded frame.
+
+    Holds the rest pose (frame 0) and its deformation, computed once per renderer."""
+
+    def __init__(self, sim, camera: Camera, texture: PhotoTexture, backend: str = "auto"):
+        from ..controls import _splat_linear_part
+
+        self.sim, self.camera, self.texture = sim, camera, texture
+        g0 = sim.gaussians_at(0)
+        if texture.seen is None or texture.seen.shape[0] != g0.means.shape[0]:
+            texture.seen = seen_weights(g0, texture.camera, backend=backend)
+        self.seen = texture.seen
+        self.w2c = camera.w2c_opencv().double()
+        self.mu0 = g0.means.double()
+        self.L0 = _splat_linear_part(sim, 0)
+
+    def features(self, frame: int, g: Gaussians):
+        """(extra_features for ``rasterize``, one_map or None) of frame ``frame`` posed as ``g``."""
+        from .. import controls as C
+
+        L = C._splat_linear_part(self.sim, frame)
+        maps = C._flow_maps(self.sim, self.w2c, g.means.double(), L, self.mu0, self.L0)
+        one = C._one_map(*maps, self.camera) if C.ONE_MAP_FLOW else None
+        G = None
+        if one is None:
+            A, b, ms = maps
+            G = A * ms[:, 2, None, None]
+            G[:, :, 2] += b
+            G = G.reshape(-1, 9)
+        return texture_features(self.seen.to(torch.float64), G).to(g.means.dtype).to(g.means.device), one
+
+    def shade(self, out, one) -> tuple[torch.Tensor, torch.Tensor]:
+        return shade(self.texture, self.camera, out.rgb, out.alpha, out.depth, out.extra, one)
+
+
+def with_camera(texture: PhotoTexture, camera: Camera) -> PhotoTexture:
+    """The texture with another photo camera (e.g. a GAUSSIAN fitted to the photo through its own camera)."""
+    return dataclasses.replace(texture, camera=camera.resized(texture.width, texture.height), seen=None)
