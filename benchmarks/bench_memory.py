@@ -30,6 +30,7 @@ CHILD = r"""
 import json, sys, time
 import cv2, numpy as np
 side, frames, grid, path, out = int(sys.argv[1]), int(sys.argv[2]), int(sys.argv[3]), sys.argv[4], sys.argv[5]
+width = int(sys.argv[6]) if len(sys.argv) > 6 else side * 4 // 3
 from physmotion_core.pipeline import generate
 from physmotion_core.types.conditions import Conditions, Force
 from physmotion_core.types.settings import SimSettings
@@ -39,7 +40,7 @@ def status(key):
         if line.startswith(key + ":"):
             return int(line.split()[1]) * 1024
 # An RGBA cut-out: a soft-edged ellipse on transparent background, with texture.
-h, w = side, side * 4 // 3
+h, w = side, width
 yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
 inside = ((xx - w / 2) / (0.3 * w)) ** 2 + ((yy - h * 0.55) / (0.35 * h)) ** 2 < 1
 img = np.zeros((h, w, 4), np.uint8)
@@ -61,15 +62,17 @@ json.dump({"side": side, "width": w, "height": h, "frames": frames, "grid_res": 
            "gaussians": len(res.gaussians), "particles": int(res.sim.stats["particles"])}, open(out, "w"))
 """
 
-CASES = [(256, 4), (512, 4), (1024, 2), (1024, 6), (1536, 2)]
+# (height, frames[, width]): 4:3 cut-outs unless a width is given; the square 2048 cases are the
+# large cut-outs of issue 36 (the per-frame part at that size).
+CASES = [(256, 4), (512, 4), (1024, 2), (1024, 6), (1536, 2), (2048, 2, 2048), (2048, 4, 2048), (2048, 8, 2048)]
 QUICK = [(256, 4), (1024, 2)]
 
 
-def measure(side: int, frames: int, grid: int = 16) -> dict:
+def measure(side: int, frames: int, width: int | None = None, grid: int = 16) -> dict:
     with tempfile.TemporaryDirectory() as tmp:
         out = Path(tmp) / "m.json"
         subprocess.run([sys.executable, "-c", CHILD, str(side), str(frames), str(grid), str(Path(tmp) / "cutout.png"),
-                        str(out)], check=True, cwd=ROOT)
+                        str(out), str(width or side * 4 // 3)], check=True, cwd=ROOT)
         return json.loads(out.read_text())
 
 
@@ -82,14 +85,14 @@ def main() -> None:
     ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args()
     rows = []
-    for side, frames in QUICK if args.quick else CASES:
-        r = measure(side, frames)
+    for case in QUICK if args.quick else CASES:
+        r = measure(*case)
         r["estimate"] = pipeline_need_bytes(r["width"], r["height"], r["frames"])
         rows.append(r)
         print(json.dumps(r), flush=True)
     lines = ["## Memory: the up-front estimate against measured peaks", "",
              "`benchmarks/bench_memory.py` (its docstring says how it measures). Each case: an RGBA cut-out "
-             "PNG (4:3, an ellipse) run through `generate` (no models, alpha as the mask, "
+             "PNG (4:3 unless square, an ellipse) run through `generate` (no models, alpha as the mask, "
              "`max_side=0`, grid_res 16, jelly, a push) in a fresh process; measured need = peak RSS "
              "(VmHWM) minus the RSS before the run. The estimate is `memory.pipeline_need_bytes`, "
              f"which the pipeline checks against free RAM before any work. Machine: {machine_description()}. "

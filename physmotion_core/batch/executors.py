@@ -295,7 +295,8 @@ def comfy_task(task: dict, server: str, workflow: str, out_dir: str) -> dict:
     record = {"status": "failed", "host": platform.node(), "pid": os.getpid(), "sets_applied": sets}
     try:
         with tempfile.TemporaryDirectory(dir=base.parent, prefix=f".{base.name}.dl.") as tmp:
-            saved = run_workflow(Path(workflow), server, Path(tmp), image=Path(task["image_path"]), sets=sets)
+            saved = run_workflow(Path(workflow), server, Path(tmp), image=Path(task["image_path"]), sets=sets,
+                                 timeout=float(task.get("comfy_timeout") or 3600.0))
             base.mkdir(parents=True, exist_ok=True)
             files = {}
             for p in saved:
@@ -320,8 +321,10 @@ class ComfyExecutor:
 
     name = "comfy"
 
-    def __init__(self, out: Path, server: str, workflow: Path, mapping: dict, workers: int = 1):
+    def __init__(self, out: Path, server: str, workflow: Path, mapping: dict, workers: int = 1,
+                 timeout: float = 3600.0):
         self.out, self.server, self.workflow, self.mapping = Path(out), server, Path(workflow), mapping
+        self.timeout = float(timeout)  # the most one job (upload, run, downloads) may take on the server
         self.capacity = max(1, int(workers))
         self._inflight: dict = {}
 
@@ -332,7 +335,7 @@ class ComfyExecutor:
         return {}
 
     def submit(self, task: dict) -> None:
-        task = dict(task, map=self.mapping)
+        task = dict(task, map=self.mapping, comfy_timeout=self.timeout)
         fut = self._pool.submit(comfy_task, task, self.server, str(self.workflow), str(self.out / task["id"]))
         self._inflight[fut] = task
 

@@ -148,7 +148,8 @@ def _make_executor(out: Path, *, ray: Optional[str], comfy: Optional[str], spec:
     from .executors import ComfyExecutor, LocalExecutor, RayExecutor, available_cores
 
     if comfy:
-        return ComfyExecutor(out, comfy, spec.comfy["workflow"], spec.comfy["map"], workers or 1)
+        return ComfyExecutor(out, comfy, spec.comfy["workflow"], spec.comfy["map"], workers or 1,
+                             timeout=spec.comfy.get("timeout", 3600.0))
     cores = available_cores()
     devices = {j.settings.get("device", "auto") for j in spec.jobs if j.error is None}
     if ray:

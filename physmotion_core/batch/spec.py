@@ -472,7 +472,14 @@ def load_spec(path, *, comfy: bool = False, max_jobs: Optional[int] = MAX_JOBS) 
         bad = [k for k in mapping if k not in DEFAULTS]
         if bad:
             raise SpecError(f"comfy.map: unknown setting(s) {bad}; map settings of: {', '.join(DEFAULTS)}")
-        comfy_cfg = {"workflow": wf, "map": mapping, "workflow_sha256": file_sha256(wf)}
+        unknown = set(comfy_doc) - {"workflow", "map", "timeout"}
+        if unknown:
+            raise SpecError(f"[comfy]: unknown key(s) {sorted(unknown)}; use workflow, map, timeout")
+        limit = comfy_doc.get("timeout", 3600.0)
+        if isinstance(limit, bool) or not isinstance(limit, (int, float)) or not (0 < limit <= 7 * 86400):
+            raise SpecError(f"comfy.timeout must be the seconds one job may take on the server, in (0, 604800]; "
+                            f"got {limit!r}")
+        comfy_cfg = {"workflow": wf, "map": mapping, "workflow_sha256": file_sha256(wf), "timeout": float(limit)}
     if comfy and comfy_cfg is None:
         raise SpecError(f"--comfy needs a [comfy] section in {path} naming the workflow (workflow = '...json')")
     outputs = {**OUTPUT_DEFAULTS, **(doc.get("outputs", {}) or {})}

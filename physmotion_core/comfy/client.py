@@ -302,7 +302,7 @@ class ComfyClient:
                         body = resp.read(64 << 10)
                         raise ComfyError(f"ComfyUI refused {path} (HTTP {resp.status}): {self._error_detail(body)}")
                     return handle(resp, end, guard)
-            except ComfyError:
+            except PhysMotionError:  # ours (a refusal, a full disk): already says what happened
                 raise
             except (OSError, http.client.HTTPException, ssl.SSLError, ValueError) as exc:
                 if guard.fired or time.monotonic() >= end:
@@ -363,6 +363,11 @@ class ComfyClient:
 
     def _request(self, path: str, data: Optional[bytes] = None, content_type: str = "application/json") -> bytes:
         """An API request's whole answer (at most MAX_JSON_BYTES), within ``request_timeout`` and the run."""
+        return self._request_typed(path, data, content_type)[0]
+
+    def _request_typed(self, path: str, data: Optional[bytes] = None,
+                       content_type: str = "application/json") -> tuple[bytes, str]:
+        """(answer, its Content-Type): see ``_request``."""
         end = self._until(self.request_timeout)
 
         def read_all(resp, end, guard):
@@ -370,20 +375,22 @@ class ComfyClient:
             while True:
                 chunk = resp.read1(1 << 16)
                 if not chunk:
+                    if guard.fired:  # the deadline shut the socket: this end is not the answer's end
+                        raise TimeoutError("deadline")
                     break
                 total += len(chunk)
                 if total > MAX_JSON_BYTES:
                     raise ComfyError(f"ComfyUI's answer to {path.split('?')[0]} is larger than "
                                      f"{MAX_JSON_BYTES >> 20} MiB; no API answer is that large")
                 chunks.append(chunk)
-            return b"".join(chunks)
+            return b"".join(chunks), resp.getheader("Content-Type") or ""
 
         return self._call(path, data, content_type, end, read_all)
 
     def _request_json(self, path: str, data: Optional[bytes] = None, content_type: str = "application/json",
                       expect=dict):
-        body = self._request(path, data, content_type)
-        value = _json(body, path.split("?")[0], self.server)
+        body, ctype = self._request_typed(path, data, content_type)
+        value = _json(body, path.split("?")[0], self.server, ctype)
         if expect is not None and not isinstance(value, expect):
             raise ComfyError(f"{self.server} answered {path.split('?')[0]} with JSON of the wrong shape "
                              f"('{_snippet(body)}'); this is not a ComfyUI answer")
@@ -407,6 +414,8 @@ class ComfyClient:
                     while True:
                         chunk = resp.read1(1 << 20)
                         if not chunk:
+                            if guard.fired:
+                                raise TimeoutError("deadline")
                             break
                         fh.write(chunk)
                         window_bytes += len(chunk)
