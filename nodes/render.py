@@ -6,7 +6,7 @@ import torch
 
 from physmotion_core.errors import InputError
 
-from ._util import CATEGORY, first_image, log, output_path, preview_video, progress_callback, torch_device
+from ._util import CATEGORY, first_image, first_mask, log, output_path, preview_video, progress_callback, torch_device
 
 
 class PhysMotionRender:
@@ -23,10 +23,24 @@ class PhysMotionRender:
                 "height": ("INT", {"default": 0, "min": 0, "max": 8192, "step": 8,
                                    "tooltip": "Output height in pixels; 0 = the camera's."}),
             },
+            "optional": {
+                "photo": ("IMAGE", {"tooltip": "The photo the object was lifted from. Connected, the surface the "
+                                               "photo saw shows the photo's own pixels as it moves (frame 0 is the "
+                                               "photo); the sides, back and torn faces keep the splats' colours."}),
+                "mask": ("MASK", {"tooltip": "The object's mask (soft edges welcome) from the Segment node; "
+                                             "without it, the object is where the rest pose renders."}),
+                "background": ("IMAGE", {"tooltip": "The background the frames will be blended over (the Segment "
+                                                    "node's): a soft edge's colour is unmixed from it, so frame 0 "
+                                                    "over it is the photo."}),
+                "texture": (["photo", "splat"], {"default": "photo",
+                                                 "tooltip": "photo: the photo's pixels where it saw the surface (needs "
+                                                            "the photo input); splat: the splats' colours only."}),
+            },
         }
 
     DESCRIPTION = ("Renders the simulated Gaussians through the camera, frame by frame (gsplat on CUDA when it is "
-                   "installed, the pack's own PyTorch rasterizer otherwise). The node shows the clip as a preview.")
+                   "installed, the pack's own PyTorch rasterizer otherwise). With the photo connected, the surface the "
+                   "photo saw keeps the photo's own pixels as it moves. The node shows the clip as a preview.")
 
     RETURN_TYPES = ("IMAGE", "MASK", "IMAGE")
     RETURN_NAMES = ("rgb", "alpha", "depth")
@@ -35,8 +49,9 @@ class PhysMotionRender:
     FUNCTION = "run"
     CATEGORY = f"{CATEGORY}/render"
 
-    def run(self, simulation, camera, width, height):
+    def run(self, simulation, camera, width, height, photo=None, mask=None, background=None, texture="photo"):
         from physmotion_core.render.frames import depth_to_image, render_frames
+        from physmotion_core.render.photo_texture import photo_texture_for
 
         cam = camera
         if width or height:
@@ -44,8 +59,12 @@ class PhysMotionRender:
             h = int(height) or round(camera.height * int(width) / camera.width)
             cam = camera.resized(w, h)
         dev = torch_device()
+        tex = None
+        if photo is not None and texture == "photo":
+            tex = photo_texture_for(simulation, camera, first_image(photo, "photo"), first_mask(mask),
+                                    None if background is None else first_image(background, "background"))
         frames = render_frames(simulation, cam, device=dev if dev.type == "cuda" else "cpu",
-                               progress=progress_callback())
+                               progress=progress_callback(), photo=tex)
         result = (frames.rgb, frames.alpha, depth_to_image(frames.depth, frames.alpha))
         return {"ui": preview_video(frames.rgb, frames.fps, "PhysMotion_render"), "result": result}
 

@@ -575,7 +575,13 @@ def generate(
         say("warning: " + w)
 
     t = time.perf_counter()
-    frames = render_frames(sim, lift.camera, progress=stage("render"))
+    from .render.photo_texture import make_photo_texture
+
+    # The photo itself moves (the surface it saw keeps its pixels); the soft matte where the segmentation has one.
+    matte = getattr(seg, "matte", None)
+    texture = make_photo_texture(seg.image, seg.mask if matte is None else matte, lift.camera,
+                                 background=seg.background)
+    frames = render_frames(sim, lift.camera, progress=stage("render"), photo=texture)
     timings["render_s"] = time.perf_counter() - t
 
     video = composite(frames.rgb, frames.alpha, seg.background)

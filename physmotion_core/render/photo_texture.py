@@ -248,3 +248,28 @@ class TexturedPoser:
 def with_camera(texture: PhotoTexture, camera: Camera) -> PhotoTexture:
     """The texture with another photo camera (e.g. a GAUSSIAN fitted to the photo through its own camera)."""
     return dataclasses.replace(texture, camera=camera.resized(texture.width, texture.height), seen=None)
+
+
+def photo_texture_for(sim, camera: Camera, photo: torch.Tensor, matte: Optional[torch.Tensor] = None,
+                      background: Optional[torch.Tensor] = None, *, backend: str = "auto") -> PhotoTexture:
+    """The texture for rendering ``sim``, from the photo its Gaussians were lifted from (one IMAGE, (H,W,3) or
+    (1,H,W,3)) and ``camera`` (the lift's input camera). Without a ``matte`` (the object's mask), the object is
+    where the rest pose renders through that camera (alpha, taken as the matte): fine for a fitted lift, softer
+    than the segmentation's own edge."""
+    img = _as_hw3(photo, "photo")
+    cam = camera if (camera.width, camera.height) == (img.shape[1], img.shape[0]) else camera.resized(
+        int(img.shape[1]), int(img.shape[0]))
+    if matte is None:
+        from .rasterize import rasterize
+
+        with torch.no_grad():
+            matte = rasterize(sim.gaussians_at(0).to("cpu"), cam, backend=backend).alpha.float()
+        matte = ((matte - 0.5) * 4.0 + 0.5).clamp(0.0, 1.0)  # the rendered coverage, its faint tails cut
+    else:
+        matte = torch.as_tensor(matte).float()
+        if matte.ndim == 3:
+            matte = matte[0]
+        if tuple(matte.shape) != tuple(img.shape[:2]):
+            matte = torch.nn.functional.interpolate(matte[None, None], size=tuple(img.shape[:2]), mode="bilinear",
+                                                    align_corners=False)[0, 0]
+    return make_photo_texture(img, matte, cam, background=background)
