@@ -25,9 +25,14 @@ log = logging.getLogger(__name__)
 
 METHODS = ("auto", "alpha", "mask", "grabcut")
 
-# GrabCut and the automatic box run at most at this long side; the mask is upsampled after.
-# GrabCut costs ~1 s per 600x400 image at 5 iterations and grows with the pixel count.
-GRABCUT_MAX_SIDE = 1024
+# GrabCut runs at most at this long side; the mask is upsampled after (smoothly, so the outline
+# stays within a pixel or two of a full-size cut). GrabCut costs ~1 s per 600x400 image at 5
+# iterations on one core and grows with the pixel count: at 1024 px a click prompt took 11 s on
+# two busy cores (docs/quality.md).
+GRABCUT_MAX_SIDE = 640
+# GrabCut's colour models start from k-means with OpenCV's global random generator: seeded before
+# every call so the same image and prompts always give the same mask.
+GRABCUT_SEED = 12345
 # The inpainting runs at most at this long side and only the inpainted region is upsampled, so a
 # 4k photo costs about what a 1k photo does.
 INPAINT_MAX_SIDE = 1024
@@ -361,6 +366,7 @@ def _point_box(small: np.ndarray, fg_pts: np.ndarray, bg_pts: np.ndarray) -> tup
     gc[:frame], gc[-frame:], gc[:, :frame], gc[:, -frame:] = cv2.GC_BGD, cv2.GC_BGD, cv2.GC_BGD, cv2.GC_BGD
     _paint_seeds(gc, fp, bp, seed_radius(th, tw))
     bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
+    cv2.setRNGSeed(GRABCUT_SEED)
     cv2.grabCut(bgr, gc, None, bgd, fgd, 3, cv2.GC_INIT_WITH_MASK)
     fg = ((gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)).astype(np.uint8)
     n, cc = cv2.connectedComponents(fg, connectivity=8)
@@ -392,7 +398,9 @@ def grabcut(image, *, box=None, init_mask=None, points=None, point_labels=None, 
     - ``init_mask``: its inside is "probably object", its outside "probably background" (a rough
       mask is refined), and far outside it certainly background.
     - ``points``: (x, y) pixel clicks with ``point_labels`` (1 object, 0 background; default all
-      1). Each becomes a disk of certain object / background of ``seed_radius`` pixels. Clicks
+      1). Each becomes a disk of certain object / background of ``seed_radius`` pixels, and a
+      separate part of the result touching a background click (holding no object click) is
+      dropped (``_drop_clicked_background``). Clicks
       with neither box nor mask: a first pass over nearly the whole image finds the clicked
       region, whose box (grown by a quarter) bounds the real pass (see ``_point_box``).
     - nothing: the box is ``auto_box``.
@@ -433,6 +441,7 @@ def grabcut(image, *, box=None, init_mask=None, points=None, point_labels=None, 
         if not ((gc == cv2.GC_PR_FGD) | (gc == cv2.GC_FGD)).any():
             raise InputError("The mask given to GrabCut vanished at the working resolution; it is "
                              "too small")
+        cv2.setRNGSeed(GRABCUT_SEED)
         cv2.grabCut(bgr, gc, None, bgd, fgd, int(iters), cv2.GC_INIT_WITH_MASK)
     else:
         if box is not None:
@@ -459,14 +468,42 @@ def grabcut(image, *, box=None, init_mask=None, points=None, point_labels=None, 
             _paint_seeds(gc, fg_pts, bg_pts, radius)
             if not ((gc == cv2.GC_PR_FGD) | (gc == cv2.GC_FGD)).any():
                 raise InputError("the background points cover the whole box: nothing is left for the object")
+            cv2.setRNGSeed(GRABCUT_SEED)
             cv2.grabCut(bgr, gc, None, bgd, fgd, int(iters), cv2.GC_INIT_WITH_MASK)
         else:
             rect = (sx0, sy0, max(1, sx1 - sx0), max(1, sy1 - sy0))
+            cv2.setRNGSeed(GRABCUT_SEED)
             cv2.grabCut(bgr, gc, rect, bgd, fgd, int(iters), cv2.GC_INIT_WITH_RECT)
-    fg = ((gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)).astype(np.float32)
+    fg = ((gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)).astype(np.uint8)
+    if len(bg_pts):
+        fg = _drop_clicked_background(fg, fg_pts, bg_pts, radius)
+    fg = fg.astype(np.float32)
     if scale < 1.0:
         fg = cv2.resize(fg, (W, H), interpolation=cv2.INTER_LINEAR)
     return fg > 0.5
+
+
+def _drop_clicked_background(fg: np.ndarray, fg_pts: np.ndarray, bg_pts: np.ndarray, radius: int) -> np.ndarray:
+    """Remove the separate parts a background click lands on.
+
+    GrabCut only makes the clicked disk background; when the clicked thing has the object's
+    colours too (a second object inside the box), the rest of it stays. A part of the result
+    that touches a background click's disk and holds no object click is what the click meant;
+    it goes, unless nothing would be left.
+    """
+    n, cc = cv2.connectedComponents(fg, connectivity=8)
+    if n <= 1:
+        return fg
+    keep = {int(cc[int(y), int(x)]) for x, y in fg_pts} - {0}
+    near = np.zeros_like(fg)
+    for x, y in bg_pts:
+        cv2.circle(near, (int(x), int(y)), int(radius) + 2, 1, -1)
+    drop = sorted(set(np.unique(cc[near > 0]).tolist()) - {0} - keep)
+    if not drop:
+        return fg
+    out = fg.copy()
+    out[np.isin(cc, drop)] = 0
+    return out if out.any() else fg
 
 
 # ----------------------------------------------------------------------------------------------

@@ -1,0 +1,224 @@
+"""Click and box prompts for the model-free segmentation, the plausibility check and the overlay."""
+
+from __future__ import annotations
+
+import logging
+
+import numpy as np
+import pytest
+
+from physmotion_core.errors import InputError
+from physmotion_core.segment import (
+    CLI_HOW_TO_FIX,
+    NODE_HOW_TO_FIX,
+    check_mask,
+    enforce_plausible,
+    grabcut,
+    mask_overlay,
+    segment,
+    write_overlay,
+)
+
+
+def two_objects(h=120, w=200, seed=0):
+    """A grey textured backdrop with a red disk on the left and a blue square on the right."""
+    rng = np.random.default_rng(seed)
+    img = np.full((h, w, 3), 0.55, np.float32) + rng.normal(0, 0.02, (h, w, 3)).astype(np.float32)
+    yy, xx = np.mgrid[:h, :w]
+    disk = (xx - 50) ** 2 + (yy - 60) ** 2 <= 25 ** 2
+    square = (xx >= 125) & (xx < 175) & (yy >= 35) & (yy < 85)
+    img[disk] = (0.85, 0.15, 0.1)
+    img[square] = (0.1, 0.2, 0.85)
+    return np.clip(img, 0, 1), disk, square
+
+
+def iou(a, b):
+    return (a & b).sum() / max(1, (a | b).sum())
+
+
+def test_an_object_point_selects_that_object():
+    img, disk, square = two_objects()
+    m = segment(img, points=[(150, 60)]).mask.numpy() > 0.5
+    assert iou(m, square) > 0.9 and not (m & disk).any()
+    m = segment(img, points=[(50, 60)]).mask.numpy() > 0.5
+    assert iou(m, disk) > 0.9 and not (m & square).any()
+
+
+def test_a_background_point_excludes_a_region():
+    img, disk, square = two_objects()
+    # A box around both objects: GrabCut takes both ...
+    both = grabcut(img, box=(15, 20, 190, 100))
+    assert (both & disk).sum() > 0.8 * disk.sum() and (both & square).sum() > 0.8 * square.sum()
+    # ... a background click on the square removes it.
+    m = grabcut(img, box=(15, 20, 190, 100), points=[(150, 60)], point_labels=[0])
+    assert (m & disk).sum() > 0.8 * disk.sum() and (m & square).sum() < 0.05 * square.sum()
+
+
+def test_a_box_restricts_the_mask():
+    img, disk, square = two_objects()
+    m = segment(img, box=(110, 20, 190, 100)).mask.numpy() > 0.5
+    assert iou(m, square) > 0.9 and not m[:, :100].any()
+
+
+def test_a_point_and_a_box_together_and_the_point_is_kept():
+    img, disk, square = two_objects()
+    m = segment(img, box=(110, 20, 190, 100), points=[(150, 60)]).mask.numpy() > 0.5
+    assert m[60, 150] and iou(m, square) > 0.9
+
+
+def test_same_prompts_give_the_same_mask():
+    img, _, _ = two_objects(seed=3)
+    a = grabcut(img, points=[(50, 60)])
+    b = grabcut(img, points=[(50, 60)])
+    assert np.array_equal(a, b)
+
+
+@pytest.mark.parametrize("kw, words", [
+    ({"points": [(250, 10)]}, "outside"),
+    ({"points": [(-1, 10)]}, "outside"),
+    ({"points": [(float("nan"), 10)]}, "NaN"),
+    ({"points": [(10, 10, 3)]}, "(x, y)"),
+    ({"points": "abc"}, "(x, y)"),
+    ({"points": [(10, 10)], "point_labels": [1, 0]}, "one label"),
+    ({"points": [(10, 10)], "point_labels": [2]}, "1 (object) or 0"),
+    ({"points": [(10, 10)], "box": (110, 20, 190, 100)}, "outside the box"),
+    ({"box": (300, 300, 400, 400)}, "outside"),
+])
+def test_bad_prompts_raise_clear_input_errors(kw, words):
+    img, _, _ = two_objects()
+    with pytest.raises(InputError) as e:
+        segment(img, **kw)
+    assert words in str(e.value)
+
+
+def test_a_point_prompt_on_the_coffee_photo_holds_its_point(example_image_path):
+    from physmotion_core.image_io import load_image
+
+    rgb, _ = load_image(example_image_path)
+    m = segment(rgb, points=[(300, 235)]).mask.numpy() > 0.5
+    assert m[235, 300]
+    assert 0.25 < m.mean() < 0.7  # the cup and saucer, not the table
+
+
+# ---- check_mask: every rule both ways --------------------------------------------------------
+
+
+def blob(h=100, w=100, box=(30, 30, 70, 70)):
+    m = np.zeros((h, w), bool)
+    x0, y0, x1, y1 = box
+    m[y0:y1, x0:x1] = True
+    return m
+
+
+def test_a_plain_object_is_plausible():
+    r = check_mask(blob())
+    assert r.ok and r.problems == [] and r.components == 1 and r.edges == ()
+    assert r.box == (30, 30, 70, 70) and r.height_px == 40 and abs(r.area_fraction - 0.16) < 1e-9
+    assert any("looks plausible" in line for line in r.summary_lines())
+
+
+def test_edges_rule():
+    r = check_mask(blob(box=(0, 30, 100, 100)))  # left, right, bottom
+    assert not r.ok and "3 edges" in r.problems[0] and set(r.edges) == {"left", "right", "bottom"}
+    assert check_mask(blob(box=(0, 30, 60, 100))).ok  # 2 edges: fine
+
+
+def test_area_rules():
+    r = check_mask(blob(box=(5, 5, 95, 95)))  # 81%
+    assert not r.ok and any("81%" in p for p in r.problems)
+    assert check_mask(blob(box=(15, 15, 85, 85))).ok  # 49%
+    r = check_mask(blob(box=(50, 50, 52, 51)))
+    assert not r.ok and "tiny" in r.problems[0]
+    r = check_mask(np.zeros((50, 50), bool))
+    assert not r.ok and "empty" in r.problems[0]
+
+
+def test_parts_rule():
+    m = blob(box=(10, 10, 40, 40)) | blob(box=(60, 60, 90, 90))
+    r = check_mask(m)
+    assert not r.ok and r.components == 2 and "pieces" in r.problems[0]
+    m = blob(box=(10, 10, 50, 50)) | blob(box=(80, 80, 83, 83))  # a speck beside it: one object
+    assert check_mask(m).ok
+
+
+def test_point_rules():
+    m = blob()
+    assert check_mask(m, object_points=[(50, 50)], background_points=[(5, 5)], force_points=[(40, 60)]).ok
+    r = check_mask(m, object_points=[(5, 5)])
+    assert not r.ok and r.missed_points == [(5.0, 5.0)] and "object point" in r.problems[0]
+    r = check_mask(m, background_points=[(50, 50)])
+    assert not r.ok and "background point" in r.problems[0]
+    r = check_mask(m, force_points=[(90, 10)])
+    assert not r.ok and r.missed_points == [(90.0, 10.0)]
+    assert "x 30..70, y 30..70" in r.problems[0] and "move the push" in r.problems[0]
+    with pytest.raises(InputError, match="outside"):
+        check_mask(m, object_points=[(500, 5)])
+
+
+def test_image_rules_outline_contrast():
+    img, disk, square = two_objects()
+    assert check_mask(disk, image=img).ok  # the outline is the disk's edge
+    band = np.zeros_like(disk)
+    band[5:40, 80:115] = True  # a patch of the plain backdrop: no edge anywhere on its outline
+    r = check_mask(band, image=img)
+    assert not r.ok and "no visible edge" in r.problems[0]
+    assert check_mask(band).ok  # without the photo that rule cannot run
+
+
+def test_image_rules_same_colours_across_the_outline():
+    rng = np.random.default_rng(1)
+    # A busy texture of a few colours everywhere: a square cut out of it has the same colours on
+    # both sides of its outline, but pixel-to-pixel steps are large.
+    palette = np.array([[0.8, 0.5, 0.2], [0.3, 0.2, 0.1], [0.9, 0.9, 0.8]], np.float32)
+    img = palette[rng.integers(0, 3, (100, 100))]
+    img = np.repeat(np.repeat(img[::4, ::4], 4, 0), 4, 1)[:100, :100]
+    import cv2
+
+    img = cv2.GaussianBlur(img, (0, 0), 2.0)
+    r = check_mask(blob(), image=img)
+    assert not r.ok and any("same as just outside" in p or "no visible edge" in p for p in r.problems)
+
+
+def test_enforce_plausible_raises_unprompted_and_warns_prompted(caplog, tmp_path):
+    bad = check_mask(blob(box=(0, 30, 100, 100)), object_points=[(5, 5)])
+    with pytest.raises(InputError) as e:
+        enforce_plausible(bad, prompted=False, overlay=tmp_path / "overlay.png")
+    msg = str(e.value)
+    assert "3 edges" in msg and "overlay.png" in msg and "--object-point U,V" in msg and "--box" in msg
+    with pytest.raises(InputError) as e:
+        enforce_plausible(bad, prompted=False, how_to_fix=NODE_HOW_TO_FIX)
+    assert "object_points" in str(e.value) and "MASK" in str(e.value)
+    with caplog.at_level(logging.WARNING, logger="physmotion"):
+        enforce_plausible(bad, prompted=True)
+    assert sum("3 edges" in r.getMessage() for r in caplog.records) == 1
+    enforce_plausible(check_mask(blob()), prompted=False)  # plausible: nothing happens
+    assert "--mask FILE" in CLI_HOW_TO_FIX and "--background-point" in CLI_HOW_TO_FIX
+
+
+# ---- overlay ---------------------------------------------------------------------------------
+
+
+def test_overlay_shape_outline_and_markers(tmp_path):
+    img, disk, _ = two_objects()
+    bg = np.full_like(img, 0.25)
+    ov = mask_overlay(img, disk, bg, object_points=[(50, 60)], background_points=[(150, 20)],
+                      box=(10, 10, 95, 110), force_points=[(160, 100)])
+    h, w = disk.shape
+    assert ov.shape == (h, 2 * w, 3) and ov.dtype == np.float32 and 0 <= ov.min() and ov.max() <= 1
+    assert np.allclose(ov[:, w:], 0.25)  # right: the background given
+    left = ov[:, :w]
+    assert np.allclose(left[60, 50], (0.1, 0.9, 0.2), atol=0.02)  # green object dot
+    assert np.allclose(left[20, 150], (0.95, 0.15, 0.1), atol=0.02)  # red background dot
+    assert np.allclose(left[60, 10], (0.1, 0.85, 0.95), atol=0.05)  # the box's left side
+    # The outline: yellow pixels on the disk's edge (row 60, x = 25 is its left rim).
+    row = left[60, 20:31]
+    assert any(np.allclose(p, (1.0, 0.92, 0.1), atol=0.05) for p in row)
+    # Outside the mask the photo is tinted, inside it is untouched.
+    assert np.allclose(left[100, 100], 0.7 * img[100, 100] + 0.3 * np.array([0.15, 0.15, 0.45]), atol=1e-5)
+    assert np.allclose(left[50, 45], img[50, 45])
+    p = write_overlay(tmp_path / "o.png", ov)
+    import cv2
+
+    back = cv2.imread(str(p))
+    assert back.shape == (h, 2 * w, 3)
+    assert not list(tmp_path.glob("*.tmp*"))
