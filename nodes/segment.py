@@ -117,7 +117,7 @@ def checked_segmentation(seg, prompted: bool, obj_pts=(), bg_pts=(), box=None) -
     from physmotion_core.segment.check import NODE_HOW_TO_FIX, check_mask, enforce_plausible
     from physmotion_core.segment.overlay import mask_overlay
 
-    report = check_mask(seg.mask, object_points=obj_pts, background_points=bg_pts)
+    report = check_mask(seg.mask, object_points=obj_pts, background_points=bg_pts, image=seg.image)
     overlay = torch.as_tensor(mask_overlay(seg.image, seg.mask, seg.background, object_points=obj_pts,
                                            background_points=bg_pts, box=box)).float()
     preview = preview_images(overlay[None], "PhysMotion_segment")

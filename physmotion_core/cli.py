@@ -163,7 +163,7 @@ def _segment_cmd(args) -> int:
     seg, how = segment_photo(rgb, alpha=alpha, mask=mask, box=box, object_points=scale_pts[0],
                              background_points=scale_pts[1], sam_name=sam)
     seconds = time.perf_counter() - t0
-    report = check_mask(seg.mask, object_points=scale_pts[0], background_points=scale_pts[1])
+    report = check_mask(seg.mask, object_points=scale_pts[0], background_points=scale_pts[1], image=seg.image)
     with protect_inputs(args.image, args.mask):
         write_overlay(args.output, mask_overlay(seg.image, seg.mask, seg.background, object_points=scale_pts[0],
                                                 background_points=scale_pts[1], box=box))

@@ -400,7 +400,8 @@ def prepare(
     # Is it plausibly one object? Checked for every mask; refused only when nobody said which object.
     given = stages["segment"] in ("alpha", "mask") or bool(obj_pts) or box is not None
     force_pts = _force_points(conditions)
-    mask_report = check_mask(seg.mask, object_points=obj_pts, background_points=bg_pts, force_points=force_pts)
+    mask_report = check_mask(seg.mask, object_points=obj_pts, background_points=bg_pts, force_points=force_pts,
+                             image=seg.image)
     overlay_path = Path(overlay) if overlay is not None else None
     if overlay_path is None and not mask_report.ok:
         overlay_path = _overlay_default(output)

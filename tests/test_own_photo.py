@@ -1,0 +1,148 @@
+"""Issue 33 through generate(): the mask is checked before anything is simulated, a preview stops
+before the simulation, prompts reach the segmentation, and the user is told what was decided."""
+
+import logging
+
+import numpy as np
+import pytest
+import torch
+
+import physmotion_core.pipeline as pipeline
+from physmotion_core.errors import InputError
+from physmotion_core.pipeline import generate
+from physmotion_core.types import Conditions, Force, Region, SimSettings
+
+H, W = 96, 128
+FAST = SimSettings(frames=4, fps=24.0, grid_res=8, device="cpu")
+
+
+def photo():
+    """A red disk on a grey, slightly textured table (float (H, W, 3) in 0..1)."""
+    rng = np.random.default_rng(0)
+    img = 0.5 + 0.03 * rng.standard_normal((H, W, 3))
+    yy, xx = np.mgrid[:H, :W]
+    disk = (xx - 64) ** 2 + (yy - 50) ** 2 <= 22 ** 2
+    img[disk] = (0.85, 0.1, 0.1)
+    return np.clip(img, 0, 1).astype(np.float32), disk
+
+
+def _no_simulation(monkeypatch):
+    import physmotion_core.sim as sim_pkg
+
+    def boom(*a, **k):
+        raise AssertionError("the preview must stop before simulating")
+
+    monkeypatch.setattr(sim_pkg, "simulate", boom)
+
+
+def test_preview_stops_before_simulating_and_tells_mass_support_and_forecast(monkeypatch, tmp_path):
+    _no_simulation(monkeypatch)
+    img, disk = photo()
+    said = []
+    prep = generate(img, material="jelly", conditions=Conditions([Force((5.0, 0.0, 0.0))]), settings=FAST,
+                    preview=True, report=said.append, overlay=tmp_path / "ov.png")
+    assert prep.mass_kg is not None and prep.mass_kg > 0
+    assert said == prep.lines
+    text = "\n".join(said)
+    assert "mask (grabcut)" in text
+    assert "ground: under the object's lowest visible point" in text
+    assert "object height: 0.3 m (assumed)" in text
+    assert "force 1: 5 N" in text and "Δv" in text and "static friction" in text
+    assert (tmp_path / "ov.png").is_file()
+    iou = (prep.segmentation.mask.numpy() > 0.5)[disk].sum() / ((prep.segmentation.mask.numpy() > 0.5) | disk).sum()
+    assert iou > 0.8
+
+
+def _implausible_segmentation(monkeypatch):
+    """GrabCut's automatic pass replaced by one that returns the table: it touches all four edges."""
+    from physmotion_core.segment import segment
+
+    def fake(rgb, **kw):
+        m = np.ones((H, W), np.float32)
+        m[30:70, 40:90] = 0
+        return segment(rgb, mask=torch.from_numpy(m)), "grabcut"
+
+    monkeypatch.setattr(pipeline, "segment_photo", fake)
+
+
+def test_an_implausible_automatic_mask_is_refused_naming_the_overlay(monkeypatch, tmp_path):
+    _no_simulation(monkeypatch)
+    _implausible_segmentation(monkeypatch)
+    img, _ = photo()
+    out = tmp_path / "clip.mp4"
+    with pytest.raises(InputError) as exc:
+        generate(img, settings=FAST, output=out)
+    msg = str(exc.value)
+    assert str(tmp_path / "clip.mask.png") in msg and (tmp_path / "clip.mask.png").is_file()
+    assert "--object-point" in msg and "--box" in msg and "--mask" in msg
+    assert not out.exists()
+
+
+def test_the_same_mask_with_a_prompt_only_warns(monkeypatch, tmp_path, caplog):
+    _no_simulation(monkeypatch)
+    _implausible_segmentation(monkeypatch)
+    img, _ = photo()
+    with caplog.at_level(logging.WARNING, logger="physmotion"):
+        prep = generate(img, settings=FAST, preview=True, box=(0, 0, W, H), report=lambda s: None)
+    assert not prep.mask_report.ok
+    assert caplog.records, "a prompted implausible mask must be warned about"
+
+
+def test_prompts_reach_grabcut_in_the_scaled_photo(monkeypatch):
+    _no_simulation(monkeypatch)
+    seen = {}
+    real = pipeline.segment_photo
+
+    def spy(rgb, **kw):
+        seen.update(kw)
+        seen["size"] = tuple(rgb.shape[:2])
+        return real(rgb, **kw)
+
+    monkeypatch.setattr(pipeline, "segment_photo", spy)
+    img, _ = photo()
+    big = np.kron(img, np.ones((2, 2, 1), np.float32))  # 256 x 192, scaled back to 128 x 96 by max_side
+    generate(big, settings=FAST, preview=True, max_side=128, object_points=[(128, 100)],
+             background_points=[(10, 10)], box=(60, 40, 200, 160), report=lambda s: None)
+    assert seen["size"] == (H, W)
+    assert seen["object_points"] == [(64.0, 50.0)] and seen["background_points"] == [(5.0, 5.0)]
+    assert seen["box"] == (30.0, 20.0, 100.0, 80.0)
+
+
+@pytest.mark.parametrize("kw, words", [
+    ({"object_points": [(500, 10)]}, "outside the 128x96 photo"),
+    ({"box": (50, 50, 40, 60)}, "empty"),
+    ({"background_points": [(5, 5)]}, "only background points"),
+    ({"object_points": [(float("nan"), 3)]}, "not finite"),
+])
+def test_bad_prompts_are_refused_before_any_work(monkeypatch, kw, words):
+    _no_simulation(monkeypatch)
+    img, _ = photo()
+    with pytest.raises(InputError, match=words):
+        generate(img, settings=FAST, preview=True, **kw)
+
+
+def test_a_push_off_the_object_is_refused_at_once_with_where_the_object_is(monkeypatch):
+    _no_simulation(monkeypatch)
+    img, disk = photo()
+    conds = Conditions([Force((5.0, 0.0, 0.0), Region.at_pixel(5, 5, 10))])
+    with pytest.raises(InputError) as exc:
+        generate(img, mask=torch.from_numpy(disk.astype(np.float32)), conditions=conds, settings=FAST, preview=True)
+    msg = str(exc.value)
+    assert "(5, 5)" in msg and "does not touch the object" in msg
+    ys, xs = np.nonzero(disk)
+    assert f"x {xs.min()}..{xs.max() + 1}" in msg and f"y {ys.min()}..{ys.max() + 1}" in msg
+
+
+def test_a_cut_off_object_is_held_and_the_run_says_so(monkeypatch):
+    _no_simulation(monkeypatch)
+    img, _ = photo()
+    yy, xx = np.mgrid[:H, :W]
+    cut = ((xx - 64) / 30.0) ** 2 + ((yy - 70) / 40.0) ** 2 <= 1  # runs off the bottom edge
+    prep = generate(img, mask=torch.from_numpy(cut.astype(np.float32)), settings=FAST, preview=True,
+                    report=lambda s: None)
+    assert prep.support.hold and prep.support.edges == ("bottom",)
+    assert any("Anchor" == type(c).__name__ for c in prep.conditions)
+    assert prep.conditions.ground().height == pytest.approx(-0.3)
+    off = generate(img, mask=torch.from_numpy(cut.astype(np.float32)), settings=FAST, preview=True,
+                   hold_edges=False, report=lambda s: None)
+    assert not any("Anchor" == type(c).__name__ for c in off.conditions)
