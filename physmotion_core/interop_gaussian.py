@@ -38,7 +38,7 @@ from typing import Any, Callable, Optional, Sequence
 import torch
 
 from .errors import InputError
-from .memory import fmt_bytes, host_available_bytes
+from .memory import host_available_bytes
 from .types.gaussians import Gaussians
 from .types.results import SimResult
 

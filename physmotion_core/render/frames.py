@@ -10,7 +10,7 @@ from typing import Callable, Optional
 import torch
 
 from ..errors import InputError
-from ..memory import fmt_bytes, host_available_bytes
+from ..memory import host_available_bytes
 from ..progress import ProgressFn, report
 from ..types.camera import Camera
 from ..types.results import FrameSet, SimResult

@@ -12,7 +12,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError
-from ..memory import device_available_bytes, fmt_bytes, host_available_bytes
+from ..memory import device_available_bytes, host_available_bytes
 from ..progress import ProgressFn, Throttle
 from ..types.camera import Camera
 from ..types.conditions import Anchor, Conditions, InitialVelocity, Torque
