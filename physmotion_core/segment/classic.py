@@ -589,12 +589,13 @@ def _inpaint_multiscale(img: np.ndarray, hole: np.ndarray, radius: float, flags:
 
 
 def inpaint_background(image, mask, *, dilate_px: Optional[int] = None, radius: float = 5.0,
-                       method: str = "telea", max_side: int = INPAINT_MAX_SIDE) -> torch.Tensor:
+                       method: str = "harmonic", max_side: int = INPAINT_MAX_SIDE) -> torch.Tensor:
     """The image with the object's region (mask dilated by ``dilate_px``) filled from around it.
 
     Dilating first removes the object's halo (anti-aliased or shadowed edge pixels). Only pixels
-    inside the dilated mask change; every other pixel is bit-identical to the input. Wide holes
-    are filled coarse-to-fine (see ``COARSE_HOLE_DEPTH``); images larger than ``max_side`` are
+    inside the dilated mask change; every other pixel is bit-identical to the input. ``method``:
+    "harmonic" (default) or "patch" (``physmotion_core.inpaint.fill_hole``), or OpenCV's "telea"/"ns",
+    whose wide holes are filled coarse-to-fine (see ``COARSE_HOLE_DEPTH``); images larger than ``max_side`` are
     inpainted at reduced size and only the filled region is upsampled, so a 4k photo costs about
     what a 1k photo does.
     """
@@ -603,9 +604,17 @@ def inpaint_background(image, mask, *, dilate_px: Optional[int] = None, radius: 
     m = as_mask_array(mask, (H, W)) > 0.5
     if not m.any():
         raise InputError("Cannot inpaint the background: the mask is empty (no object pixels)")
-    flags = {"telea": cv2.INPAINT_TELEA, "ns": cv2.INPAINT_NS}.get(str(method).lower())
-    if flags is None:
-        raise InputError(f"inpaint method must be 'telea' or 'ns'; got {method!r}")
+    method = str(method).lower()
+    flags = {"telea": cv2.INPAINT_TELEA, "ns": cv2.INPAINT_NS}.get(method)
+    if flags is None and method not in ("harmonic", "patch"):
+        raise InputError(f"inpaint method must be 'harmonic', 'patch', 'telea' or 'ns'; got {method!r}")
+
+    def fill(im, ho):  # harmonic/patch: physmotion_core.inpaint (docs/quality.md, "Background fill")
+        if flags is None:
+            from ..inpaint import fill_hole
+
+            return fill_hole(im, ho, method)
+        return _inpaint_multiscale(im, ho, radius, flags)
     if dilate_px is None:
         dilate_px = default_dilate_px(H, W)
     dilate_px = int(dilate_px)
@@ -623,14 +632,14 @@ def inpaint_background(image, mask, *, dilate_px: Optional[int] = None, radius: 
                          "from. Use a tighter mask, or a smaller dilate_px.")
     small, scale = _resize_to_max_side(img, max_side)
     if scale >= 1.0:
-        filled = _inpaint_multiscale(img, hole, radius, flags)
+        filled = fill(img, hole)
     else:
         h, w = small.shape[:2]
         hole_s = _grow_for_resampling(
             cv2.resize(hole.astype(np.float32), (w, h), interpolation=cv2.INTER_AREA) > 0)
         if hole_s.all():
             raise InputError("Cannot inpaint the background: the object covers nearly the whole image")
-        filled_s = _inpaint_multiscale(small, hole_s, radius, flags)
+        filled_s = fill(small, hole_s)
         filled = _resample_region(filled_s, (H, W), hole, img, cv2.INTER_LINEAR)
     out = np.where(hole[:, :, None], filled, img)
     return torch.from_numpy(np.ascontiguousarray(out.astype(np.float32)))
@@ -664,7 +673,7 @@ def segment(image, *, alpha=None, mask=None, box: Optional[Sequence[float]] = No
             points=None, point_labels=None,
             method: str = "auto", grabcut_iters: int = 5, inpaint_radius: float = 5.0,
             dilate_px: Optional[int] = None, clean: Optional[bool] = None,
-            inpaint_method: str = "telea") -> Segmentation:
+            inpaint_method: str = "harmonic") -> Segmentation:
     """Cut the object out of ``image`` (H,W,3) and inpaint the background behind it.
 
     method:
