@@ -9,7 +9,7 @@ benchmarks/data/segment/ (README.md there says how they were made). For each pho
 prompt the table gives the mask IoU with the reference, ``check_mask``'s verdict (with the photo,
 as a run with an automatic mask would check it) and the time of ``segment`` (GrabCut, clean-up and
 background inpainting). A contact sheet of the overlays (``mask_overlay``: outline, clicks, box;
-filled background) goes to docs/quality_segment.png. The last line times a 1024 px photo.
+filled background) goes to docs/quality_segment.jpg. The last line times a 1024 px photo.
 """
 
 from __future__ import annotations
@@ -28,7 +28,7 @@ from physmotion_core.segment import check_mask, mask_overlay, segment
 DATA = Path(__file__).resolve().parent / "data" / "segment"
 PHOTOS = ["chelsea", "rocket", "astronaut", "coffee", "motorcycle", "cameraman", "clock", "cell"]
 MODES = ("auto", "point", "box")
-SHEET = "quality_segment.png"
+SHEET = "quality_segment.jpg"
 
 
 def load_photo(name: str) -> np.ndarray:
@@ -63,7 +63,7 @@ def run_one(image: np.ndarray, mode: str, prompt: dict):
     return seg, m, report, dt, kw
 
 
-def thumbnail(overlay: np.ndarray, label: str, height: int = 150) -> np.ndarray:
+def thumbnail(overlay: np.ndarray, label: str, height: int = 130) -> np.ndarray:
     h, w = overlay.shape[:2]
     t = cv2.resize(overlay, (int(round(w * height / h)), height), interpolation=cv2.INTER_AREA)
     t = (np.clip(t, 0, 1) * 255 + 0.5).astype(np.uint8)
@@ -133,9 +133,7 @@ def main() -> None:
         return
     width = max(t.shape[1] for t in tiles)
     sheet = np.vstack([np.pad(t, ((0, 0), (0, width - t.shape[1]), (0, 0))) for t in tiles])
-    # Thumbnails: colours quantised to 64 levels per channel keep the PNG small.
-    sheet = (sheet // 4) * 4 + 2
-    cv2.imwrite(str(DOCS / SHEET), np.ascontiguousarray(sheet[:, :, ::-1]), [cv2.IMWRITE_PNG_COMPRESSION, 9])
+    cv2.imwrite(str(DOCS / SHEET), np.ascontiguousarray(sheet[:, :, ::-1]), [cv2.IMWRITE_JPEG_QUALITY, 80])
     md = [
         "## Segmentation without weights (GrabCut): automatic, one click, one box",
         "",
