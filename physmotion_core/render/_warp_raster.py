@@ -115,6 +115,20 @@ if (Q == 1) {
         o[4 * x + 3] += w * f3;
         ar[x] += w;
     }
+} else if (Q == 2) {  // colour + depth + up to 4 more channels (the photo texture's): vectorised as Q == 1
+    const float f0 = f[0], f1 = f[1], f2 = f[2], f3 = f[3], f4 = f[4], f5 = f[5], f6 = f[6], f7 = f[7];
+    for (int x = x0; x <= x1; ++x) {
+        float w = weight(x, Tr[x], died);
+        o[8 * x] += w * f0;
+        o[8 * x + 1] += w * f1;
+        o[8 * x + 2] += w * f2;
+        o[8 * x + 3] += w * f3;
+        o[8 * x + 4] += w * f4;
+        o[8 * x + 5] += w * f5;
+        o[8 * x + 6] += w * f6;
+        o[8 * x + 7] += w * f7;
+        ar[x] += w;
+    }
 } else {
     const int K = 4 * Q;
     for (int x = x0; x <= x1; ++x) {

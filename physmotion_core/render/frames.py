@@ -184,7 +184,7 @@ def render_frames(sim: SimResult, camera: Camera, *, device: Optional[torch.devi
                 else:
                     feats, one = poser.features(k, g)
                     out = rasterize(g.to(dev), camera, extra_features=feats.to(dev), backend=backend)
-                    rgb[k], alpha[k] = poser.shade(out, one)
+                    poser.shade(out, one, into=(rgb[k], alpha[k]))
                 depth[k] = out.depth.cpu()
                 done(k)
 

@@ -5,21 +5,27 @@ frame 0 is visibly not the photo, and the object's detail is lost the moment it 
 pixel asks which point of the object it shows, where that point was at rest (frame 0) and where the photo
 shows it, and reads the photo there:
 
-* Each Gaussian moves from frame t back to frame 0 by an affine map x -> A x + b (``controls._flow_maps``:
-  A = R L_0 L_t^-1 Rᵀ of the deformation its splat follows, in camera coordinates). As the exact flow does
-  (``controls._flow_features``), the 9 numbers G = [z A | z A e_z + b] composited like colour give, at pixel
-  p, the rest-pose surface point X_0 = G(p) r(p) / Σw, r(p) the pixel's ray: exact for rigid motion, first
-  order in the splat size for deforming material. A frame whose splats all move by one map (a rigid body, a
-  still frame: ``controls._one_map``) needs no channels: X_0 = A (depth · r) + b.
-* X_0, projected through the camera that took the photo, is the photo coordinate; the photo is sampled there
-  bilinearly (exact at frame 0: the maps are the identity and the coordinate is the pixel's own centre).
+* A frame whose splats all go back to rest by one affine map x -> A x + b (a rigid body, a still frame:
+  ``controls._one_map`` on ``controls._flow_maps``, A = R L_0 L_t^-1 Rᵀ of the deformation each splat follows,
+  in camera coordinates) needs no channel for it: the rendered surface point (depth times the pixel's ray)
+  taken back by the map, X_0 = A (depth · r) + b, projected through the camera that took the photo, is the
+  photo coordinate. Exact.
+* Otherwise (deforming material) each splat carries Δ_i, from where its centre is now to where the photo
+  shows its centre at rest (photo pixels), composited like colour over the seen splats: the pixel p reads the
+  photo at p + Σ w s Δ / Σ w s. Exact for translation; for deformation the interpolated displacement field is
+  first order in the splat size (its error is the local strain times the distance from p to the blended
+  centre, a fraction of a pixel). Two channels instead of the nine an exact 3D map needs
+  (``controls._flow_features``), so the compiled compositor keeps its vectorised path: the texture costs
+  little more than the splat render.
+* The photo is sampled there bicubically (exact at frame 0: the maps are the identity and the coordinate is
+  the pixel's own centre; a surface moved by a fraction of a pixel keeps its detail).
 * Which splats the photo saw ("seen", per Gaussian, in [0, 1]) comes from a depth test in the input view at
   rest (``seen_weights``): a splat whose centre lies on the rendered front surface was photographed, one
   behind it (the back, a hidden side, the inside a tear opens) was not. It is composited as a channel too
-  (and the G channels are weighted by it, so the photo coordinate comes from seen splats only); a pixel
+  (and the Δ channels are weighted by it, so the photo coordinate comes from seen splats only); a pixel
   shows the photo in proportion to the seen splats' share of it and the splats' own colours for the rest,
   so photo and Gaussian colours meet across the splats' own soft footprints, with no seam.
-* Coverage follows the photo's matte for the seen part: alpha = s·m(X_0) + (1 − s)·alpha_splats, and the
+* Coverage follows the photo's matte for the seen part: alpha = s·m(uv_0) + (1 − s)·alpha_splats, and the
   photo's colour is its premultiplied foreground (the matting equation solved with the inpainted background,
   ``make_photo_texture``), so frame 0 composited over that background is the photo itself, soft edge included.
 """
@@ -144,10 +150,11 @@ def seen_weights(gaussians: Gaussians, camera: Camera, *, backend: str = "auto")
     return s.float()
 
 
-def texture_features(seen: torch.Tensor, G: Optional[torch.Tensor]) -> torch.Tensor:
-    """The per-Gaussian channels a textured frame composites: s·G (9, when each splat has its own map) and s."""
+def texture_features(seen: torch.Tensor, shift: Optional[torch.Tensor]) -> torch.Tensor:
+    """The per-Gaussian channels a textured frame composites: s·Δ (2, when each splat has its own map: Δ from
+    where its centre is now to where the photo shows it, in photo pixels) and s."""
     s = seen.reshape(-1, 1)
-    return s if G is None else torch.cat([G * s.to(G.dtype), s.to(G.dtype)], 1)
+    return s if shift is None else torch.cat([shift * s.to(shift.dtype), s.to(shift.dtype)], 1)
 
 
 def _ray_grid(camera: Camera, y0: int, y1: int, x0: int, x1: int) -> torch.Tensor:
@@ -165,47 +172,74 @@ def _to_photo_camera(camera: Camera, photo_camera: Camera) -> tuple[torch.Tensor
     return M, b[:3, 3] - M @ a[:3, 3]
 
 
+def _render_to_photo_px(camera: Camera, photo_camera: Camera, r: torch.Tensor):
+    """The photo-camera pixel coordinates of the render pixels whose rays are ``r`` (…,3), for a render camera that
+    is the photo's camera (possibly resized): its intrinsics applied to the ray."""
+    return photo_camera.fx * r[..., 0] + photo_camera.cx, photo_camera.fy * r[..., 1] + photo_camera.cy
+
+
+def _texture_planes(texture: PhotoTexture) -> torch.Tensor:
+    """(1,4,H,W): premultiplied colour and matte as one image for ``grid_sample`` (made once per texture)."""
+    planes = texture.__dict__.get("_planes")
+    if planes is None:
+        planes = torch.cat([texture.premult, texture.matte[..., None]], -1).permute(2, 0, 1)[None].contiguous()
+        texture.__dict__["_planes"] = planes
+    return planes
+
+
 def shade(texture: PhotoTexture, camera: Camera, rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor,
-          extra: torch.Tensor, one_map=None) -> tuple[torch.Tensor, torch.Tensor]:
+          extra: torch.Tensor, one_map=None, into: Optional[tuple] = None) -> tuple[torch.Tensor, torch.Tensor]:
     """A frame's premultiplied colour and alpha with the photo texture: ``rgb``, ``alpha``, ``depth`` the splat
-    render (H,W[,3]), ``extra`` its composited ``texture_features`` (H,W,1 or 10), ``one_map`` (A, b) when every
-    splat goes back to rest by that one map (then ``extra`` holds s only). Returns new tensors (CPU, float32)."""
-    rgb, alpha, depth, extra = rgb.float().cpu(), alpha.float().cpu(), depth.float().cpu(), extra.float().cpu()
+    render (H,W[,3]), ``extra`` its composited ``texture_features`` (H,W,1 or 3), ``one_map`` (A, b) when every
+    splat goes back to rest by that one map (then ``extra`` holds s only). Written into ``into`` (colour, alpha
+    tensors of the frame's shape) when given, else into new tensors; returned (CPU, float32)."""
+    rgb, alpha, extra = rgb.float().cpu(), alpha.float().cpu(), extra.float().cpu()
+    if into is None:
+        out_rgb, out_a = rgb.clone(), alpha.clone()
+    else:
+        out_rgb, out_a = into
+        out_rgb.copy_(rgb)
+        out_a.copy_(alpha)
     S = extra[..., -1]
     has = S > 1e-6
     rows, cols = has.any(1).nonzero(), has.any(0).nonzero()
-    out_rgb, out_a = rgb.clone(), alpha.clone()
     if rows.numel() == 0:
         return out_rgb, out_a
     y0, y1, x0, x1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
-    a = alpha[y0:y1, x0:x1].double()
-    Sb = S[y0:y1, x0:x1].double()
+    a = alpha[y0:y1, x0:x1]
+    Sb = S[y0:y1, x0:x1]
     r = _ray_grid(camera, y0, y1, x0, x1)
-    if one_map is not None:
-        A0, b0 = one_map
-        X = depth[y0:y1, x0:x1].double()[..., None] * (r @ A0.double().T) + b0.double()
-    else:
-        e = (extra[y0:y1, x0:x1, :9].double() / Sb.clamp_min(1e-12)[..., None]).view(y1 - y0, x1 - x0, 3, 3)
-        X = e[..., 0] * r[..., 0:1] + e[..., 1] * r[..., 1:2] + e[..., 2]
     pc = texture.camera
-    M, c = _to_photo_camera(camera, pc)
-    Xp = X @ M.T + c
-    zp = Xp[..., 2]
-    front = zp > 1e-9
-    zs = torch.where(front, zp, torch.ones_like(zp))
-    u = pc.fx * Xp[..., 0] / zs + pc.cx
-    v = pc.fy * Xp[..., 1] / zs + pc.cy
+    if one_map is not None:  # exact: the rendered surface point taken back to rest by the one map, projected
+        A0, b0 = one_map
+        M, c = _to_photo_camera(camera, pc)
+        A = (M @ A0.double()).float()
+        X = depth[y0:y1, x0:x1].float().cpu()[..., None] * (r.float() @ A.T) + (M @ b0.double() + c).float()
+        zp = X[..., 2]
+        front = zp > 1e-9
+        zs = torch.where(front, zp, torch.ones_like(zp))
+        u = pc.fx * X[..., 0] / zs + pc.cx
+        v = pc.fy * X[..., 1] / zs + pc.cy
+    else:  # the seen splats' blended displacement from where they are now to where the photo shows them
+        d = extra[y0:y1, x0:x1, :2] / Sb.clamp_min(1e-12)[..., None]
+        px, py = _render_to_photo_px(camera, pc, r.float())
+        u, v = px + d[..., 0], py + d[..., 1]
+        front = None
     Ht, Wt = texture.height, texture.width
-    grid = torch.stack([2.0 * u / Wt - 1.0, 2.0 * v / Ht - 1.0], -1).float()
-    tex = torch.cat([texture.premult, texture.matte[..., None]], -1).permute(2, 0, 1)[None]
-    smp = torch.nn.functional.grid_sample(tex, grid[None], mode="bilinear", padding_mode="zeros",
-                                          align_corners=False)[0].permute(1, 2, 0).double()
+    grid = torch.stack([u * (2.0 / Wt) - 1.0, v * (2.0 / Ht) - 1.0], -1)
+    # Bicubic: a surface moved by a fraction of a pixel keeps its detail (bilinear sampling halves the high-pass
+    # energy at half-pixel offsets: 0.60 of the photo's over a jelly's clip against 0.90, docs/quality.md); its
+    # overshoot is clamped (coverage to 0..1, premultiplied colour to 0..coverage).
+    smp = torch.nn.functional.grid_sample(_texture_planes(texture), grid[None], mode="bicubic",
+                                          padding_mode="zeros", align_corners=False)[0]
+    smp[3].clamp_(0.0, 1.0)
+    smp[:3] = torch.minimum(smp[:3].clamp_(min=0.0), smp[3:4])
     # The photo's share of the pixel: the seen splats' share of its coverage, ramped in over faint tails.
-    w = (Sb / a.clamp_min(1e-12)).clamp(0.0, 1.0) * (a / MIN_COVERAGE).clamp(0.0, 1.0)
-    w = torch.where(has[y0:y1, x0:x1] & front, w, torch.zeros_like(w))
-    m_s = smp[..., 3]
-    out_a[y0:y1, x0:x1] = (w * m_s + (1.0 - w) * a).float()
-    out_rgb[y0:y1, x0:x1] = (w[..., None] * smp[..., :3] + (1.0 - w)[..., None] * rgb[y0:y1, x0:x1].double()).float()
+    w = (Sb / a.clamp_min(1e-12)).clamp_(0.0, 1.0).mul_((a * (1.0 / MIN_COVERAGE)).clamp(0.0, 1.0))
+    w = w.masked_fill_(~has[y0:y1, x0:x1] if front is None else ~(has[y0:y1, x0:x1] & front), 0.0)
+    keep = 1.0 - w
+    out_a[y0:y1, x0:x1] = w * smp[3] + keep * a
+    out_rgb[y0:y1, x0:x1] = (w[None] * smp[:3]).permute(1, 2, 0) + keep[..., None] * rgb[y0:y1, x0:x1]
     return out_rgb, out_a
 
 
@@ -225,24 +259,58 @@ class TexturedPoser:
         self.w2c = camera.w2c_opencv().double()
         self.mu0 = g0.means.double()
         self.L0 = _splat_linear_part(sim, 0)
+        self._bound = None
+        # Where the photo shows each splat's centre at rest (photo pixels).
+        pw = texture.camera.w2c_opencv().double()
+        mc = self.mu0 @ pw[:3, :3].T + pw[:3, 3]
+        z = mc[:, 2].clamp_min(1e-9)
+        pc = texture.camera
+        self.uv0 = torch.stack([pc.fx * mc[:, 0] / z + pc.cx, pc.fy * mc[:, 1] / z + pc.cy], 1)
 
     def features(self, frame: int, g: Gaussians):
         """(extra_features for ``rasterize``, one_map or None) of frame ``frame`` posed as ``g``."""
         from .. import controls as C
 
         L = C._splat_linear_part(self.sim, frame)
-        maps = C._flow_maps(self.sim, self.w2c, g.means.double(), L, self.mu0, self.L0)
-        one = C._one_map(*maps, self.camera) if C.ONE_MAP_FLOW else None
-        G = None
+        R, t = self.w2c[:3, :3], self.w2c[:3, 3]
+        ms = g.means.double() @ R.T + t  # the centres now, render-camera coordinates
+        one = None
+        if C.ONE_MAP_FLOW and not self._clearly_deformed(L, ms):
+            one = C._one_map(*C._flow_maps(self.sim, self.w2c, g.means.double(), L, self.mu0, self.L0), self.camera)
+        shift = None
         if one is None:
-            A, b, ms = maps
-            G = A * ms[:, 2, None, None]
-            G[:, :, 2] += b
-            G = G.reshape(-1, 9)
-        return texture_features(self.seen.to(torch.float64), G).to(g.means.dtype).to(g.means.device), one
+            z = ms[:, 2].clamp_min(1e-9)
+            r = torch.stack([ms[:, 0] / z, ms[:, 1] / z, torch.ones_like(z)], 1)
+            px, py = _render_to_photo_px(self.camera, self.texture.camera, r)
+            shift = self.uv0 - torch.stack([px, py], 1)
+        return texture_features(self.seen.to(torch.float64), shift).to(g.means.dtype).to(g.means.device), one
 
-    def shade(self, out, one) -> tuple[torch.Tensor, torch.Tensor]:
-        return shade(self.texture, self.camera, out.rgb, out.alpha, out.depth, out.extra, one)
+    def _clearly_deformed(self, L: torch.Tensor, ms: torch.Tensor) -> bool:
+        """Whether the particles' linear maps back to rest differ so much that no single map can move every splat
+        (``controls._one_map``'s test, on the particles' maps alone, by a margin of 10): then the frame needs
+        the per-splat channels and the per-Gaussian maps are never formed."""
+        if self._bound is None:
+            self._bound = torch.unique(self.sim.binding)
+        A = (self.L0[self._bound] @ _inverse_maps(L[self._bound]))
+        dA = float((A - A.mean(0)).flatten(1).norm(dim=1).max()) if A.shape[0] else 0.0
+        z = ms[:, 2]
+        near = float(z[z > 0].min()) if bool((z > 0).any()) else 0.0
+        if near <= 0.0:
+            return False
+        from .. import controls as C
+
+        err_px = max(self.camera.fx, self.camera.fy) / near * dA * float(ms.norm(dim=1).max())
+        return err_px > 10.0 * C.ONE_MAP_TOLERANCE_PX
+
+    def shade(self, out, one, into: Optional[tuple] = None) -> tuple[torch.Tensor, torch.Tensor]:
+        return shade(self.texture, self.camera, out.rgb, out.alpha, out.depth, out.extra, one, into)
+
+
+def _inverse_maps(L: torch.Tensor) -> torch.Tensor:
+    """(N,3,3) inverses (controls._inverse: the pseudo-inverse where singular)."""
+    from ..controls import _inverse
+
+    return _inverse(L)
 
 
 def with_camera(texture: PhotoTexture, camera: Camera) -> PhotoTexture:
