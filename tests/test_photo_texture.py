@@ -224,3 +224,19 @@ def test_render_node_takes_the_photo_as_an_optional_input(tmp_path, monkeypatch)
     # texture="splat" keeps the splats' colours even with the photo connected.
     rgb3, _, _ = node.run(sim, cam, 0, 0, photo=photo[None], texture="splat")["result"]
     assert torch.equal(rgb3, ref.rgb)
+
+
+@pytest.mark.parametrize("extra", [1, 3, 4, 5])
+def test_compiled_compositing_of_a_few_extra_channels_matches_the_tensor_path(extra):
+    """The compiled compositor's vectorised path for 5-8 channels (colour, depth and up to 4 more: the photo
+    texture's) against the PyTorch rasterizer, and its general path just past it."""
+    from physmotion_core.render.rasterize import rasterize
+
+    cam = slab_camera()
+    g = slab(cam, texture_image(), spacing=0.012)
+    f = torch.rand(g.means.shape[0], extra, generator=torch.Generator().manual_seed(extra))
+    a = rasterize(g, cam, extra_features=f, backend="warp")
+    b = rasterize(g, cam, extra_features=f, backend="torch")
+    assert a.backend == "warp"
+    for x, y in ((a.rgb, b.rgb), (a.alpha, b.alpha), (a.extra, b.extra)):
+        assert float((x - y).abs().max()) < 1e-5
