@@ -426,3 +426,25 @@ def test_sheared_layer_on_sticky_ground_slows_at_its_stated_viscosity(model):
     k2 = (math.pi / (2 * H)) ** 2
     expected = maxwell_decay_rate(mat.viscosity, mat.mu if model == "viscoplastic" else math.inf, mat.density, k2)
     assert rate == pytest.approx(expected, rel=0.12)
+
+
+@pytest.mark.parametrize("degrees", [24.2, 30.0])
+def test_rigid_block_on_a_coulomb_slope_holds_below_mu_and_slides_at_the_right_rate_above(degrees):
+    # Issue 37. The slope is gravity tilted by θ about z (downhill +x), the ground Coulomb μ = 0.5,
+    # which holds up to tan θ = μ (26.6°). At 24.2° (0.9 μ) the block must travel under half a cell
+    # in 1 s (measured 0.12 cell, MPMSolver; the rest of the grid's settling); at 30° it slides with
+    # a = g (sin θ − μ cos θ) = 0.657 m/s², so travels a t²/2 from rest: 5 % covers the first frame,
+    # where it settles onto the ground (measured 0.03 % by the validate case's fit).
+    th = math.radians(degrees)
+    cube = lattice((-0.05, 0.0, -0.05), (0.05, 0.05, 0.05), (9, 5, 9))
+    g = Gravity((9.81 * math.sin(th), -9.81 * math.cos(th), 0.0))
+    res = simulate(cube, Material.preset("rigid"), Conditions([g, Ground(0.0, "friction", 0.5)]),
+                   SimSettings(frames=11, fps=10, grid_res=10, domain_margin=4.0, rest_speed=0.0), record_all=True)
+    x = res.x.numpy().astype(np.float64)
+    travel = x[:, :, 0].mean(1) - x[0, :, 0].mean()
+    if degrees < 26.0:
+        assert abs(travel[-1]) < 0.5 * res.stats["dx"]
+    else:
+        t = res.times.numpy()
+        a = 9.81 * (math.sin(th) - 0.5 * math.cos(th))
+        assert travel[-1] == pytest.approx(0.5 * a * t[-1] ** 2, rel=0.05)

@@ -338,6 +338,8 @@ class MPMSolver:
         _fit_layers at the first launch."""
         wp, dims = self.wp, self.domain.dims
         self.grid_v = wp.zeros(dims, dtype=wp.vec3)
+        # The masses of the nodes at and below the ground plane (kernels.ground_contact).
+        self.ground_m = wp.zeros((dims[0], max(self.domain.ground_node + 1, 1), dims[2]), dtype=float)
         self.layers = 1
         self._layer_lo = (0, 0, 0)
         self._layer_hi = tuple(int(d) - 1 for d in dims)
@@ -747,9 +749,12 @@ class MPMSolver:
         slabs = self._grid_slabs(span_lo, dims)
         k_end = int(span_hi[2]) + 1
         prog.append((K.grid_update, [self._cmd(K.grid_update, slab_dims, [
-            self.grid_m, self.grid_mv, self.grid_v, self.grid_fix, self.grid_fix_v, slab_lo, self.grid, self.bc,
-            self._gravity_w, self.dt_arr, self.layer_box, self._layer_lo_w, run, k_end, int(anchors), alo, ahi])
+            self.grid_m, self.grid_mv, self.grid_v, self.grid_fix, self.grid_fix_v, self.ground_m, slab_lo, self.grid,
+            self.bc, self._gravity_w, self.dt_arr, self.layer_box, self._layer_lo_w, run, k_end, int(anchors), alo, ahi])
             for slab_dims, slab_lo, run in slabs], True))
+        if self.ground is not None and span_lo[1] <= self.domain.ground_node:
+            step(K.ground_contact, (dims[0], dims[2]), [self.grid_v, self.ground_m, self.grid_mv, lo, self.bc,
+                                                        self._layer_lo_w, int(anchors), alo, ahi])
         if anchors:
             # The anchored nodes, from the sums grid_update left in layer 0 (kernels.anchor_update), over the
             # anchor's span only: elsewhere no node is held or next to a held one, and these passes change nothing.
