@@ -128,6 +128,9 @@ def checked_segmentation(seg, prompted: bool, obj_pts=(), bg_pts=(), box=None) -
         enforce_plausible(report, prompted=prompted, overlay=(temp_directory() / shown) if shown else None,
                           how_to_fix=NODE_HOW_TO_FIX)
     log.info("mask: %s", "; ".join(report.summary_lines()))
+    if not prompted:
+        log.warning("the object was picked automatically (no point, box or mask): check the overlay in the Segment "
+                    "node; click on the object (or drag a box) in the node if it is not the one you mean")
     return {"ui": preview, "result": (seg.foreground[None], seg.mask[None], seg.background[None], overlay[None])}
 
 

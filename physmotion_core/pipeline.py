@@ -403,7 +403,7 @@ def prepare(
     mask_report = check_mask(seg.mask, object_points=obj_pts, background_points=bg_pts, force_points=force_pts,
                              image=seg.image)
     overlay_path = Path(overlay) if overlay is not None else None
-    if overlay_path is None and not mask_report.ok:
+    if overlay_path is None and (not mask_report.ok or not given):
         overlay_path = _overlay_default(output)
     if overlay_path is not None:
         from .fsutil import protect_inputs
@@ -416,6 +416,15 @@ def prepare(
     if overlay_path is not None:
         say(f"mask overlay: {overlay_path}")
     enforce_plausible(mask_report, prompted=given, overlay=overlay_path, how_to_fix=CLI_HOW_TO_FIX)
+    if not given:
+        # Without weights the automatic pick is a guess that passes the checks above on most wrong
+        # objects but not all (docs/quality.md): always say so, and where to look.
+        where = (f"look at {overlay_path}" if overlay_path is not None
+                 else "look at it first with `physmotion segment IMAGE -o overlay.png`")
+        text = (f"the object was picked automatically ({stages['segment']}, no point, box or mask given): {where}. "
+                "If it is not the object you mean, give --object-point U,V or --box X0,Y0,X1,Y1.")
+        log.warning("%s", text)
+        say("warning: " + text)
 
     # What holds it up: the ground, or the frame's edge where the photo cuts it off.
     from .support import plan_support

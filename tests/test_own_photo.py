@@ -45,6 +45,7 @@ def test_preview_stops_before_simulating_and_tells_mass_support_and_forecast(mon
     assert said == prep.lines
     text = "\n".join(said)
     assert "mask (grabcut)" in text
+    assert "picked automatically" in text and str(tmp_path / "ov.png") in text
     assert "ground: under the object's lowest visible point" in text
     assert "object height: 0.3 m (assumed)" in text
     assert "force 1: 5 N" in text and "Δv" in text and "static friction" in text
@@ -86,6 +87,7 @@ def test_the_same_mask_with_a_prompt_only_warns(monkeypatch, tmp_path, caplog):
         prep = generate(img, settings=FAST, preview=True, box=(0, 0, W, H), report=lambda s: None)
     assert not prep.mask_report.ok
     assert caplog.records, "a prompted implausible mask must be warned about"
+    assert not any("picked automatically" in r.getMessage() for r in caplog.records)
 
 
 def test_prompts_reach_grabcut_in_the_scaled_photo(monkeypatch):

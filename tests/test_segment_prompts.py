@@ -222,3 +222,77 @@ def test_overlay_shape_outline_and_markers(tmp_path):
     back = cv2.imread(str(p))
     assert back.shape == (h, 2 * w, 3)
     assert not list(tmp_path.glob("*.tmp*"))
+
+
+# -- box tightness and the click's two candidates (issue 33, the benchmark's failures) -------------
+
+
+def _rocket_like():
+    """A white body with a yellow nose on a dark sky, and a box drawn around both."""
+    rng = np.random.default_rng(0)
+    H, W = 200, 160
+    img = np.zeros((H, W, 3), np.float32)
+    img[:] = (0.1, 0.12, 0.3)
+    img += 0.02 * rng.standard_normal(img.shape).astype(np.float32)
+    img[80:180, 60:100] = (0.9, 0.9, 0.85)
+    img[40:80, 66:94] = (0.6, 0.6, 0.2)
+    ref = np.zeros((H, W), bool)
+    ref[80:180, 60:100] = True
+    ref[40:80, 66:94] = True
+    return np.clip(img, 0, 1), ref, (52, 32, 108, 188)
+
+
+def test_box_tightness_puts_back_the_rows_a_cut_misses():
+    import cv2
+
+    from physmotion_core.segment import classic as C
+
+    img, ref, (x0, y0, x1, y1) = _rocket_like()
+    bgr = np.ascontiguousarray(C._to_u8(img)[:, :, ::-1])
+    gc = np.zeros(ref.shape, np.uint8)
+    bgd, fgd = np.zeros((1, 65)), np.zeros((1, 65))
+    cv2.setRNGSeed(C.GRABCUT_SEED)
+    cv2.grabCut(bgr, gc, (x0, y0, x1 - x0, y1 - y0), bgd, fgd, 5, cv2.GC_INIT_WITH_RECT)
+    gc[gc == cv2.GC_PR_FGD] = np.where(ref[gc == cv2.GC_PR_FGD] & (np.arange(ref.shape[0])[:, None] < 80)
+                                       .repeat(ref.shape[1], 1)[gc == cv2.GC_PR_FGD], cv2.GC_PR_BGD, cv2.GC_PR_FGD)
+    missed = (gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)
+    iou_missed = (missed & ref).sum() / (missed | ref).sum()
+    assert iou_missed < 0.8  # the nose is out
+    C._tighten_to_box(bgr, gc, bgd, fgd, (x0, y0, x1, y1), 5)
+    fg = (gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)
+    assert (fg & ref).sum() / (fg | ref).sum() > 0.95
+    # Only the object's rows and columns got seeds: none in the box's slack.
+    seeds = np.argwhere(gc == cv2.GC_FGD)
+    assert np.all(ref[seeds[:, 0], seeds[:, 1]])
+
+
+def test_box_tightness_leaves_a_side_on_the_image_border_alone():
+    import cv2
+
+    from physmotion_core.segment import classic as C
+
+    img, ref, _ = _rocket_like()
+    bgr = np.ascontiguousarray(C._to_u8(img)[:, :, ::-1])
+    gc = np.full(ref.shape, cv2.GC_BGD, np.uint8)
+    gc[ref] = cv2.GC_PR_FGD
+    bgd, fgd = np.zeros((1, 65)), np.zeros((1, 65))
+    cv2.setRNGSeed(C.GRABCUT_SEED)
+    cv2.grabCut(bgr, gc, None, bgd, fgd, 2, cv2.GC_INIT_WITH_MASK)
+    before = gc.copy()
+    # A box from the image's top edge: the rows above the nose are not "missed", the object may go on.
+    C._tighten_to_box(bgr, gc, bgd, fgd, (52, 0, 108, 188), 2)
+    assert not ((gc == cv2.GC_FGD) & (before != cv2.GC_FGD))[:36].any()
+
+
+def test_a_click_on_a_compact_object_finds_it_whole():
+    from physmotion_core.segment import segment
+
+    rng = np.random.default_rng(1)
+    H, W = 160, 200
+    img = 0.25 + 0.05 * rng.standard_normal((H, W, 3))
+    yy, xx = np.mgrid[:H, :W]
+    cell = (xx - 120) ** 2 + (yy - 90) ** 2 <= 18 ** 2
+    img[cell] = 0.85 + 0.03 * rng.standard_normal((int(cell.sum()), 3))
+    img = np.clip(img, 0, 1).astype(np.float32)
+    m = segment(img, points=[(120, 90)]).mask.numpy() > 0.5
+    assert (m & cell).sum() / (m | cell).sum() > 0.9
