@@ -77,8 +77,9 @@ class PhysMotionBlend:
         return {"required": {
             "rgb": ("IMAGE", {"tooltip": "Rendered frames (premultiplied colour) from PhysMotion Render."}),
             "alpha": ("MASK", {"tooltip": "Rendered coverage from PhysMotion Render."}),
-            "background": ("IMAGE", {"tooltip": "The inpainted background from PhysMotion Segment (one image, "
-                                                "or one per frame)."}),
+            "background": ("IMAGE", {"tooltip": "The background: PhysMotion Segment's, PhysMotion Fill "
+                                                "Background's or any inpainting node's IMAGE (one image, or one "
+                                                "per frame)."}),
         }, "optional": {
             "fps": ("FLOAT", {"default": 24.0, "min": 1.0, "max": 1000.0, "step": 1.0,
                               "tooltip": "Frame rate of the preview clip only (the frames themselves carry no rate)."}),
@@ -115,6 +116,39 @@ class PhysMotionBlend:
                 bg = bg[0]
         out = composite(rgb, alpha, bg)
         return {"ui": preview_video(out, float(fps), "PhysMotion_blend"), "result": (out,)}
+
+
+class PhysMotionFillBackground:
+    """Fill the object's region of the photo from around it: the background the object uncovers."""
+
+    @classmethod
+    def INPUT_TYPES(cls):
+        return {"required": {
+            "image": ("IMAGE", {"tooltip": "The photo (the first image of a batch)."}),
+            "mask": ("MASK", {"tooltip": "The object's mask; a soft matte's whole extent is filled."}),
+            "method": (["harmonic", "patch", "telea", "ns"], {
+                "default": "harmonic",
+                "tooltip": "harmonic: smooth membrane fill, closest to the truth on average (docs/quality.md); "
+                           "patch: copies the photo's own patches (texture, slower); telea / ns: OpenCV's fills."}),
+            "grow_px": ("INT", {"default": -1, "min": -1, "max": 256,
+                                "tooltip": "Pixels the hole is grown past the mask (the object's halo); -1 = "
+                                           "automatic (0.6 % of the long side)."}),
+        }}
+
+    DESCRIPTION = ("Fills the object's region of the photo from the pixels around it, without weights. Its IMAGE "
+                   "goes to PhysMotion Blend's background; so can any inpainting node's.")
+    RETURN_TYPES = ("IMAGE",)
+    RETURN_NAMES = ("background",)
+    FUNCTION = "run"
+    CATEGORY = f"{CATEGORY}/render"
+
+    def run(self, image, mask, method, grow_px):
+        from physmotion_core.inpaint import inpaint_background
+
+        m = first_mask(mask)
+        out = inpaint_background(first_image(image, "image"), m, method=method,
+                                 dilate_px=None if int(grow_px) < 0 else int(grow_px))
+        return (out[None],)
 
 
 class PhysMotionSaveVideo:
@@ -172,10 +206,12 @@ def video_value(path):
 NODE_CLASS_MAPPINGS = {
     "PhysMotionRender": PhysMotionRender,
     "PhysMotionBlend": PhysMotionBlend,
+    "PhysMotionFillBackground": PhysMotionFillBackground,
     "PhysMotionSaveVideo": PhysMotionSaveVideo,
 }
 NODE_DISPLAY_NAME_MAPPINGS = {
     "PhysMotionRender": "PhysMotion Render",
     "PhysMotionBlend": "PhysMotion Blend over Background",
+    "PhysMotionFillBackground": "PhysMotion Fill Background",
     "PhysMotionSaveVideo": "PhysMotion Save Video (mp4)",
 }

@@ -34,6 +34,8 @@ FILL_METHODS = ("harmonic", "patch", "telea", "ns")
 PATCH_RADIUS = 3  # 7x7 patches
 COARSE_DEPTH = 3.0  # the pyramid's top is where the hole is about this many pixels deep
 MIN_COARSE_SIDE = 24
+COARSE_START = "harmonic"  # how the coarsest level is started before its patches are matched
+CONFIDENCE_DECAY = 1.3  # a patch's vote weight falls by this factor per pixel of depth into the hole (Wexler)
 
 
 def _diffusion(img: np.ndarray, hole: np.ndarray, flags: int, radius: float = 3.0) -> np.ndarray:
@@ -67,6 +69,7 @@ class _Level:
         touch = cv2.dilate(hp.astype(np.uint8), k) > 0
         touch[:r], touch[-r:], touch[:, :r], touch[:, -r:] = False, False, False, False
         self.ty, self.tx = np.nonzero(touch)  # target centres (padded coordinates)
+        self.depth = cv2.distanceTransform(hp.astype(np.uint8), cv2.DIST_L2, 3)  # 0 outside the hole
         self.sy_all, self.sx_all = np.nonzero(known_c)
         offs = np.arange(-r, r + 1, 2)  # a stride-2 subset of the patch for matching: 4x4 of 7x7
         self.moy, self.mox = [a.ravel() for a in np.meshgrid(offs, offs, indexing="ij")]
@@ -144,6 +147,8 @@ def _vote(L: _Level, sy: np.ndarray, sx: np.ndarray, d: np.ndarray) -> None:
     Hp, Wp = L.hole.shape
     sigma2 = max(float(np.percentile(d, 75)), 1e-6)
     w = np.exp(-d / (2.0 * sigma2)).astype(np.float64) + 1e-6
+    # Patches deeper in the hole copy less reliably (their own pixels are guesses): weighted down by depth.
+    w *= CONFIDENCE_DECAY ** (-L.depth[L.ty, L.tx])
     acc = np.zeros((Hp * Wp, 3))
     wsum = np.zeros(Hp * Wp)
     img = L.img
@@ -183,7 +188,7 @@ def patch_fill(img: np.ndarray, hole: np.ndarray, *, seed: int = 0, em_iters: in
     for li, (im, ho) in enumerate(levels):
         h, w = ho.shape
         if prev_img is None:
-            start = _diffusion(im, ho, cv2.INPAINT_TELEA)
+            start = smooth_fill(im, ho, 1) if COARSE_START == "harmonic" else _diffusion(im, ho, cv2.INPAINT_TELEA)
         else:
             up = cv2.resize(prev_img, (w, h), interpolation=cv2.INTER_LINEAR)
             start = np.where(ho[..., None], up, im).astype(np.float32)
@@ -325,7 +330,7 @@ def fill_hole(img: np.ndarray, hole: np.ndarray, method: str = "harmonic", *, se
 
 def inpaint_background(image, mask, *, dilate_px: Optional[int] = None, method: str = "harmonic",
                        max_side: int = 1024):
-    """The photo with the object's region (``mask`` > 0.5, grown by ``dilate_px``, default
+    """The photo with the object's region (``mask`` above 1/255: a soft matte's whole extent; grown by ``dilate_px``, default
     ``segment.classic.default_dilate_px``) filled by ``fill_hole``, as (H,W,3) float32 torch tensor; the same
     contract as ``segment.classic.inpaint_background`` (photos larger than ``max_side`` are filled at that
     size and only the hole is upsampled; pixels outside the hole are bit-identical to the input)."""
@@ -336,7 +341,8 @@ def inpaint_background(image, mask, *, dilate_px: Optional[int] = None, method: 
 
     img = as_image_array(image)
     H, W = img.shape[:2]
-    m = as_mask_array(mask, (H, W)) > 0.5
+    # A soft matte's faint edge still holds object colour: the hole covers its whole extent (as segment() does).
+    m = as_mask_array(mask, (H, W)) > 1.0 / 255.0
     if not m.any():
         raise InputError("Cannot inpaint the background: the mask is empty (no object pixels)")
     dilate_px = default_dilate_px(H, W) if dilate_px is None else int(dilate_px)

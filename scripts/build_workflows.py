@@ -23,6 +23,7 @@ TITLES = {  # friendlier titles for the core nodes in the templates
     "PhysMotionLoadGaussians": "Load your splat (.ply in output/, or an absolute path)",
     "PhysMotionSegment": "Segment: click the object, Shift-click background, drag a box (or connect any node's MASK)",
     "PhysMotionSAMSegment": "SAM Segment: click the object, Shift-click background, drag a box (or connect a MASK)",
+    "PhysMotionFillBackground": "Fill the background (or wire any inpainting node's IMAGE into Blend instead)",
 }
 # Nodes with the force/torque picker (web/force_picker.js) or the segmentation picker
 # (web/segment_picker.js) are taller: their widgets plus the photo.
