@@ -429,6 +429,17 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         previous = None
     try:
         return _main(argv)
+    except BrokenPipeError:
+        # The reader went away (`physmotion batch --list | head`): nothing more to say, and nothing
+        # is wrong with the disk. Point stdout at /dev/null so the interpreter's final flush is quiet.
+        import os
+
+        try:
+            devnull = os.open(os.devnull, os.O_WRONLY)
+            os.dup2(devnull, sys.stdout.fileno())
+        except (OSError, ValueError):
+            pass
+        return 0
     except KeyboardInterrupt:
         # Ctrl-C at any point, start-up included. Outputs are written atomically: nothing
         # half-written is left behind.
@@ -472,6 +483,8 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     except PhysMotionError as exc:
         print(f"physmotion: error: {exc}", file=sys.stderr)
         return 2
+    except BrokenPipeError:
+        raise  # handled in main(): not a file-system error
     except OSError as exc:  # disk full, permissions, a path that is a folder, ...
         print(f"physmotion: error: {exc.strerror or exc} ({exc.filename or 'file system'}); check that the output "
               "folder exists, is writable and has free space", file=sys.stderr)

@@ -314,12 +314,12 @@ def test_negative_vectors_parse_as_values(cutout, tmp_path, capsys):
             "--force-time", "-0,0.1", "--object-point", "-4,-5", "--E", "-5", "--fps", "24"]
     args = _build_parser().parse_args(_join_vector_values(argv))
     assert args.force == ["-20,0,0", "-1e-3,-2,+3"] and args.at == ["-1,5"]
-    assert args.force_time == "-0,0.1" and args.object_point == "-4,-5" and args.E == -5.0
+    assert args.force_time == "-0,0.1" and args.object_point == ["-4,-5"] and args.E == -5.0
     assert _join_vector_values(["--force=-1,0,0", "--force", "1,0,0"]) == ["--force=-1,0,0", "--force", "1,0,0"]
     # End to end: the push to the left reaches the pipeline (which then finds the pixel off the object).
     rc, err = cli(["generate", cutout, *FAST, "--force", "-20,0,0", "--at", "1,1", "--radius", "1",
                    "-o", tmp_path / "x.mp4"], capsys)
-    assert rc == 2 and "contains no part of the object" in err
+    assert rc == 2 and "does not touch the object" in err
     rc, err = cli(["generate", cutout, *FAST, "--force", "-20,0", "-o", tmp_path / "x.mp4"], capsys)
     assert rc == 2 and "3 comma-separated numbers" in err
 

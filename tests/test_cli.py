@@ -60,7 +60,7 @@ def test_generate_reports_bad_input_without_a_traceback(red_ball_png, tmp_path, 
                  "--grid-res", "8", "-o", str(tmp_path / "x.mp4"), "-q"])
     assert code == 2
     err = capsys.readouterr().err
-    assert "contains no part of the object" in err and "Traceback" not in err
+    assert "does not touch the object" in err and "its mask spans" in err and "Traceback" not in err
     assert not (tmp_path / "x.mp4").exists()
     assert main(["generate", str(tmp_path / "missing.png"), "-q", "-o", str(tmp_path / "y.mp4")]) == 2
     assert "missing.png" in capsys.readouterr().err
@@ -147,3 +147,20 @@ def test_bad_prompt_and_condition_flags_are_refused_clearly(red_ball_png, tmp_pa
         raise SystemExit(code)
     assert exc.value.code == 2
     assert words in capsys.readouterr().err
+
+
+def test_a_closed_pipe_ends_the_listing_quietly(tmp_path):
+    """`physmotion batch SPEC --list | head -1`: the reader leaves early; no disk-space error, exit 0."""
+    spec = tmp_path / "spec.toml"
+    ball = (__import__("pathlib").Path(__file__).resolve().parent.parent / "photos" / "ball.png")
+    spec.write_text(f'[batch]\nimages = ["{ball}"]\n[defaults]\nframes = 2\n[axes]\n'
+                    f'seed = {list(range(1, 3001))}\n')
+    proc = subprocess.Popen([sys.executable, "-m", "physmotion_core.cli", "batch", str(spec), "--list"],
+                            stdout=subprocess.PIPE, stderr=subprocess.PIPE)
+    first = proc.stdout.readline()
+    proc.stdout.close()  # like `head -1`
+    err = proc.stderr.read().decode()
+    rc = proc.wait(timeout=120)
+    assert first.startswith(b"#")
+    assert rc == 0, err
+    assert "free space" not in err and "Traceback" not in err
