@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ._gaussian_io import GAUSSIANS_INPUT, GAUSSIANS_TOOLTIP_SUFFIX, as_pm_gaussians
+from ._gaussian_io import GAUSSIANS_INPUT, GAUSSIANS_TOOLTIP_SUFFIX, SPLAT_AXES_INPUT, as_pm_gaussians
 from ._util import CATEGORY, first_image, first_mask, log, preview_images, preview_payload, progress_callback
 
 
@@ -64,6 +64,7 @@ class PhysMotionFitGaussiansToPhoto:
                                           "tooltip": "Principal point x in pixels; negative = the image centre."}),
                 "principal_y": ("FLOAT", {"default": -1.0, "min": -1.0, "max": 100000.0, "step": 1.0,
                                           "tooltip": "Principal point y in pixels; negative = the image centre."}),
+                "splat_axes": SPLAT_AXES_INPUT,
             },
         }
 
@@ -78,7 +79,7 @@ class PhysMotionFitGaussiansToPhoto:
     CATEGORY = f"{CATEGORY}/lift"
 
     def run(self, gaussians, image, mask, object_height, iou_threshold, max_color_error, on_ground, max_render_side,
-            seed, focal_px=0.0, principal_x=-1.0, principal_y=-1.0):
+            seed, focal_px=0.0, principal_x=-1.0, principal_y=-1.0, splat_axes="y_down"):
         from physmotion_core.lift.fit import FitError, fit_gaussians_to_photo
 
         img = first_image(image)
@@ -90,7 +91,7 @@ class PhysMotionFitGaussiansToPhoto:
                   float(principal_y) if float(principal_y) >= 0 else H / 2.0)
         cb = progress_callback()
         res = fit_gaussians_to_photo(
-            as_pm_gaussians(gaussians), img, m, object_height=float(object_height),
+            as_pm_gaussians(gaussians, axes=splat_axes), img, m, object_height=float(object_height),
             focal=float(focal_px) if float(focal_px) > 0 else None, principal_point=pp,
             iou_threshold=float(iou_threshold), max_color_error=float(max_color_error), on_ground=bool(on_ground), levels=fit_levels(max_render_side),
             seed=int(seed), progress=cb)

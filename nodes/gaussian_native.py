@@ -1,19 +1,23 @@
-"""Converters between PhysMotion's Gaussians and ComfyUI's native GAUSSIAN splats.
+"""Converters between PhysMotion's Gaussians and ComfyUI's native splats (``SPLAT``; ``GAUSSIAN`` before
+upstream renamed it).
 
-Registered only when the running ComfyUI has the GAUSSIAN type (comfy_api.latest Types.GAUSSIAN,
-added upstream in 2026); on older ComfyUI (e.g. 0.3.64) this module has no nodes and says so in one
-log line. The conversions themselves live in physmotion_core.interop_gaussian.
+Registered only when the running ComfyUI has the type (comfy_api.latest Types.SPLAT, or Types.GAUSSIAN on a
+version from before the rename); on older ComfyUI (e.g. 0.3.64) this module has no nodes and says so in one
+log line. Their outputs carry the link type the running ComfyUI defines, their inputs take both names. The
+node ids keep the GAUSSIAN spelling so saved workflows load. The conversions live in
+physmotion_core.interop_gaussian.
 """
 
 from __future__ import annotations
 
-from ._gaussian_io import NATIVE_GAUSSIAN_TYPE, as_pm_gaussians, log, native_gaussian_class
+from ._gaussian_io import (NATIVE_GAUSSIAN_TYPE, NATIVE_SPLAT_NAMES, SPLAT_AXES_TOOLTIP, as_pm_gaussians, log,
+                           native_gaussian_class)
 from ._util import CATEGORY, progress_callback
 
 AXES_CHOICES = ["y_down", "as_is"]
-AXES_TOOLTIP = ("y_down: the native nodes' frame (their renderer looks down +z with +y pointing down the image); "
-                "ours is +y up, so the scene is turned 180° about x (exact). as_is: copy x y z unchanged, as "
-                ".ply files store them (use it for a GAUSSIAN read from a .ply that PhysMotion wrote).")
+AXES_TOOLTIP = SPLAT_AXES_TOOLTIP
+#: The native input: both upstream names (and the running one's), comma-joined as a union.
+NATIVE_INPUT = ",".join(dict.fromkeys(NATIVE_SPLAT_NAMES + (NATIVE_GAUSSIAN_TYPE,)))
 
 _NATIVE_CLS = native_gaussian_class()
 
@@ -21,13 +25,16 @@ _NATIVE_CLS = native_gaussian_class()
 class PhysMotionFromGAUSSIAN:
     """ComfyUI GAUSSIAN -> PM_GAUSSIANS."""
 
-    DESCRIPTION = ("Turns ComfyUI's native GAUSSIAN (TripoSplat, 3D File to Gaussian Splat, ...) into PhysMotion "
-                   "Gaussians: each batch item becomes one object of the scene (object ids 0, 1, ...).")
+    DESCRIPTION = ("Turns ComfyUI's native SPLAT (GAUSSIAN on older versions: TripoSplat, Get Splat, ...) into "
+                   "PhysMotion Gaussians: each batch item (an independent splat) becomes one object of the scene "
+                   "(object ids 0, 1, ...). A batch of simulated frames fed back is refused: its items are one "
+                   "object at different times, not objects.")
 
     @classmethod
     def INPUT_TYPES(cls):
         return {"required": {
-            "gaussian": (NATIVE_GAUSSIAN_TYPE, {"tooltip": "ComfyUI's GAUSSIAN splats; one batch item per object."}),
+            "gaussian": (NATIVE_INPUT, {"tooltip": "ComfyUI's SPLAT (or GAUSSIAN) splats; each batch item becomes "
+                                                   "one object."}),
             "axes": (AXES_CHOICES, {"default": "y_down", "tooltip": AXES_TOOLTIP}),
         }}
 
@@ -48,8 +55,8 @@ class PhysMotionFromGAUSSIAN:
 class PhysMotionToGAUSSIAN:
     """PM_GAUSSIANS -> ComfyUI GAUSSIAN."""
 
-    DESCRIPTION = ("Turns PhysMotion Gaussians into ComfyUI's native GAUSSIAN, for Render Gaussian Splat, Gaussian "
-                   "Splat to 3D File, Merge/Transform Gaussian and the splat preview.")
+    DESCRIPTION = ("Turns PhysMotion Gaussians into ComfyUI's native SPLAT (GAUSSIAN on older versions), for Render "
+                   "Splat, Create 3D File (from Splat), Merge/Transform Splat and the splat preview.")
 
     @classmethod
     def INPUT_TYPES(cls):
@@ -63,7 +70,8 @@ class PhysMotionToGAUSSIAN:
 
     RETURN_TYPES = (NATIVE_GAUSSIAN_TYPE,)
     RETURN_NAMES = ("gaussian",)
-    OUTPUT_TOOLTIPS = ("The Gaussians as ComfyUI's GAUSSIAN (linear scales, wxyz, opacities in [0, 1], SH kept).",)
+    OUTPUT_TOOLTIPS = ("The Gaussians as ComfyUI's SPLAT/GAUSSIAN (linear scales, wxyz, opacities in [0, 1], SH kept): "
+                       "one item, or one per object with split_objects.",)
     FUNCTION = "run"
     CATEGORY = f"{CATEGORY}/io"
 
@@ -77,9 +85,10 @@ class PhysMotionToGAUSSIAN:
 class PhysMotionSimToGAUSSIAN:
     """PM_SIM -> a GAUSSIAN batch, one item per simulated frame."""
 
-    DESCRIPTION = ("The simulated Gaussians of every frame as one native GAUSSIAN batch (item k = frame k, shaped "
-                   "exactly as PhysMotion Render draws it), for Render Gaussian Splat (one image per item), "
-                   "Gaussian Splat to 3D File and the splat preview.")
+    DESCRIPTION = ("The simulated Gaussians of every frame as one native SPLAT/GAUSSIAN batch (item k = frame k, "
+                   "shaped exactly as PhysMotion Render draws it), for Render Splat (one image per item), Create 3D "
+                   "File (from Splat) and the splat preview. The batch is marked as frames: PhysMotion inputs refuse "
+                   "it as objects.")
 
     @classmethod
     def INPUT_TYPES(cls):
@@ -100,13 +109,14 @@ class PhysMotionSimToGAUSSIAN:
         from physmotion_core.interop_gaussian import sim_to_native_tensors
 
         t = sim_to_native_tensors(simulation, axes=axes, every=int(every_nth_frame), progress=progress_callback())
-        return (_NATIVE_CLS(t["positions"], t["scales"], t["rotations"], t["opacities"], t["sh"],
-                            counts=t["counts"]),)
+        out = _NATIVE_CLS(t["positions"], t["scales"], t["rotations"], t["opacities"], t["sh"], counts=t["counts"])
+        out.physmotion_frame_batch = True  # read by interop_gaussian.frame_batch_reason
+        return (out,)
 
 
 if _NATIVE_CLS is None:
-    log.info("PhysMotion: this ComfyUI has no native GAUSSIAN type; the GAUSSIAN converter nodes are not "
-             "registered (PhysMotion nodes still take PM_GAUSSIANS)")
+    log.info("PhysMotion: this ComfyUI has no native splat type (SPLAT or GAUSSIAN); the splat converter nodes are "
+             "not registered (PhysMotion nodes still take PM_GAUSSIANS)")
     NODE_CLASS_MAPPINGS: dict = {}
     NODE_DISPLAY_NAME_MAPPINGS: dict = {}
 else:
@@ -116,7 +126,7 @@ else:
         "PhysMotionSimToGAUSSIAN": PhysMotionSimToGAUSSIAN,
     }
     NODE_DISPLAY_NAME_MAPPINGS = {
-        "PhysMotionFromGAUSSIAN": "PhysMotion GAUSSIAN to PhysMotion Gaussians",
-        "PhysMotionToGAUSSIAN": "PhysMotion Gaussians to GAUSSIAN",
-        "PhysMotionSimToGAUSSIAN": "PhysMotion Simulation to GAUSSIAN (one item per frame)",
+        "PhysMotionFromGAUSSIAN": f"PhysMotion {NATIVE_GAUSSIAN_TYPE} to PhysMotion Gaussians",
+        "PhysMotionToGAUSSIAN": f"PhysMotion Gaussians to {NATIVE_GAUSSIAN_TYPE}",
+        "PhysMotionSimToGAUSSIAN": f"PhysMotion Simulation to {NATIVE_GAUSSIAN_TYPE} (one item per frame)",
     }

@@ -289,9 +289,73 @@ def from_native(obj, *, axes: str = "y_down") -> list[Gaussians]:
     return out
 
 
+def frame_batch_reason(obj) -> Optional[str]:
+    """Why a native batch looks like one object's frames rather than independent splats, or None.
+
+    PhysMotion Simulation to SPLAT marks its output (``physmotion_frame_batch``); a batch that lost the mark
+    (an upstream node made a new object) is still recognised: the frames of one simulation keep every
+    splat's colour and opacity, so all items have the same length and identical ``sh`` and ``opacities``,
+    which independent splats (one per image, one per seed) do not.
+    """
+    if getattr(obj, "physmotion_frame_batch", False):
+        return "it is the output of PhysMotion Simulation to SPLAT/GAUSSIAN (one item per simulated frame)"
+    pos, sh, opa = (getattr(obj, f, None) for f in ("positions", "sh", "opacities"))
+    if not all(isinstance(t, torch.Tensor) for t in (pos, sh, opa)) or pos.ndim != 3 or pos.shape[0] < 2:
+        return None
+    counts = getattr(obj, "counts", None)
+    if counts is not None and len(set(int(c) for c in torch.as_tensor(counts).reshape(-1).tolist())) > 1:
+        return None
+    if pos.shape[1] == 0 or bool(torch.equal(pos[0], pos[1])):
+        return None  # the same splat repeated is not a trajectory (and is refused as a batch anyway)
+    if all(torch.equal(sh[0], sh[i]) and torch.equal(opa[0], opa[i]) for i in range(1, pos.shape[0])):
+        return ("its items hold the same splats with the same colours and opacities at different positions: "
+                "the frames of one simulation")
+    return None
+
+
+def _frame_batch_message(where: str, b: int, reason: str) -> str:
+    return (f"{where}: this {b}-item splat batch looks like frames of one motion ({reason}). Fed back as objects "
+            f"they would be {b} copies of the object overlapping in one scene. Simulate the rest state instead "
+            "(the Gaussians that went into MPM Simulate), or to start from a later frame, pick that one frame "
+            "(PhysMotion Simulation to SPLAT with every_nth_frame, then one item of it).")
+
+
+def from_native_one(obj, *, axes: str = "y_down", where: str = "the splat input") -> Gaussians:
+    """A native splat batch at an input that takes one scene: upstream's meaning of a batch item (an
+    independent splat: one per input image, one per decode), so exactly one item is accepted. A batch of
+    several is refused with what to do; a frame batch fed back is named as such."""
+    b = _batch_size(obj)
+    if b > 1:
+        reason = frame_batch_reason(obj)
+        if reason is not None:
+            raise InputError(_frame_batch_message(where, b, reason))
+        raise InputError(f"{where}: the splat batch holds {b} items. In ComfyUI each item of a SPLAT/GAUSSIAN batch "
+                         "is an independent splat (TripoSplat decodes one per input image; Render Splat renders "
+                         "each), and this input takes one scene. Use one image (one item), or Merge Splats to put "
+                         "them into one splat, or PhysMotion SPLAT to PhysMotion Gaussians to make each item one "
+                         "object of a scene.")
+    (item,) = from_native(obj, axes=axes)
+    if len(item) == 0:
+        raise InputError(f"{where}: the splat holds no Gaussians (its only item is empty)")
+    return item
+
+
+def _batch_size(obj) -> int:
+    pos = getattr(obj, "positions", None)
+    if isinstance(pos, torch.Tensor) and pos.ndim == 3:
+        return int(pos.shape[0])
+    return 1
+
+
 def from_native_scene(obj, *, axes: str = "y_down") -> Gaussians:
     """A native GAUSSIAN as one scene: a single item as it is, several items as one object each
-    (object_ids 0, 1, ... in batch order, as Combine Objects numbers them; empty items are skipped)."""
+    (object_ids 0, 1, ... in batch order, as Combine Objects numbers them; empty items are skipped).
+    A batch of one motion's frames (``frame_batch_reason``) is refused: its items are not objects."""
+    b = _batch_size(obj)
+    if b > 1:
+        reason = frame_batch_reason(obj)
+        if reason is not None:
+            raise InputError(_frame_batch_message("SPLAT to PhysMotion Gaussians", b, reason))
     items = from_native(obj, axes=axes)
     if all(len(g) == 0 for g in items):
         raise InputError("the GAUSSIAN holds no splats (every batch item is empty)")
@@ -302,3 +366,24 @@ def from_native_scene(obj, *, axes: str = "y_down") -> Gaussians:
                         object_ids=torch.full((len(g),), i, dtype=torch.int64, device=g.device))
               for i, g in enumerate(kept)]
     return Gaussians.cat(tagged)
+
+
+# ----------------------------------------------------------------------------------------------
+# whole Gaussians between the two frames (used by the .ply writer and reader)
+# ----------------------------------------------------------------------------------------------
+
+
+def turn_axes(g: Gaussians, to: str) -> Gaussians:
+    """``g`` turned 180° about x: ``to="y_down"`` from our +y-up frame into the native/3DGS one (y down,
+    z away from the camera), ``to="y_up"`` back. Exact (sign flips and a permutation); object ids kept,
+    covariances (when present) turned as D Σ D."""
+    if to not in ("y_down", "y_up"):
+        raise InputError(f"turn_axes: to must be 'y_down' or 'y_up'; got {to!r}")
+    fn = _to_native_axes if to == "y_down" else _from_native_axes
+    means, quats, sh = fn(g.means, g.quats, g.sh)
+    covars = None
+    if g.covars is not None:
+        f = torch.tensor(_FLIP, dtype=g.covars.dtype, device=g.covars.device)
+        covars = g.covars * f[:, None] * f[None, :]
+    return Gaussians(means=means, quats=quats, scales=g.scales, opacities=g.opacities, sh=sh, covars=covars,
+                     object_ids=g.object_ids)

@@ -3,6 +3,13 @@
 Vertex properties: x y z, nx ny nz (zeros), f_dc_0..2, f_rest_* (channel-major, as 3DGS writes
 them), opacity (logit), scale_0..2 (log), rot_0..3 (wxyz, unnormalised allowed). Splat viewers and
 ComfyUI's Load3D/Preview3D read this layout.
+
+Axes. The file is written in the 3DGS frame (x right, y down, z away from the camera), the frame of
+ComfyUI's own splat nodes and of files from 3DGS tools, so ComfyUI's *Get Splat* / *3D File to Gaussian
+Splat* (which copy x y z as stored) gives a SPLAT that PhysMotion's inputs turn upright with their
+default ``y_down``. The header records it (``comment physmotion_axes y_down``) and ``read_ply`` honours
+the record, turning such a file back to our +y-up frame; a file without the record (from another tool,
+or written by PhysMotion before the record existed, then +y up) is read as stored unless told otherwise.
 """
 
 from __future__ import annotations
@@ -31,10 +38,24 @@ def _logit(p: np.ndarray) -> np.ndarray:
     return np.log(p / (1 - p))
 
 
-def write_ply(path: str | os.PathLike, gaussians: Gaussians) -> Path:
-    """Write Gaussians as a binary little-endian 3DGS .ply (atomically: temp file + rename)."""
+#: The header comment that records the file's axes: ``comment physmotion_axes y_down`` or ``... y_up``.
+AXES_COMMENT = "physmotion_axes"
+PLY_AXES = ("y_down", "y_up")
+_AXES_RE = re.compile(rb"^comment\s+" + AXES_COMMENT.encode() + rb"\s+(\S+)", re.MULTILINE)
+
+
+def write_ply(path: str | os.PathLike, gaussians: Gaussians, axes: str = "y_down") -> Path:
+    """Write Gaussians (our frame, +y up) as a binary little-endian 3DGS .ply (atomically: temp file +
+    rename). ``axes="y_down"`` (default) stores them turned into the 3DGS frame, ``"y_up"`` as they are;
+    either way the header records which, and ``read_ply`` turns the file back."""
+    if axes not in PLY_AXES:
+        raise InputError(f"write_ply: axes must be one of {PLY_AXES}; got {axes!r}")
     g = gaussians.with_covariance_as_rotscale().detach().to("cpu")
     g.validate("Gaussians to save")
+    if axes == "y_down":
+        from .interop_gaussian import turn_axes
+
+        g = turn_axes(g, "y_down")
     n, k = len(g), g.sh.shape[1]
     names = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
     names += [f"f_rest_{i}" for i in range(3 * (k - 1))]
@@ -58,7 +79,9 @@ def write_ply(path: str | os.PathLike, gaussians: Gaussians) -> Path:
         data[f"rot_{i}"] = quats[:, i]
 
     header = "ply\nformat binary_little_endian 1.0\n"
-    header += "comment written by physmotion (3DGS layout)\n"
+    header += (f"comment {AXES_COMMENT} {axes} (written by physmotion, 3DGS layout; "
+               + ("x right, y down, z away from the camera: the 3DGS frame)" if axes == "y_down"
+                  else "+y up, the camera looking down -z)") + "\n")
     header += f"element vertex {n}\n" + "".join(f"property float {name}\n" for name in names) + "end_header\n"
     path = Path(path)
     head = header.encode("ascii")
@@ -203,8 +226,34 @@ def check_ply_fits(path, count: int, itemsize: int, k: int = 1, fraction: float 
                          "or free memory (close other programs or models) and try again.")
 
 
-def read_ply(path: str | os.PathLike) -> Gaussians:
-    """Read a 3DGS-layout .ply (binary little/big endian) into Gaussians."""
+def ply_axes(path: str | os.PathLike) -> str | None:
+    """The axes a .ply's header records (``y_down`` / ``y_up``), or None when it records none."""
+    with open(path, "rb") as fh:
+        _fmt, _count, _props, offset = _parse_header(fh, Path(path))
+        fh.seek(0)
+        head = fh.read(offset)
+    m = _AXES_RE.search(head)
+    return m.group(1).decode("ascii", errors="replace") if m else None
+
+
+def read_ply(path: str | os.PathLike, axes: str = "auto") -> Gaussians:
+    """Read a 3DGS-layout .ply (binary little/big endian) into Gaussians (our frame, +y up).
+
+    ``axes``: ``auto`` honours the header's ``physmotion_axes`` record (a file without one is read as
+    stored); ``y_down`` turns a file stored in the 3DGS frame upright whatever it records; ``as_is``
+    copies x y z as stored."""
+    if axes not in ("auto", "y_down", "as_is"):
+        raise InputError(f"read_ply: axes must be 'auto', 'y_down' or 'as_is'; got {axes!r}")
+    g = _read_ply_as_stored(path)
+    turn = ply_axes(path) == "y_down" if axes == "auto" else axes == "y_down"
+    if turn:
+        from .interop_gaussian import turn_axes
+
+        g = turn_axes(g, "y_up")
+    return g
+
+
+def _read_ply_as_stored(path: str | os.PathLike) -> Gaussians:
     path = Path(path)
     if not path.is_file():
         raise InputError(f"No .ply file at {path}")

@@ -234,7 +234,8 @@ def test_sim_to_native_has_one_item_per_frame_shaped_as_the_renderer_draws_it(sm
 
 
 def _fresh_pack(name, monkeypatch):
-    monkeypatch.delitem(sys.modules, name, raising=False)
+    for mod in [m for m in sys.modules if m == name or m.startswith(name + ".")]:
+        monkeypatch.delitem(sys.modules, mod, raising=False)  # its nodes too: they read comfy_api on import
     pack = load_pack(name)
     monkeypatch.setitem(sys.modules, name, pack)
     return pack
@@ -247,7 +248,7 @@ def native_comfy_api(monkeypatch, request):
     latest = types.ModuleType("comfy_api.latest")
     io_name = "Gaussian" if request.param == "GAUSSIAN" else "Splat"
     latest.Types = types.SimpleNamespace(**{request.param: FakeGAUSSIAN})
-    latest.IO = types.SimpleNamespace(**{io_name: types.SimpleNamespace(io_type="GAUSSIAN")})
+    latest.IO = types.SimpleNamespace(**{io_name: types.SimpleNamespace(io_type=request.param)})
     api = types.ModuleType("comfy_api")
     api.latest = latest
     monkeypatch.setitem(sys.modules, "comfy_api", api)
@@ -272,8 +273,12 @@ def test_converter_nodes_with_the_native_type(native_comfy_api, monkeypatch, sma
     nodes = pack.NODE_CLASS_MAPPINGS
     assert {"PhysMotionFromGAUSSIAN", "PhysMotionToGAUSSIAN", "PhysMotionSimToGAUSSIAN"} <= set(nodes)
     assert not [r for r in caplog.records if "GAUSSIAN" in r.getMessage()]
-    assert nodes["PhysMotionToGAUSSIAN"].RETURN_TYPES == ("GAUSSIAN",)
-    assert nodes["PhysMotionFromGAUSSIAN"].INPUT_TYPES()["required"]["gaussian"][0] == "GAUSSIAN"
+    # the output is what the running ComfyUI defines, the inputs take both names
+    name = "SPLAT" if hasattr(native_comfy_api.Types, "SPLAT") else "GAUSSIAN"
+    assert nodes["PhysMotionToGAUSSIAN"].RETURN_TYPES == (name,)
+    assert nodes["PhysMotionSimToGAUSSIAN"].RETURN_TYPES == (name,)
+    assert set(nodes["PhysMotionFromGAUSSIAN"].INPUT_TYPES()["required"]["gaussian"][0].split(",")) == {"SPLAT", "GAUSSIAN"}
+    assert nodes["PhysMotionMPMSimulate"].INPUT_TYPES()["required"]["gaussians"][0] == "PM_GAUSSIANS,SPLAT,GAUSSIAN"
 
     g = _random(80, 4, seed=8, ids=torch.tensor([0] * 30 + [1] * 50))
     (nat,) = nodes["PhysMotionToGAUSSIAN"]().run(g, "y_down", True)
@@ -304,7 +309,7 @@ def test_nodes_that_take_gaussians_also_take_a_native_gaussian(monkeypatch, tmp_
         for inp in inputs:
             spec = nodes[name].INPUT_TYPES()
             kind = {**spec.get("required", {}), **spec.get("optional", {})}[inp][0]
-            assert kind == "PM_GAUSSIANS,GAUSSIAN", (name, inp, kind)
+            assert kind == "PM_GAUSSIANS,SPLAT,GAUSSIAN", (name, inp, kind)
 
     g = _random(50, 4, seed=9)
     nat = ig.to_native(g, FakeGAUSSIAN)
@@ -319,7 +324,7 @@ def test_nodes_that_take_gaussians_also_take_a_native_gaussian(monkeypatch, tmp_
     scene, mats = nodes["PhysMotionCombineObjects"]().run(nat, jelly, g, jelly, 1.0, 0.0, 0.0)
     assert len(scene) == 100 and len(mats) == 2 and scene.object_ids.tolist() == [0] * 50 + [1] * 50
     assert torch.equal(scene.means[:50], g.means) and torch.equal(scene.means[50:], g.means + torch.tensor([1.0, 0, 0]))
-    with pytest.raises(InputError, match="PM_GAUSSIANS or a native GAUSSIAN"):
+    with pytest.raises(InputError, match="PM_GAUSSIANS or a native SPLAT/GAUSSIAN"):
         nodes["PhysMotionCombineObjects"]().run("not splats", jelly, g, jelly, 0.0, 0.0, 0.0)
 
 
@@ -336,3 +341,122 @@ def test_simulate_node_gives_the_same_result_from_either_type():
     (b,) = nodes["PhysMotionMPMSimulate"]().run(g, *args)
     assert torch.equal(a.x, b.x)
     assert math.isclose(float(a.x[-1, :, 1].mean()), float(b.x[-1, :, 1].mean()))
+
+
+# ------------------------------------------------------------------------------------------------
+# Batch meaning (upstream's: one item = one independent splat) and the frame batch fed back
+# ------------------------------------------------------------------------------------------------
+
+
+def _batch(*items):
+    return ig.to_native(list(items), FakeGAUSSIAN)
+
+
+def _gio():
+    import importlib
+
+    return importlib.import_module(f"{load_pack().__name__}.nodes._gaussian_io")
+
+
+def test_a_splat_input_takes_one_item_and_refuses_a_batch_with_what_to_do():
+    gio = _gio()
+    a, b = _random(40, 4, seed=11), _random(30, 4, seed=12)
+    one = gio.as_pm_gaussians(_batch(a))
+    _same(one, a)
+    assert one.object_ids is None
+    with pytest.raises(InputError, match=r"gaussians: the splat batch holds 2 items.*independent splat.*Merge Splats"):
+        gio.as_pm_gaussians(_batch(a, b))
+    # the converter is where a batch becomes objects (its stated meaning), unchanged
+    scene = ig.from_native_scene(_batch(a, b))
+    assert scene.object_ids.tolist() == [0] * 40 + [1] * 30
+
+
+def test_the_simulated_frames_fed_back_are_refused_as_objects(native_comfy_api, monkeypatch, small_sim):
+    pack = _fresh_pack("physmotion_pack_frames", monkeypatch)
+    nodes = pack.NODE_CLASS_MAPPINGS
+    (frames,) = nodes["PhysMotionSimToGAUSSIAN"]().run(small_sim, 1, "y_down")
+    assert frames.physmotion_frame_batch is True
+    with pytest.raises(InputError, match=r"frames of one motion.*Simulation to SPLAT.*overlapping"):
+        nodes["PhysMotionFromGAUSSIAN"]().run(frames, "y_down")
+    args = (Material.preset("jelly"), 3, 24.0, "standard", 8, 8, 0.4, 1.0, "cpu", 0)
+    with pytest.raises(InputError, match=r"frames of one motion"):
+        nodes["PhysMotionMPMSimulate"]().run(frames, *args)
+    # an upstream node that makes a new object drops the mark: the frames are still told by their content
+    copy = FakeGAUSSIAN(frames.positions.clone(), frames.scales, frames.rotations, frames.opacities, frames.sh)
+    assert not hasattr(copy, "physmotion_frame_batch")
+    assert "same colours and opacities" in ig.frame_batch_reason(copy)
+    with pytest.raises(InputError, match=r"frames of one motion"):
+        nodes["PhysMotionFromGAUSSIAN"]().run(copy, "y_down")
+    # independent splats of the same length are not frames
+    assert ig.frame_batch_reason(_batch(_random(20, 1, seed=1), _random(20, 1, seed=2))) is None
+    # one frame of it is a splat like any other
+    one = FakeGAUSSIAN(*(getattr(frames, f)[2:3] for f in ig.NATIVE_FIELDS))
+    assert len(pack.nodes._gaussian_io.as_pm_gaussians(one)) == len(small_sim.rest)
+
+
+# ------------------------------------------------------------------------------------------------
+# Axes: a .ply the pack wrote, through upstream's loader (x y z copied as stored), arrives upright
+# ------------------------------------------------------------------------------------------------
+
+
+def _upstream_style_ply_load(path) -> FakeGAUSSIAN:
+    """What upstream's File3DToSplat does with a binary .ply (read independently here): every property
+    as stored, scales exp'd, opacity through a sigmoid, rotations normalised, no change of axes."""
+    import numpy as np
+
+    data = path.read_bytes()
+    end = data.index(b"end_header\n") + len(b"end_header\n")
+    names = [ln.split()[-1] for ln in data[:end].decode().splitlines() if ln.startswith("property")]
+    arr = np.frombuffer(data[end:], dtype=[(n, "<f4") for n in names])
+    t = lambda *ks: torch.from_numpy(np.stack([arr[k].astype(np.float32) for k in ks], 1))  # noqa: E731
+    rot = torch.nn.functional.normalize(t("rot_0", "rot_1", "rot_2", "rot_3"), dim=-1)
+    rest = [k for k in names if k.startswith("f_rest_")]
+    kk = len(rest) // 3 + 1
+    sh = torch.cat([t("f_dc_0", "f_dc_1", "f_dc_2")[:, None, :],
+                    t(*rest).reshape(-1, 3, kk - 1).transpose(1, 2)], 1) if rest else t("f_dc_0", "f_dc_1", "f_dc_2")[:, None]
+    return FakeGAUSSIAN(t("x", "y", "z")[None], torch.exp(t("scale_0", "scale_1", "scale_2"))[None], rot[None],
+                        torch.sigmoid(t("opacity"))[None], sh[None])
+
+
+def test_a_pack_written_ply_round_trips_upright_through_the_upstream_loader(tmp_path):
+    from physmotion_core.ply import ply_axes, read_ply, write_ply
+
+    g = _random(64, 4, seed=21)
+    g.means[:, 1] = g.means[:, 1].abs() + 0.1  # an object standing above the ground: y > 0 everywhere
+    path = write_ply(tmp_path / "obj.ply", g)
+    assert ply_axes(path) == "y_down"
+    nat = _upstream_style_ply_load(path)
+    assert bool((nat.positions[0, :, 1] < 0).all())  # stored in the native frame: y down
+    back = _gio().as_pm_gaussians(nat)  # the default of every splat input
+    for f in FIELDS:
+        assert torch.allclose(getattr(back, f), getattr(g, f), rtol=1e-5, atol=1e-5), f
+    assert bool((back.means[:, 1] > 0).all())  # upright
+    # as_is is the other choice where a splat enters: x y z as stored (here: upside down)
+    flipped = _gio().as_pm_gaussians(nat, axes="as_is")
+    assert torch.allclose(flipped.means, g.means * torch.tensor([1.0, -1.0, -1.0]), atol=1e-6)
+    # our own reader honours the record; asked to copy as stored it does
+    _same_close = lambda a, b: all(torch.allclose(getattr(a, f), getattr(b, f), rtol=1e-5, atol=1e-5) for f in FIELDS)  # noqa: E731
+    assert _same_close(read_ply(path), g)
+    assert torch.allclose(read_ply(path, axes="as_is").means, nat.positions[0])
+
+
+def test_an_unmarked_ply_is_read_as_stored_and_y_up_files_say_so(tmp_path):
+    from physmotion_core.ply import ply_axes, read_ply, write_ply
+
+    g = _random(16, 1, seed=22)
+    up = write_ply(tmp_path / "up.ply", g, axes="y_up")
+    assert ply_axes(up) == "y_up" and torch.allclose(read_ply(up).means, g.means)
+    raw = up.read_bytes()
+    old = tmp_path / "old.ply"  # a file from before the record (or from another tool): no axes comment
+    old.write_bytes(b"".join(ln for ln in raw.splitlines(keepends=True) if b"physmotion_axes" not in ln[:40]))
+    assert ply_axes(old) is None
+    assert torch.allclose(read_ply(old).means, g.means)
+    assert torch.allclose(read_ply(old, axes="y_down").means, g.means * torch.tensor([1.0, -1.0, -1.0]))
+    with pytest.raises(InputError, match="axes must be"):
+        read_ply(old, axes="sideways")
+
+
+def test_fit_offers_the_axes_choice_where_the_splat_enters():
+    spec = load_pack().NODE_CLASS_MAPPINGS["PhysMotionFitGaussiansToPhoto"].INPUT_TYPES()
+    assert spec["optional"]["splat_axes"][0] == ["y_down", "as_is"]
+    assert spec["optional"]["splat_axes"][1]["default"] == "y_down"

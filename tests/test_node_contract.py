@@ -23,8 +23,8 @@ NODES = PACK.NODE_CLASS_MAPPINGS
 CORE_TYPES = {"IMAGE", "MASK", "STRING", "INT", "FLOAT", "BOOLEAN", "LATENT", "CONDITIONING", "MODEL", "VAE",
               "CLIP", "VIDEO"}
 WIDGET_TYPES = {"INT", "FLOAT", "STRING", "BOOLEAN"}
-#: ComfyUI's own types that a PM_ input may also take, as a comma-separated union ("PM_GAUSSIANS,GAUSSIAN")
-NATIVE_UNION_TYPES = {"GAUSSIAN"}
+#: ComfyUI's own types that a PM_ input may also take, as a comma-separated union ("PM_GAUSSIANS,SPLAT,GAUSSIAN")
+NATIVE_UNION_TYPES = {"GAUSSIAN", "SPLAT"}
 
 
 def _link_type_ok(kind: str) -> bool:
