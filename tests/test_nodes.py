@@ -226,11 +226,12 @@ def test_segment_node_handles_loadimage_masks():
     obj = torch.zeros(1, h, w)
     obj[:, 100:300, 150:450] = 1.0
     out = seg.run(image, "auto", "auto", 5, mask=1.0 - obj)
-    fg, mask, bg = out["result"]
+    fg, mask, bg, overlay = out["result"]
     assert torch.equal(mask, obj)
-    assert out["ui"]["images"][0]["type"] == "temp"  # the foreground | background preview
+    assert overlay.shape == (1, h, 2 * w, 3)  # the outline over the photo | the filled background
+    assert out["ui"]["images"][0]["type"] == "temp"  # the overlay, shown in the node
     # A uniform 64x64 mask (no alpha) means "no mask": GrabCut runs instead.
-    fg, mask, bg = seg.run(image, "auto", "auto", 5, mask=torch.zeros(1, 64, 64))["result"]
+    fg, mask, bg, _ = seg.run(image, "auto", "auto", 5, mask=torch.zeros(1, 64, 64))["result"]
     assert mask.shape == (1, h, w) and 0.2 < float(mask.mean()) < 0.8
     with pytest.raises(ValueError, match="no mask"):
         seg.run(image, "mask", "auto", 5)
@@ -317,3 +318,63 @@ def test_video_previews_are_the_area_shrunk_clip(tmp_path, monkeypatch):
     frames[1, 5, 5, 1] = float("nan")
     with pytest.raises(InputError, match="NaN"):
         util.preview_video(frames, 8.0, "bad")
+
+
+def _two_objects():
+    """A red disk (left) and a blue square (right) on a grey table: (1, H, W, 3)."""
+    import numpy as np
+
+    rng = np.random.default_rng(0)
+    H, W = 96, 160
+    img = 0.5 + 0.03 * rng.standard_normal((H, W, 3))
+    yy, xx = np.mgrid[:H, :W]
+    red = (xx - 45) ** 2 + (yy - 48) ** 2 <= 20 ** 2
+    blue = (abs(xx - 115) <= 18) & (abs(yy - 48) <= 18)
+    img[red] = (0.85, 0.1, 0.1)
+    img[blue] = (0.1, 0.15, 0.85)
+    return torch.from_numpy(np.clip(img, 0, 1).astype(np.float32))[None], red, blue
+
+
+def test_segment_node_prompts_pick_the_object_clicked_or_boxed():
+    seg = node_classes()["PhysMotionSegment"]()
+    image, red, blue = _two_objects()
+    for kw, want in (({"object_points": "115, 48"}, blue), ({"object_points": "45,48"}, red),
+                     ({"box": "20, 22, 70, 74"}, red),
+                     ({"object_points": "45, 48", "background_points": "115, 48"}, red)):
+        m = seg.run(image, "auto", "auto", 5, **kw)["result"][1][0].numpy() > 0.5
+        assert (m & want).sum() / (m | want).sum() > 0.85, kw
+
+
+@pytest.mark.parametrize("kw, words", [({"object_points": "12"}, "x, y"), ({"box": "1, 2, 3"}, "4 numbers"),
+                                       ({"object_points": "500, 10"}, "outside"),
+                                       ({"background_points": "5, 5"}, "Only background points")])
+def test_segment_node_bad_prompts_say_what_to_write(kw, words):
+    seg = node_classes()["PhysMotionSegment"]()
+    image, _, _ = _two_objects()
+    with pytest.raises(ValueError, match=words):
+        seg.run(image, "auto", "auto", 5, **kw)
+
+
+def test_segment_node_refuses_an_implausible_automatic_mask_and_names_the_overlay(monkeypatch):
+    import numpy as np
+
+    import physmotion_core.segment as segpkg
+
+    real = segpkg.segment
+
+    def table(img, **kw):  # GrabCut's automatic pass replaced by one that takes the table
+        m = np.ones(img.shape[:2], np.float32)
+        m[30:70, 40:90] = 0
+        return real(img, mask=torch.from_numpy(m), method="mask")
+
+    monkeypatch.setattr(segpkg, "segment", table)
+    seg = node_classes()["PhysMotionSegment"]()
+    image, _, _ = _two_objects()
+    with pytest.raises(ValueError) as exc:
+        seg.run(image, "auto", "auto", 5)
+    msg = str(exc.value)
+    assert "PhysMotion_segment" in msg and ".png" in msg  # the overlay file in the temp folder
+    assert "object_points" in msg and "MASK" in msg
+    # The same mask with a prompt is only warned about.
+    out = seg.run(image, "auto", "auto", 5, box="0, 0, 160, 96")
+    assert out["result"][1].shape == (1, 96, 160)

@@ -148,3 +148,32 @@ def test_a_cut_off_object_is_held_and_the_run_says_so(monkeypatch):
     off = generate(img, mask=torch.from_numpy(cut.astype(np.float32)), settings=FAST, preview=True,
                    hold_edges=False, report=lambda s: None)
     assert not any("Anchor" == type(c).__name__ for c in off.conditions)
+
+
+def test_the_same_prompts_go_to_sam_when_its_weights_are_present(monkeypatch):
+    """With SAM in the models folder, the object/background points and the box become SAM's prompt
+    (in the scaled photo's pixels); the automatic mode asks SAM for its most salient object."""
+    from types import SimpleNamespace
+
+    import physmotion_core.segment.sam as sam_mod
+    from physmotion_core.segment import segment
+
+    _no_simulation(monkeypatch)
+    img, disk = photo()
+    seen = []
+    monkeypatch.setattr(pipeline, "available_models", lambda: {"sam": "sam_vit_b_01ec64.pth", "lgm": None,
+                                                               "imagedream": None})
+    monkeypatch.setattr(sam_mod, "load_sam", lambda name, device=None: SimpleNamespace(name=name))
+
+    def fake_sam(sam, rgb, prompts, **kw):
+        seen.append(list(prompts))
+        return SimpleNamespace(segmentation=segment(rgb, mask=torch.from_numpy(disk.astype(np.float32))))
+
+    monkeypatch.setattr(sam_mod, "sam_segment", fake_sam)
+    prep = generate(img, settings=FAST, preview=True, object_points=[(64, 50)], background_points=[(5, 90)],
+                    box=(30, 20, 100, 80), report=lambda s: None)
+    assert prep.stages["segment"] == "sam"
+    (p,) = seen[-1]
+    assert p.points == [(64.0, 50.0), (5.0, 90.0)] and p.labels == [1, 0] and p.box == (30.0, 20.0, 100.0, 80.0)
+    generate(img, settings=FAST, preview=True, report=lambda s: None)
+    assert seen[-1] == []  # no prompt: SAM's automatic mode

@@ -283,11 +283,20 @@ def test_sam_nodes_list_load_and_segment(sam_root, photo, monkeypatch):
     (sam,) = loader().run("sam_tiny.pth")
     image = torch.from_numpy(photo)[None]
     out = seg().run(sam, image, "0.55, 0.52", "", "fraction", True)
-    fg, mask, bg, objs = out["result"]
-    assert len(out["ui"]["images"]) == 1  # the foreground | background preview shown in the node
+    fg, mask, bg, objs, overlay = out["result"]
+    assert len(out["ui"]["images"]) == 1  # the overlay shown in the node
+    assert overlay.shape == (1, photo.shape[0], 2 * photo.shape[1], 3)
     H, W = photo.shape[:2]
     assert fg.shape == (1, H, W, 3) and mask.shape == (1, H, W) and bg.shape == (1, H, W, 3)
     assert objs.shape == (1, H, W) and torch.equal(objs.amax(0), mask[0])
     assert sam.device.type == "cpu"  # offloaded after the node
+    # A MASK from any other node is used instead of running SAM (and checked the same way).
+    given = torch.zeros(1, H, W)
+    given[:, H // 4:H // 2, W // 4:W // 2] = 1.0
+    import physmotion_core.segment.sam as sam_mod
+
+    monkeypatch.setattr(sam_mod, "sam_segment", lambda *a, **k: (_ for _ in ()).throw(AssertionError("SAM ran")))
+    fg2, mask2, _, objs2, _ = seg().run(sam, image, "", "", "pixels", True, mask=given)["result"]
+    assert torch.equal(mask2, given) and torch.equal(objs2, given)
     with pytest.raises(MissingModelError, match="sam_vit_h_4b8939.pth"):
         loader().run("(none found)")
