@@ -34,8 +34,14 @@ WORKFLOW = ROOT / "example_workflows" / "api" / "push_a_jelly.json"
 
 
 class FakeComfy:
-    def __init__(self, websocket=True, fail_node=None, reject=False, tls=None):
-        """``tls``: (certfile, keyfile) to serve HTTPS and wss:// instead of HTTP and ws://."""
+    def __init__(self, websocket=True, fail_node=None, reject=False, tls=None, interrupt_node=None,
+                 ws_silent=False):
+        """``tls``: (certfile, keyfile) to serve HTTPS and wss:// instead of HTTP and ws://.
+        ``interrupt_node``: the run is cancelled there (as ComfyUI records a Cancel). ``ws_silent``: the
+        socket opens but says nothing for 5 s (a loaded server whose /history is read first)."""
+        self.interrupt_node = interrupt_node
+        self.messages = []  # set when a prompt runs
+        self.ws_silent = ws_silent
         self.websocket = websocket
         self.ws_requests = []  # (headers, over TLS?) of each /ws upgrade request
         self.fail_node = fail_node
@@ -103,6 +109,8 @@ class FakeComfy:
                     self.send_header("Sec-WebSocket-Accept", accept)
                     self.end_headers()
                     fake.events.wait(10)
+                    if fake.ws_silent:
+                        time.sleep(5)
                     for msg in fake.messages:
                         payload = json.dumps(msg).encode()
                         self.wfile.write(bytes([0x81, 126]) + struct.pack(">H", len(payload)) + payload)
@@ -122,7 +130,17 @@ class FakeComfy:
 
     def execute(self, pid):
         time.sleep(0.3)
-        if self.fail_node:
+        if self.interrupt_node:
+            said = {"prompt_id": pid, "node_id": self.interrupt_node, "node_type": "PhysMotionMPMSimulate",
+                    "executed": ["1", "2"], "timestamp": 1}
+            self.messages = [{"type": "executing", "data": {"node": self.interrupt_node, "prompt_id": pid}},
+                             {"type": "execution_interrupted", "data": said}]
+            # ComfyUI 0.3.64 execution.py: an interrupt is recorded as status "error", not completed,
+            # with the execution_interrupted message (no execution_error)
+            self.done[pid] = {"status": {"status_str": "error", "completed": False, "messages": [
+                ["execution_start", {"prompt_id": pid, "timestamp": 0}],
+                ["execution_interrupted", said]]}, "outputs": {}}
+        elif self.fail_node:
             self.messages = [{"type": "execution_error", "data": {"prompt_id": pid, "node_id": self.fail_node,
                                                                    "node_type": "PhysMotionMPMSimulate",
                                                                    "exception_message": "Simulation became invalid"}}]
@@ -321,3 +339,31 @@ def test_no_websocket_is_said_once_in_the_log_then_history_is_polled(tmp_path, c
     assert fake.url.replace("http://", "ws://") + "/ws?clientId=" in msg and "404" in msg
     assert f"polling {fake.url}/history" in msg
     assert len(fake.ws_requests) == 1  # tried once, not again for the wait
+
+
+@pytest.mark.parametrize("order", ["websocket_first", "history_first_polling", "history_first_socket_silent"])
+def test_a_cancel_is_reported_as_cancelled_in_either_order(tmp_path, order):
+    """ComfyUI records a Cancel in /history as status "error" plus an execution_interrupted message and
+    says it on the websocket: whichever the client reads first, it reports a cancel, not a failure."""
+    fake = FakeComfy(websocket=order != "history_first_polling", interrupt_node="7",
+                     ws_silent=order == "history_first_socket_silent")
+    try:
+        with pytest.raises(comfy_client.ComfyCancelled) as err:
+            run_workflow(WORKFLOW, fake.url, tmp_path / "out", timeout=30)
+    finally:
+        fake.close()
+    msg = str(err.value)
+    assert "cancelled" in msg and "node 7 (PhysMotionMPMSimulate)" in msg, msg
+    assert "failed" not in msg.replace("nothing failed", "")
+    assert isinstance(err.value, ComfyError)  # callers catching ComfyError still catch it
+    assert not (tmp_path / "out").exists() or not any((tmp_path / "out").iterdir())
+
+
+def test_a_failure_is_still_a_failure_not_a_cancel(tmp_path):
+    fake = FakeComfy(websocket=False, fail_node="7")
+    try:
+        with pytest.raises(ComfyError, match="failed on the server: Simulation became invalid") as err:
+            run_workflow(WORKFLOW, fake.url, tmp_path / "out", timeout=30)
+    finally:
+        fake.close()
+    assert not isinstance(err.value, comfy_client.ComfyCancelled)

@@ -7,6 +7,6 @@ API (``POST /prompt``) and UI (editor/template) formats and validate a prompt ag
 Nothing here imports ComfyUI itself: this is the protocol seen from a client.
 """
 
-from .client import ComfyClient, ComfyError, run_workflow
+from .client import ComfyCancelled, ComfyClient, ComfyError, run_workflow
 
-__all__ = ["ComfyClient", "ComfyError", "run_workflow"]
+__all__ = ["ComfyCancelled", "ComfyClient", "ComfyError", "run_workflow"]

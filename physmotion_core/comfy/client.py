@@ -41,6 +41,18 @@ class ComfyError(PhysMotionError):
     another host), or it did not answer in time."""
 
 
+class ComfyCancelled(ComfyError):
+    """The run was cancelled on the server (Cancel in the UI, ``POST /interrupt``): not a failure. ComfyUI
+    records an interrupt in /history as status ``error`` with an ``execution_interrupted`` message, and
+    says it on the websocket; either may reach the client first, and both read as this."""
+
+
+def _cancelled_message(data: dict) -> str:
+    node, kind = data.get("node_id"), data.get("node_type")
+    where = f" at node {node} ({kind})" if node is not None or kind else ""
+    return f"The run was cancelled on the server{where}: Cancel was pressed or /interrupt was posted; nothing failed."
+
+
 #: The longest an API answer (JSON) may be; downloads (/view) are streamed to disk instead.
 MAX_JSON_BYTES = 64 << 20
 #: A download must bring at least this many bytes in every ``read_timeout`` window: a server that
@@ -467,7 +479,8 @@ class ComfyClient:
         return self._request_json("/object_info")
 
     def _finished(self, prompt_id: str) -> Optional[dict]:
-        """The history entry once the prompt has run (raising if it failed), else None."""
+        """The history entry once the prompt has run, else None. A failed run raises ComfyError, a cancelled
+        one (status ``error`` with an ``execution_interrupted`` message) ComfyCancelled."""
         entry = self.history(prompt_id)
         if not entry:
             return None
@@ -475,6 +488,9 @@ class ComfyClient:
         if not isinstance(status, dict):
             status = {}
         if status.get("status_str") == "error":
+            for m in status.get("messages", []) or []:
+                if isinstance(m, (list, tuple)) and len(m) == 2 and m[0] == "execution_interrupted":
+                    raise ComfyCancelled(_cancelled_message(m[1] if isinstance(m[1], dict) else {}))
             msgs = [str(m[1].get("exception_message", "")).strip() for m in status.get("messages", []) or []
                     if isinstance(m, (list, tuple)) and len(m) == 2 and m[0] == "execution_error"
                     and isinstance(m[1], dict)]
@@ -565,8 +581,7 @@ class ComfyClient:
                 if on_event:
                     on_event(kind, data)
                 if kind == "execution_interrupted":
-                    raise ComfyError(f"The run was cancelled on the server (at node {data.get('node_id')}, "
-                                     f"{data.get('node_type')})")
+                    raise ComfyCancelled(_cancelled_message(data))
                 if kind == "execution_error":
                     raise ComfyError(f"Node {data.get('node_id')} ({data.get('node_type')}) failed on the server: "
                                      f"{str(data.get('exception_message', '')).strip()}")
