@@ -474,7 +474,9 @@ def scaled_tracks(tracks: Tracks, width: int, height: int) -> Tracks:
 def wan_sample_frames(length: int) -> tuple[np.ndarray, np.ndarray]:
     """For a WanTrackToVideo clip of ``length`` frames: the output frame (fractional where the node
     skips the sample) each of the 121 track samples stands for, and which samples the node reads
-    (see the module docstring for the index rule of ``process_tracks`` at 0.3.64)."""
+    (see the module docstring for the index rule of ``process_tracks`` at 0.3.64; unchanged upstream at
+    the newest commit read, see docs/comfyui.md). Above 121 frames several consecutive frames read one
+    sample, which then stands for the middle of them (``wan_shared_samples`` says how many)."""
     F = check_length(length) - 1
     if F % 120 == 0:
         # repeat_interleave(b)[1::a] with a = 1 yields F - 1 frames: the node's own reshape then fails.
@@ -483,16 +485,36 @@ def wan_sample_frames(length: int) -> tuple[np.ndarray, np.ndarray]:
     g = math.gcd(120, F)
     a, b = 120 // g, F // g
     read = np.zeros(WAN_TRACK_SAMPLES, bool)
-    frame_of = np.full(WAN_TRACK_SAMPLES, np.nan)
-    read[0], frame_of[0] = True, 0.0
+    first = np.full(WAN_TRACK_SAMPLES, np.inf)
+    last = np.full(WAN_TRACK_SAMPLES, -np.inf)
+    read[0], first[0], last[0] = True, 0.0, 0.0
     for j in range(1, F + 1):
         s = 1 + (1 + a * (j - 1)) // b
-        if not read[s]:
-            read[s], frame_of[s] = True, float(j)
+        read[s] = True
+        first[s], last[s] = min(first[s], j), max(last[s], j)
+    # Up to 121 frames every frame reads its own sample. A longer clip has fewer samples than frames, so
+    # consecutive frames share one: the sample is placed at the middle of the frames that read it, so none
+    # of them sees a position more than half the span away in time (placed at the first, the last would
+    # see it up to the whole span late).
+    frame_of = np.where(read, 0.5 * (first + last), np.nan)
     known = np.nonzero(read)[0]
     frame_of = np.interp(np.arange(WAN_TRACK_SAMPLES), known, frame_of[known])
     # Samples after the last one read stand for nothing the model sees; keep them on the last frame.
     return np.clip(frame_of, 0, F), read
+
+
+def wan_shared_samples(length: int) -> tuple[int, float]:
+    """For a WanTrackToVideo clip of ``length`` frames: how many frames read a sample that another frame
+    reads too, and the largest time (in frames) between a frame and the moment its sample shows. Both are 0
+    up to 121 frames; above, the 121 samples cannot give every frame its own position."""
+    F = check_length(length) - 1
+    frame_of, read = wan_sample_frames(length)
+    g = math.gcd(120, F)
+    a, b = 120 // g, F // g
+    samples = np.array([0] + [1 + (1 + a * (j - 1)) // b for j in range(1, F + 1)])
+    shared = int(np.sum(np.bincount(samples)[samples] > 1))
+    lag = float(np.max(np.abs(frame_of[samples] - np.arange(F + 1)))) if F else 0.0
+    return shared, lag
 
 
 def wan_tracks_json(tracks: Tracks, length: Optional[int] = None, occlusion: str = "end", decimals: int = 2) -> str:
@@ -508,6 +530,12 @@ def wan_tracks_json(tracks: Tracks, length: Optional[int] = None, occlusion: str
         raise InputError(f"The tracks have {tracks.num_frames} frames but WanTrackToVideo's length is {length}: "
                          "make the tracks at the same length.")
     frame_of, _ = wan_sample_frames(length)
+    if length > WAN_TRACK_SAMPLES:
+        shared, lag = wan_shared_samples(length)
+        log.warning("WanTrackToVideo reads 121 track samples; a %d-frame clip has more frames than samples, so %d "
+                    "frames share a sample with a neighbour (each sample is placed at the middle of the frames that "
+                    "read it: a frame's position is at most %.1f frame(s) from its own time). For one position per "
+                    "frame, keep the clip at 121 frames or fewer.", length, shared, lag)
     f0 = np.floor(frame_of).astype(np.int64).clip(0, length - 1)
     f1 = np.minimum(f0 + 1, length - 1)
     w = torch.from_numpy(frame_of - f0).float()[:, None, None]

@@ -113,8 +113,13 @@ def test_sample_rule_matches_the_upstream_index_selection():
         got, _ = upstream_frames(probe, length)
         used = got[:, 0, 0].round().astype(int)
         assert set(used) == set(np.nonzero(read)[0]), length
-        for j, s in enumerate(used):
-            assert frame_of[s] == pytest.approx(j) or used.tolist().index(s) < j, (length, j, s)
+        for s in set(used.tolist()):  # a sample stands for the middle of the frames that read it
+            frames = np.nonzero(used == s)[0]
+            assert frame_of[s] == pytest.approx(0.5 * (frames[0] + frames[-1])), (length, s, frames)
+        shared, lag = C.wan_shared_samples(length)
+        assert (shared, lag) == ((0, 0.0) if length <= 121 else (shared, lag))
+        if length > 121:  # more frames than samples: some share, none is more than half its span off
+            assert shared > 0 and 0 < lag <= 0.5 * (np.bincount(used).max() - 1) + 1e-9, (length, shared, lag)
         assert np.all(np.diff(frame_of) >= -1e-12)  # monotone in time
     # length - 1 a multiple of 120: a = 1 and [1::1] drops a frame upstream; refused here.
     probe = json.dumps([[{"x": float(s), "y": 0.0} for s in range(121)]])
