@@ -496,7 +496,8 @@ def wan_sample_frames(length: int) -> tuple[np.ndarray, np.ndarray]:
     # consecutive frames share one: the sample is placed at the middle of the frames that read it, so none
     # of them sees a position more than half the span away in time (placed at the first, the last would
     # see it up to the whole span late).
-    frame_of = np.where(read, 0.5 * (first + last), np.nan)
+    frame_of = np.full(WAN_TRACK_SAMPLES, np.nan)
+    frame_of[read] = 0.5 * (first[read] + last[read])
     known = np.nonzero(read)[0]
     frame_of = np.interp(np.arange(WAN_TRACK_SAMPLES), known, frame_of[known])
     # Samples after the last one read stand for nothing the model sees; keep them on the last frame.
