@@ -50,6 +50,14 @@ TEXTURES = ("photo", "splat")
 #: weight ramps in linearly up to it.
 MIN_COVERAGE = 0.02
 
+#: A splat whose footprint grows past STRETCH_FADE[0] times its footprint in the photo (a rim or a side the photo
+#: saw edge-on, turned toward the camera) fades from the photo to its own colour, wholly at STRETCH_FADE[1]:
+#: the photo has too few pixels of it. Frame 0 is never affected (ratio 1).
+STRETCH_FADE = (1.5, 3.0)
+
+#: The splats' coverage is a floor from INTERIOR_PX[1] px inside their silhouette (none within INTERIOR_PX[0]).
+INTERIOR_PX = (1.5, 3.5)
+
 #: The seen test renders the rest pose at most this long side (it compares depths, which are smooth).
 SEEN_MAX_SIDE = 320
 
@@ -157,6 +165,25 @@ def seen_weights(gaussians: Gaussians, camera: Camera, *, backend: str = "auto")
     return s.float()
 
 
+def projected_area(g: Gaussians, camera: Camera, eps2d: float = 0.3) -> torch.Tensor:
+    """(N,) each splat's footprint in ``camera``'s image, px² (√det of its EWA 2D covariance, as rasterized with
+    ``eps2d`` px² of dilation); 0 behind the camera."""
+    w2c = camera.w2c_opencv().to(torch.float32)
+    R = w2c[:3, :3]
+    mc = g.means.float() @ R.T + w2c[:3, 3]
+    z = mc[:, 2]
+    rz = 1.0 / z.clamp_min(1e-6)
+    J = torch.zeros(mc.shape[0], 2, 3)
+    J[:, 0, 0] = camera.fx * rz
+    J[:, 0, 2] = -camera.fx * mc[:, 0] * rz * rz
+    J[:, 1, 1] = camera.fy * rz
+    J[:, 1, 2] = -camera.fy * mc[:, 1] * rz * rz
+    T = J @ R
+    cov = T @ g.covariance().float() @ T.transpose(1, 2)
+    det = (cov[:, 0, 0] + eps2d) * (cov[:, 1, 1] + eps2d) - cov[:, 0, 1] * cov[:, 1, 0]
+    return torch.where(z > camera.near, det.clamp_min(0.0).sqrt(), torch.zeros_like(det))
+
+
 def texture_features(seen: torch.Tensor, shift: Optional[torch.Tensor]) -> torch.Tensor:
     """The per-Gaussian channels a textured frame composites: s·Δ (2, when each splat has its own map: Δ from
     where its centre is now to where the photo shows it, in photo pixels) and s."""
@@ -259,8 +286,18 @@ def shade(texture: PhotoTexture, camera: Camera, rgb: torch.Tensor, alpha: torch
     w = (Sb / a.clamp_min(1e-12)).clamp_(0.0, 1.0).mul_((a * (1.0 / MIN_COVERAGE)).clamp(0.0, 1.0))
     w = w.masked_fill_(~has[y0:y1, x0:x1] if front is None else ~(has[y0:y1, x0:x1] & front), 0.0)
     keep = 1.0 - w
-    out_a[y0:y1, x0:x1] = w * m_s + keep * a
-    out_rgb[y0:y1, x0:x1] = w[..., None] * col + keep[..., None] * rgb[y0:y1, x0:x1]
+    alpha_m = w * m_s + keep * a
+    # Coverage follows the photo's matte (so frame 0 is the photo, soft edge included, and edges stay crisp in
+    # motion), but never opens a hole well inside the splats' own silhouette (a photo coordinate at the matte's
+    # edge there, e.g. a rim turned toward the camera): from INTERIOR_PX px inside it the splats' coverage is a
+    # floor, the difference filled with their colour.
+    inside = cv2.distanceTransform((a > 0.5).numpy().astype(np.uint8), cv2.DIST_L2, 3)
+    floor = a * torch.from_numpy(inside).sub_(INTERIOR_PX[0]).div_(INTERIOR_PX[1] - INTERIOR_PX[0]).clamp_(0.0, 1.0)
+    extra = (floor - alpha_m).clamp_(min=0.0)
+    rgb_b = rgb[y0:y1, x0:x1]
+    out_a[y0:y1, x0:x1] = alpha_m + extra
+    out_rgb[y0:y1, x0:x1] = (w[..., None] * col + keep[..., None] * rgb_b
+                             + (extra / a.clamp_min(1e-6))[..., None] * rgb_b)
     return out_rgb, out_a
 
 
@@ -287,6 +324,8 @@ class TexturedPoser:
         z = mc[:, 2].clamp_min(1e-9)
         pc = texture.camera
         self.uv0 = torch.stack([pc.fx * mc[:, 0] / z + pc.cx, pc.fy * mc[:, 1] / z + pc.cy], 1)
+        # Footprints in the photo, in render pixels² (a resized render camera scales them).
+        self.area0 = projected_area(g0, pc) * (camera.fx * camera.fy) / (pc.fx * pc.fy)
 
     def features(self, frame: int, g: Gaussians):
         """(extra_features for ``rasterize``, one_map or None) of frame ``frame`` posed as ``g``."""
@@ -304,7 +343,12 @@ class TexturedPoser:
             r = torch.stack([ms[:, 0] / z, ms[:, 1] / z, torch.ones_like(z)], 1)
             px, py = _render_to_photo_px(self.camera, self.texture.camera, r)
             shift = self.uv0 - torch.stack([px, py], 1)
-        return texture_features(self.seen.to(torch.float64), shift).to(g.means.dtype).to(g.means.device), one
+        seen = self.seen
+        if frame != 0:  # stretched past what the photo resolved: the splat's own colour (see STRETCH_FADE)
+            ratio = projected_area(g, self.camera) / self.area0.clamp_min(1e-6)
+            lo, hi = STRETCH_FADE
+            seen = seen * ((hi - ratio) / (hi - lo)).clamp(0.0, 1.0)
+        return texture_features(seen.to(torch.float64), shift).to(g.means.dtype).to(g.means.device), one
 
     def _clearly_deformed(self, frame: int) -> bool:
         """Whether the particles' deformation gradients at ``frame`` differ from one another by more than 0.1 %
