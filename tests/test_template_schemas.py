@@ -38,7 +38,10 @@ def test_the_schemas_are_the_captured_ones():
     for path, note in upstream["_sources"].items():
         if path.endswith(".py") and "nodes_" in path:
             assert len(note.split()[0]) == 40, f"{path}: say which commit was read"
-    assert {"File3DToGaussian", "VAEDecodeTripoSplat", "TripoSplatConditioning"} <= set(upstream["nodes"])
+    assert {"File3DToGaussian", "File3DToSplat", "VAEDecodeTripoSplat", "TripoSplatConditioning"} <= set(upstream["nodes"])
+    # a current ComfyUI's TripoSplat decode outputs SPLAT (IO.Splat), and the pack's splat inputs take it
+    assert upstream["nodes"]["VAEDecodeTripoSplat"]["output"] == ["SPLAT"]
+    assert upstream["nodes"]["File3DToSplat"]["output"] == ["SPLAT"]
 
 
 def _jelly():
@@ -132,8 +135,9 @@ def test_link_type_rules_follow_comfyui():
     assert types_compatible("IMAGE", "IMAGE")
     assert not types_compatible("IMAGE", "MASK")
     assert types_compatible("*", "IMAGE") and types_compatible("IMAGE", "*")
-    assert types_compatible("GAUSSIAN", "PM_GAUSSIANS,GAUSSIAN")  # a union takes any of its members
-    assert types_compatible("PM_GAUSSIANS", "PM_GAUSSIANS,GAUSSIAN")
+    assert types_compatible("GAUSSIAN", "PM_GAUSSIANS,SPLAT,GAUSSIAN")  # a union takes any of its members
+    assert types_compatible("SPLAT", "PM_GAUSSIANS,SPLAT,GAUSSIAN")
+    assert types_compatible("PM_GAUSSIANS", "PM_GAUSSIANS,SPLAT,GAUSSIAN")
     assert types_compatible("STRING,INT", "INT,FLOAT")  # non-strict: one shared type is enough
     assert not types_compatible("SPLAT", "PM_GAUSSIANS,GAUSSIAN")
     assert types_compatible("COMBO", ["a", "b"]) and not types_compatible("STRING", ["a", "b"])
@@ -172,7 +176,7 @@ def test_native_3d_templates_go_native_3d_to_physics_to_native_video():
     assert _chain(own, "PhysMotionLoadGaussians", "SaveVideo") == [
         "PhysMotionLoadGaussians", "PhysMotionFitGaussiansToPhoto", "PhysMotionMPMSimulate", "PhysMotionRender",
         "PhysMotionBlend", "CreateVideo", "SaveVideo"]
-    # The schemas say the TripoSplat decode's GAUSSIAN may feed the Fit: the link type check is real.
+    # The schemas say the TripoSplat decode's SPLAT may feed the Fit: the link type check is real.
     bad = copy.deepcopy(tp)
     bad[_find(tp, "PhysMotionFitGaussiansToPhoto")]["inputs"]["gaussians"] = [_find(tp, "KSampler"), 0]
     errs = validate_prompt_against_schemas(bad, all_schemas(), TEMPLATE_MODEL_FILES)
