@@ -129,3 +129,26 @@ def test_only_example_workflows_can_be_taken_for_a_template_folder():
         assert "nodes" in ui and "links" in ui, f"{path.name} is not a UI-format workflow"
         assert (path.with_suffix(".jpg")).is_file(), f"no thumbnail for {path.name}"
         assert (ROOT / "example_workflows" / "api" / path.name).is_file(), f"no API twin for {path.name}"
+
+
+def test_registry_metadata_is_complete():
+    """The Registry fields issue 35 asked for: the minimum ComfyUI, and a .comfyignore that leaves the
+    development files out but nothing the pack needs at run time."""
+    import fnmatch
+
+    meta = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    comfy = meta["tool"]["comfy"]
+    assert re.fullmatch(r">=\d+\.\d+\.\d+", comfy["requires-comfyui"]), comfy.get("requires-comfyui")
+    assert meta["project"]["urls"]["Repository"] and meta["project"]["license"]
+    ignored = [ln.strip() for ln in (ROOT / ".comfyignore").read_text().splitlines()
+               if ln.strip() and not ln.startswith("#")]
+    assert {"tests/", "benchmarks/"} <= set(ignored)
+
+    def left_out(path: str) -> bool:
+        return any(path.startswith(p) if p.endswith("/") else fnmatch.fnmatch(path, p) for p in ignored)
+
+    for needed in ["__init__.py", "nodes/physics.py", "physmotion_core/pipeline.py", "web/force_picker.js",
+                   "example_workflows/push_a_jelly.json", "requirements.txt", "pyproject.toml", "LICENSE"]:
+        assert (ROOT / needed).exists() and not left_out(needed), needed
+    for folder in comfy["includes"]:
+        assert not left_out(folder + "/"), folder
