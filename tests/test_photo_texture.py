@@ -240,3 +240,33 @@ def test_compiled_compositing_of_a_few_extra_channels_matches_the_tensor_path(ex
     assert a.backend == "warp"
     for x, y in ((a.rgb, b.rgb), (a.alpha, b.alpha), (a.extra, b.extra)):
         assert float((x - y).abs().max()) < 1e-5
+
+
+def test_a_face_the_photo_saw_edge_on_keeps_its_own_colour_when_turned_to_the_camera():
+    """A side face lies along the viewing ray at rest: the photo holds a one-pixel sliver of it. Turned 90° to
+    face the camera, stretching that sliver over the face would smear it; the face shows its splats' colour."""
+    cam = slab_camera()
+    photo = texture_image()
+    sp = 0.006
+    ys = torch.arange(-0.1, 0.1 + 1e-9, sp)
+    zs = torch.arange(-0.2, 0.0 + 1e-9, sp)
+    yy, zz = torch.meshgrid(ys, zs, indexing="ij")
+    means = torch.stack([torch.full_like(yy.flatten(), 0.05), yy.flatten(), zz.flatten()], 1)
+    n = means.shape[0]
+    green = torch.tensor([0.0, 1.0, 0.0])
+    g = Gaussians.from_rgb(means, green.expand(n, 3).contiguous(),
+                           torch.tensor([0.1 * sp, 0.6 * sp, 0.6 * sp]).expand(n, 3).contiguous(), torch.full((n,), 0.97))
+    centre = torch.tensor([0.05, 0.0, -0.1])
+    rot = torch.tensor([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [-1.0, 0.0, 0.0]])  # 90° about y: the face turns to +z
+    turned = (means - centre) @ rot.T + centre
+    sim = sim_from_positions(g, [means, turned])
+    sim.F[1] = rot  # the splats turn with it
+    rest = render_frames(sim, cam)
+    assert float(rest.alpha[0].sum()) > 20  # the photo sees a sliver of it
+    tex = make_photo_texture(photo, (rest.alpha[0] > 0.5).float(), cam, background=torch.zeros(H, W, 3))
+    fr = render_frames(sim, cam, photo=tex)
+    face = render_frames(sim, cam).alpha[1] > 0.9
+    face = torch.from_numpy(cv2.erode(face.numpy().astype(np.uint8), np.ones((5, 5), np.uint8)) > 0)
+    assert int(face.sum()) > 200
+    out = composite(fr.rgb, fr.alpha, torch.zeros(H, W, 3))[1]
+    assert float((out[face] - green).abs().max()) < 0.05

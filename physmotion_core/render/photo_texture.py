@@ -32,7 +32,6 @@ shows it, and reads the photo there:
 
 from __future__ import annotations
 
-import dataclasses
 from dataclasses import dataclass
 from typing import Optional
 
@@ -42,9 +41,6 @@ import torch
 from ..errors import InputError
 from ..types.camera import Camera
 from ..types.gaussians import Gaussians
-
-#: Texture modes of the renderers: the photo where it saw the surface ("photo"), or the splats' colours only.
-TEXTURES = ("photo", "splat")
 
 #: Below this share of splat coverage a pixel's photo coordinate is unreliable (a far splat tail): the photo's
 #: weight ramps in linearly up to it.
@@ -165,9 +161,10 @@ def seen_weights(gaussians: Gaussians, camera: Camera, *, backend: str = "auto")
     return s.float()
 
 
-def projected_area(g: Gaussians, camera: Camera, eps2d: float = 0.3) -> torch.Tensor:
-    """(N,) each splat's footprint in ``camera``'s image, px² (√det of its EWA 2D covariance, as rasterized with
-    ``eps2d`` px² of dilation); 0 behind the camera."""
+def projected_area(g: Gaussians, camera: Camera, eps2d: float = 0.0) -> torch.Tensor:
+    """(N,) each splat's footprint in ``camera``'s image, px² (√det of its EWA 2D covariance, plus ``eps2d`` px²
+    of dilation: none by default, so a splat seen edge-on has the sliver of a footprint it really has, not the
+    rasterizer's 0.3 px² floor); 0 behind the camera."""
     w2c = camera.w2c_opencv().to(torch.float32)
     R = w2c[:3, :3]
     mc = g.means.float() @ R.T + w2c[:3, 3]
@@ -345,7 +342,7 @@ class TexturedPoser:
             shift = self.uv0 - torch.stack([px, py], 1)
         seen = self.seen
         if frame != 0:  # stretched past what the photo resolved: the splat's own colour (see STRETCH_FADE)
-            ratio = projected_area(g, self.camera) / self.area0.clamp_min(1e-6)
+            ratio = projected_area(g, self.camera) / self.area0.clamp_min(1e-4)
             lo, hi = STRETCH_FADE
             seen = seen * ((hi - ratio) / (hi - lo)).clamp(0.0, 1.0)
         return texture_features(seen.to(torch.float64), shift).to(g.means.dtype).to(g.means.device), one
@@ -366,11 +363,6 @@ class TexturedPoser:
 
     def shade(self, out, one, into: Optional[tuple] = None) -> tuple[torch.Tensor, torch.Tensor]:
         return shade(self.texture, self.camera, out.rgb, out.alpha, out.depth, out.extra, one, into)
-
-
-def with_camera(texture: PhotoTexture, camera: Camera) -> PhotoTexture:
-    """The texture with another photo camera (e.g. a GAUSSIAN fitted to the photo through its own camera)."""
-    return dataclasses.replace(texture, camera=camera.resized(texture.width, texture.height), seen=None)
 
 
 def photo_texture_for(sim, camera: Camera, photo: torch.Tensor, matte: Optional[torch.Tensor] = None,
