@@ -54,6 +54,9 @@ STRETCH_FADE = (1.5, 3.0)
 #: The splats' coverage is a floor from INTERIOR_PX[1] px inside their silhouette (none within INTERIOR_PX[0]).
 INTERIOR_PX = (1.5, 3.5)
 
+#: Largest photo-coordinate error (px) accepted from reading a frame's motion back to rest as one rigid map.
+ONE_MAP_TOLERANCE_PX = 0.01
+
 #: The seen test renders the rest pose at most this long side (it compares depths, which are smooth).
 SEEN_MAX_SIDE = 320
 
@@ -170,14 +173,16 @@ def projected_area(g: Gaussians, camera: Camera, eps2d: float = 0.0) -> torch.Te
     mc = g.means.float() @ R.T + w2c[:3, 3]
     z = mc[:, 2]
     rz = 1.0 / z.clamp_min(1e-6)
-    J = torch.zeros(mc.shape[0], 2, 3)
-    J[:, 0, 0] = camera.fx * rz
-    J[:, 0, 2] = -camera.fx * mc[:, 0] * rz * rz
-    J[:, 1, 1] = camera.fy * rz
-    J[:, 1, 2] = -camera.fy * mc[:, 1] * rz * rz
-    T = J @ R
-    cov = T @ g.covariance().float() @ T.transpose(1, 2)
-    det = (cov[:, 0, 0] + eps2d) * (cov[:, 1, 1] + eps2d) - cov[:, 0, 1] * cov[:, 1, 0]
+    # The Jacobian's rows in world axes: t0 = fx/z (R0 - x/z R2), t1 = fy/z (R1 - y/z R2).
+    t0 = (camera.fx * rz)[:, None] * (R[0] - (mc[:, 0] * rz)[:, None] * R[2])
+    t1 = (camera.fy * rz)[:, None] * (R[1] - (mc[:, 1] * rz)[:, None] * R[2])
+    cov = g.covariance().float()
+    s0 = (cov * t0[:, None, :]).sum(-1)  # Σ t0
+    s1 = (cov * t1[:, None, :]).sum(-1)
+    a = (t0 * s0).sum(1) + eps2d
+    c = (t1 * s1).sum(1) + eps2d
+    b = (t0 * s1).sum(1)
+    det = a * c - b * b
     return torch.where(z > camera.near, det.clamp_min(0.0).sqrt(), torch.zeros_like(det))
 
 
@@ -332,8 +337,7 @@ class TexturedPoser:
         ms = g.means.double() @ R.T + t  # the centres now, render-camera coordinates
         one = None
         if C.ONE_MAP_FLOW and not self._clearly_deformed(frame):
-            L = C._splat_linear_part(self.sim, frame)
-            one = C._one_map(*C._flow_maps(self.sim, self.w2c, g.means.double(), L, self.mu0, self.L0), self.camera)
+            one = self._one_map(frame, ms)
         shift = None
         if one is None:
             z = ms[:, 2].clamp_min(1e-9)
@@ -341,7 +345,10 @@ class TexturedPoser:
             px, py = _render_to_photo_px(self.camera, self.texture.camera, r)
             shift = self.uv0 - torch.stack([px, py], 1)
         seen = self.seen
-        if frame != 0:  # stretched past what the photo resolved: the splat's own colour (see STRETCH_FADE)
+        # Stretched past what the photo resolved: the splat's own colour (see STRETCH_FADE). Not at frame 0, nor
+        # for a frame that only translates the body (footprints change by perspective alone, a few %).
+        translated = one is not None and float((one[0] - torch.eye(3, dtype=one[0].dtype)).abs().max()) < 0.01
+        if frame != 0 and not translated:
             ratio = projected_area(g, self.camera) / self.area0.clamp_min(1e-4)
             lo, hi = STRETCH_FADE
             seen = seen * ((hi - ratio) / (hi - lo)).clamp(0.0, 1.0)
@@ -360,6 +367,31 @@ class TexturedPoser:
         mean = F.mean(0)
         spread = float((F - mean).flatten(1).abs().amax())
         return spread > 1e-3 * max(float(mean.abs().amax()), 1e-12)
+
+    def _one_map(self, frame: int, ms: torch.Tensor):
+        """``controls._one_map`` for a frame whose particles share one deformation (``_clearly_deformed`` is
+        false), without forming a 3x3 map per splat: the particles' maps back to rest (P of them) and each
+        splat's offset b = its rest centre - A its centre now, both in camera coordinates; (A, b) when they agree
+        to ``ONE_MAP_TOLERANCE_PX`` px (the photo coordinate needs no better), else None."""
+        from .. import controls as C
+
+        b_idx = self._bound
+        L = C._splat_linear_part(self.sim, frame)[b_idx]
+        R = self.w2c[:3, :3]
+        A_p = R @ (self.L0[b_idx] @ C._inverse(L)) @ R.T
+        A0 = A_p.mean(0)
+        dA = float((A_p - A0).flatten(1).norm(dim=1).max())
+        t = self.w2c[:3, 3]
+        m0 = self.mu0 @ R.T + t
+        b = m0 - ms @ A0.T
+        b0 = b.mean(0)
+        db = float((b - b0).norm(dim=1).max())
+        z = ms[:, 2]
+        near = float(z[z > 0].min()) if bool((z > 0).any()) else 0.0
+        if near <= 0.0:
+            return None
+        err_px = max(self.camera.fx, self.camera.fy) / near * (dA * float(ms.norm(dim=1).max()) + db)
+        return (A0, b0) if err_px <= ONE_MAP_TOLERANCE_PX else None
 
     def shade(self, out, one, into: Optional[tuple] = None) -> tuple[torch.Tensor, torch.Tensor]:
         return shade(self.texture, self.camera, out.rgb, out.alpha, out.depth, out.extra, one, into)
