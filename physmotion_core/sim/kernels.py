@@ -84,6 +84,8 @@ class Boundary:
     wall_contact: int
     wall_friction: float
     pad: int  # cells of padding at each wall: nodes closer than this to a face are wall nodes
+    object_contact: int  # between objects' velocity fields (multi-field): CONTACT_* (see field_contact)
+    object_friction: float
 
 
 @wp.struct
@@ -103,6 +105,7 @@ class Particles:
     mat_id: wp.array(dtype=int)  # row of the material table
     flags: wp.array(dtype=int)  # FLAG_ANCHORED | FLAG_RIGID
     anchor_v: wp.array(dtype=wp.vec3)  # prescribed velocity of an anchored particle (m/s)
+    field: wp.array(dtype=int)  # the grid velocity field the particle moves on (its object; 0 with one field)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -114,6 +117,13 @@ class Particles:
 def bspline_weights(fx: wp.vec3, axis: int):
     f = fx[axis]
     return wp.vec3(0.5 * (1.5 - f) * (1.5 - f), 0.75 - (f - 1.0) * (f - 1.0), 0.5 * (f - 0.5) * (f - 0.5))
+
+
+@wp.func
+def bspline_slopes(fx: wp.vec3, axis: int):
+    """d/df of bspline_weights (f in cells)."""
+    f = fx[axis]
+    return wp.vec3(f - 1.5, -2.0 * (f - 1.0), f - 0.5)
 
 
 @wp.func
@@ -308,11 +318,18 @@ def p2g(
     layer: int,
     layer_box: wp.array2d(dtype=int),
     layer_lo: wp.vec3i,
+    fields: int,
+    grid_g: wp.array4d(dtype=wp.vec3),
 ):
     """Scatter particles offset .. offset + launch dim into accumulator layer ``layer`` (see
     ``grid_update``: the layers of one substep are summed there). The layers start at node
     ``layer_lo``. With several layers, also grow the layer's box of stencil bases, so grid_update
-    reads only the nodes a layer can hold."""
+    reads only the nodes a layer can hold.
+
+    With several velocity fields (one per object, ``fields`` > 1) a layer holds one slot per field
+    (slot = layer · fields + field) and each particle also scatters its mass gradient, Σ m ∇w, into
+    ``grid_g``: at a node it points from the field's material towards the node, the field's outward
+    normal there (field_contact)."""
     p = wp.tid() + offset
     dt = dt_arr[0]
     base = stencil_base(ps.x[p], grid)
@@ -325,6 +342,15 @@ def p2g(
     wx = bspline_weights(fx, 0)
     wy = bspline_weights(fx, 1)
     wz = bspline_weights(fx, 2)
+    slot = layer
+    dwx = wp.vec3(0.0, 0.0, 0.0)
+    dwy = wp.vec3(0.0, 0.0, 0.0)
+    dwz = wp.vec3(0.0, 0.0, 0.0)
+    if fields > 1:
+        slot = layer * fields + ps.field[p]
+        dwx = bspline_slopes(fx, 0)
+        dwy = bspline_slopes(fx, 1)
+        dwz = bspline_slopes(fx, 2)
     m = ps.mass[p]
     # MLS-MPM: the stress enters as an affine momentum term -dt * V * (4/dx^2) * tau. The particle's
     # affine velocity m C is transferred with APIC (apic = 1) and dropped with PIC (apic = 0).
@@ -342,8 +368,11 @@ def p2g(
                 ix = base[0] + i - layer_lo[0]
                 iy = base[1] + j - layer_lo[1]
                 iz = base[2] + k - layer_lo[2]
-                wp.atomic_add(grid_m, layer, ix, iy, iz, w * m)
-                wp.atomic_add(grid_mv, layer, ix, iy, iz, w * (mv + affine * dpos))
+                wp.atomic_add(grid_m, slot, ix, iy, iz, w * m)
+                wp.atomic_add(grid_mv, slot, ix, iy, iz, w * (mv + affine * dpos))
+                if fields > 1:
+                    gw = wp.vec3(dwx[i] * wy[j] * wz[k], wx[i] * dwy[j] * wz[k], wx[i] * wy[j] * dwz[k])
+                    wp.atomic_add(grid_g, slot, ix, iy, iz, (m * grid.inv_dx) * gw)
                 if anchored:
                     wp.atomic_add(grid_fix, layer, ix, iy, iz, w * m)
                     wp.atomic_add(grid_fix_v, layer, ix, iy, iz, (w * m) * ps.anchor_v[p])
@@ -368,16 +397,140 @@ def contact_velocity(v: wp.vec3, n: wp.vec3, contact: int, mu: float) -> wp.vec3
 
 
 @wp.func
+def wall_velocity(v: wp.vec3, i: int, j: int, k: int, grid: GridInfo, bc: Boundary) -> wp.vec3:
+    """Domain walls (x, z sides and the top; the bottom too when there is no ground)."""
+    if i < bc.pad:
+        v = contact_velocity(v, wp.vec3(1.0, 0.0, 0.0), bc.wall_contact, bc.wall_friction)
+    if i >= grid.nx - bc.pad:
+        v = contact_velocity(v, wp.vec3(-1.0, 0.0, 0.0), bc.wall_contact, bc.wall_friction)
+    if k < bc.pad:
+        v = contact_velocity(v, wp.vec3(0.0, 0.0, 1.0), bc.wall_contact, bc.wall_friction)
+    if k >= grid.nz - bc.pad:
+        v = contact_velocity(v, wp.vec3(0.0, 0.0, -1.0), bc.wall_contact, bc.wall_friction)
+    if j >= grid.ny - bc.pad:
+        v = contact_velocity(v, wp.vec3(0.0, -1.0, 0.0), bc.wall_contact, bc.wall_friction)
+    if bc.has_ground == 0 and j < bc.pad:
+        v = contact_velocity(v, wp.vec3(0.0, 1.0, 0.0), bc.wall_contact, bc.wall_friction)
+    # With a ground, its contact is per column of nodes, in ground_contact.
+    return v
+
+
+@wp.func
+def field_contact(v: wp.vec3, vcm: wp.vec3, n: wp.vec3, contact: int, mu: float) -> wp.vec3:
+    """A field's node velocity v after contact with the other fields at the node (their centre of mass
+    moves at vcm; n: the field's outward unit normal). Contact only acts while the field approaches
+    the rest, (v − vcm)·n > 0 (Bardenhagen et al. 2000): the normal part of its velocity relative to
+    vcm is removed, and the tangential part is kept (slip), removed (sticky) or reduced by μ times the
+    normal part removed, down to zero (Coulomb friction). With two fields the normals are opposite and
+    the corrections, m (v − vcm) parts, cancel: momentum is conserved exactly."""
+    dv = v - vcm
+    dn = wp.dot(dv, n)
+    if dn <= 0.0:
+        return v  # separating (or moving apart tangentially): the fields move freely
+    if contact == CONTACT_STICKY:
+        return vcm
+    vt = dv - dn * n
+    if contact == CONTACT_SLIP:
+        return vcm + vt
+    vt_len = wp.length(vt)
+    if vt_len <= mu * dn:
+        return vcm
+    return vcm + vt * (1.0 - mu * dn / vt_len)
+
+
+@wp.func
+def update_node_fields(
+    i: int,
+    j: int,
+    k: int,
+    fields: int,
+    grid_m: wp.array4d(dtype=float),
+    grid_mv: wp.array4d(dtype=wp.vec3),
+    grid_g: wp.array4d(dtype=wp.vec3),
+    grid_v: wp.array4d(dtype=wp.vec3),
+    ground_m: wp.array4d(dtype=float),
+    grid: GridInfo,
+    bc: Boundary,
+    gravity: wp.vec3,
+    dt: float,
+    layer_box: wp.array2d(dtype=int),
+    layer_lo: wp.vec3i,
+):
+    """update_node for several velocity fields (one per object; no anchors): each field's mass,
+    momentum and mass gradient summed over the layers; each field's free velocity; where two or more
+    fields have mass, contact between them (field_contact, normals from the mass gradients); then
+    the walls, per field. Pass 1 leaves each field's sums in layer 0's slot, pass 2 reads and clears
+    them (only this thread touches this node's slots)."""
+    layers = grid_m.shape[0] // fields
+    li = i - layer_lo[0]
+    lj = j - layer_lo[1]
+    lk = k - layer_lo[2]
+    M = float(0.0)
+    P = wp.vec3(0.0, 0.0, 0.0)
+    G = wp.vec3(0.0, 0.0, 0.0)
+    present = int(0)
+    for f in range(fields):
+        m = float(0.0)
+        mv = wp.vec3(0.0, 0.0, 0.0)
+        g = wp.vec3(0.0, 0.0, 0.0)
+        for l in range(layers):
+            if layers > 1:
+                if i < layer_box[l, 0] or i > layer_box[l, 3] + 2 or j < layer_box[l, 1] or j > layer_box[l, 4] + 2 or \
+                        k < layer_box[l, 2] or k > layer_box[l, 5] + 2:
+                    continue
+            s = l * fields + f
+            m += grid_m[s, li, lj, lk]
+            mv += grid_mv[s, li, lj, lk]
+            g += grid_g[s, li, lj, lk]
+            grid_m[s, li, lj, lk] = 0.0
+            grid_mv[s, li, lj, lk] = wp.vec3(0.0, 0.0, 0.0)
+            grid_g[s, li, lj, lk] = wp.vec3(0.0, 0.0, 0.0)
+        v = wp.vec3(0.0, 0.0, 0.0)
+        if m > 0.0:
+            v = mv / m + dt * gravity
+            present += 1
+            M += m
+            P += m * v
+            G += g
+        # Layer 0's slot keeps the field's sums for pass 2.
+        grid_m[f, li, lj, lk] = m
+        grid_mv[f, li, lj, lk] = v
+        grid_g[f, li, lj, lk] = g
+    vcm = wp.vec3(0.0, 0.0, 0.0)
+    if M > 0.0:
+        vcm = P / M
+    for f in range(fields):
+        m = grid_m[f, li, lj, lk]
+        v = grid_mv[f, li, lj, lk]
+        g = grid_g[f, li, lj, lk]
+        grid_m[f, li, lj, lk] = 0.0
+        grid_mv[f, li, lj, lk] = wp.vec3(0.0, 0.0, 0.0)
+        grid_g[f, li, lj, lk] = wp.vec3(0.0, 0.0, 0.0)
+        if bc.has_ground != 0 and j <= bc.ground_node:
+            ground_m[f, i, j, k] = m
+        if m > 0.0:
+            if present > 1:
+                # The field's outward normal against the others': its own mass gradient minus theirs
+                # (with two fields the two normals are exactly opposite).
+                n = 2.0 * g - G
+                nl = wp.length(n)
+                if nl > 0.0:
+                    v = field_contact(v, vcm, n / nl, bc.object_contact, bc.object_friction)
+            v = wall_velocity(v, i, j, k, grid, bc)
+        grid_v[f, i, j, k] = v
+
+
+@wp.func
 def update_node(
     i: int,
     j: int,
     k: int,
     grid_m: wp.array4d(dtype=float),
     grid_mv: wp.array4d(dtype=wp.vec3),
-    grid_v: wp.array3d(dtype=wp.vec3),
+    grid_v: wp.array4d(dtype=wp.vec3),
     grid_fix: wp.array4d(dtype=float),
     grid_fix_v: wp.array4d(dtype=wp.vec3),
-    ground_m: wp.array3d(dtype=float),
+    ground_m: wp.array4d(dtype=float),
     grid: GridInfo,
     bc: Boundary,
     gravity: wp.vec3,
@@ -417,25 +570,12 @@ def update_node(
             grid_fix_v[l, li, lj, lk] = wp.vec3(0.0, 0.0, 0.0)
     v = wp.vec3(0.0, 0.0, 0.0)
     if bc.has_ground != 0 and j <= bc.ground_node:
-        ground_m[i, j, k] = m
+        ground_m[0, i, j, k] = m
     if m > 0.0:
         v = mv / m + dt * gravity
         # Domain walls (x, z sides and the top; the bottom too when there is no ground).
-        if i < bc.pad:
-            v = contact_velocity(v, wp.vec3(1.0, 0.0, 0.0), bc.wall_contact, bc.wall_friction)
-        if i >= grid.nx - bc.pad:
-            v = contact_velocity(v, wp.vec3(-1.0, 0.0, 0.0), bc.wall_contact, bc.wall_friction)
-        if k < bc.pad:
-            v = contact_velocity(v, wp.vec3(0.0, 0.0, 1.0), bc.wall_contact, bc.wall_friction)
-        if k >= grid.nz - bc.pad:
-            v = contact_velocity(v, wp.vec3(0.0, 0.0, -1.0), bc.wall_contact, bc.wall_friction)
-        if j >= grid.ny - bc.pad:
-            v = contact_velocity(v, wp.vec3(0.0, -1.0, 0.0), bc.wall_contact, bc.wall_friction)
-        if bc.has_ground != 0:
-            pass  # the ground's contact is per column of nodes, in ground_contact
-        elif j < bc.pad:
-            v = contact_velocity(v, wp.vec3(0.0, 1.0, 0.0), bc.wall_contact, bc.wall_friction)
-    grid_v[i, j, k] = v
+        v = wall_velocity(v, i, j, k, grid, bc)
+    grid_v[0, i, j, k] = v
     if in_anchor:
         # Keep the node's sums and free velocity in layer 0 for anchor_pin and anchor_update, which
         # set the anchored nodes' velocities (anchor_clear then empties layer 0), over the anchor's span
@@ -453,10 +593,10 @@ def update_node(
 def grid_update(
     grid_m: wp.array4d(dtype=float),
     grid_mv: wp.array4d(dtype=wp.vec3),
-    grid_v: wp.array3d(dtype=wp.vec3),
+    grid_v: wp.array4d(dtype=wp.vec3),
     grid_fix: wp.array4d(dtype=float),
     grid_fix_v: wp.array4d(dtype=wp.vec3),
-    ground_m: wp.array3d(dtype=float),
+    ground_m: wp.array4d(dtype=float),
     lo: wp.vec3i,
     grid: GridInfo,
     bc: Boundary,
@@ -469,8 +609,11 @@ def grid_update(
     anchors: int,
     anchor_lo: wp.vec3i,
     anchor_hi: wp.vec3i,
+    fields: int,
+    grid_g: wp.array4d(dtype=wp.vec3),
 ):
-    """Node velocities from the accumulated mass and momentum. The accumulators have one layer per
+    """Node velocities from the accumulated mass and momentum (one velocity field, or one per object
+    with ``fields`` > 1: update_node_fields). The accumulators have one layer per
     particle chunk (one in all on CUDA, where p2g's atomics are real; a chunk each for the CPU's
     threads, whose adds are not atomic); they are summed here in layer order, so the result does
     not depend on which thread scattered which chunk.
@@ -488,14 +631,52 @@ def grid_update(
     j = lo[1] + b
     k0 = lo[2] + c * run
     for k in range(k0, wp.min(k0 + run, k_end)):
-        update_node(i, j, k, grid_m, grid_mv, grid_v, grid_fix, grid_fix_v, ground_m, grid, bc, gravity, dt,
-                    layer_box, layer_lo, anchors, anchor_lo, anchor_hi)
+        if fields > 1:
+            update_node_fields(i, j, k, fields, grid_m, grid_mv, grid_g, grid_v, ground_m, grid, bc, gravity, dt,
+                               layer_box, layer_lo)
+        else:
+            update_node(i, j, k, grid_m, grid_mv, grid_v, grid_fix, grid_fix_v, ground_m, grid, bc, gravity, dt,
+                        layer_box, layer_lo, anchors, anchor_lo, anchor_hi)
+
+
+@wp.func
+def ground_column(
+    grid_v: wp.array4d(dtype=wp.vec3),
+    ground_m: wp.array4d(dtype=float),
+    grid_mv: wp.array4d(dtype=wp.vec3),
+    f: int,
+    i: int,
+    k: int,
+    lo: wp.vec3i,
+    bc: Boundary,
+    layer_lo: wp.vec3i,
+    anchors: int,
+    anchor_lo: wp.vec3i,
+    anchor_hi: wp.vec3i,
+):
+    m = float(0.0)
+    p = wp.vec3(0.0, 0.0, 0.0)
+    for j in range(lo[1], bc.ground_node + 1):
+        mj = ground_m[f, i, j, k]
+        if mj > 0.0:
+            m += mj
+            p += mj * grid_v[f, i, j, k]
+    if m <= 0.0:
+        return
+    v = contact_velocity(p / m, wp.vec3(0.0, 1.0, 0.0), bc.ground_contact, bc.ground_friction)
+    for j in range(lo[1], bc.ground_node + 1):
+        if ground_m[f, i, j, k] > 0.0:
+            grid_v[f, i, j, k] = v
+            if anchors != 0 and node_in_span(wp.vec3i(i, j, k), anchor_lo, anchor_hi):
+                # The anchor's passes read each node's free velocity from layer 0 (update_node).
+                l = wp.vec3i(i, j, k) - layer_lo
+                grid_mv[0, l[0], l[1], l[2]] = v
 
 
 @wp.kernel
 def ground_contact(
-    grid_v: wp.array3d(dtype=wp.vec3),
-    ground_m: wp.array3d(dtype=float),
+    grid_v: wp.array4d(dtype=wp.vec3),
+    ground_m: wp.array4d(dtype=float),
     grid_mv: wp.array4d(dtype=wp.vec3),
     lo: wp.vec3i,
     bc: Boundary,
@@ -515,27 +696,13 @@ def ground_contact(
     50-180 mm/s while the ground nodes above them stuck. The nodes of a column are one contact: their
     momentum and mass are summed, Coulomb's law (sticky, slip) acts on the sum once, and every node
     of the column with mass moves at the result (issue 37). For a body sliding uniformly nothing
-    changes (every node of a column then has the same velocity)."""
+    changes (every node of a column then has the same velocity). With one velocity field per object,
+    each field's column is a contact of its own."""
     a, c = wp.tid()
     i = lo[0] + a
     k = lo[2] + c
-    m = float(0.0)
-    p = wp.vec3(0.0, 0.0, 0.0)
-    for j in range(lo[1], bc.ground_node + 1):
-        mj = ground_m[i, j, k]
-        if mj > 0.0:
-            m += mj
-            p += mj * grid_v[i, j, k]
-    if m <= 0.0:
-        return
-    v = contact_velocity(p / m, wp.vec3(0.0, 1.0, 0.0), bc.ground_contact, bc.ground_friction)
-    for j in range(lo[1], bc.ground_node + 1):
-        if ground_m[i, j, k] > 0.0:
-            grid_v[i, j, k] = v
-            if anchors != 0 and node_in_span(wp.vec3i(i, j, k), anchor_lo, anchor_hi):
-                # The anchor's passes read each node's free velocity from layer 0 (update_node).
-                l = wp.vec3i(i, j, k) - layer_lo
-                grid_mv[0, l[0], l[1], l[2]] = v
+    for f in range(ground_m.shape[0]):
+        ground_column(grid_v, ground_m, grid_mv, f, i, k, lo, bc, layer_lo, anchors, anchor_lo, anchor_hi)
 
 
 # ----------------------------------------------------------------------------------------------
@@ -637,7 +804,7 @@ def anchor_pin(
 def anchor_update(
     grid_m: wp.array4d(dtype=float),
     grid_mv: wp.array4d(dtype=wp.vec3),
-    grid_v: wp.array3d(dtype=wp.vec3),
+    grid_v: wp.array4d(dtype=wp.vec3),
     grid_fix: wp.array4d(dtype=float),
     grid_fix_v: wp.array4d(dtype=wp.vec3),
     lo: wp.vec3i,
@@ -685,13 +852,13 @@ def anchor_update(
             continue
         f = held_fraction(grid_m, grid_fix, n, span_lo, span_hi, layer_lo)
         if f == -2.0:
-            grid_v[i, j, kk] = grid_fix_v[0, l[0], l[1], l[2]] / wp.abs(fm)
+            grid_v[0, i, j, kk] = grid_fix_v[0, l[0], l[1], l[2]] / wp.abs(fm)
             continue
         held = held_side(f)
         weights = link_weights(grid_m, grid_fix, n, f, held, span_lo, span_hi, layer_lo)
         if weights == 0.0:
             if held:
-                grid_v[i, j, kk] = grid_fix_v[0, l[0], l[1], l[2]] / fm
+                grid_v[0, i, j, kk] = grid_fix_v[0, l[0], l[1], l[2]] / fm
             continue
         total = wp.vec3(0.0, 0.0, 0.0)
         for d in range(6):
@@ -732,7 +899,7 @@ def anchor_update(
                 total += (w / weights) * (va + uk - ((1.0 - delta) / mk) * s)
             else:
                 total += (w / weights) * (va + uj - (delta / mj) * s)
-        grid_v[i, j, kk] = total
+        grid_v[0, i, j, kk] = total
 
 
 @wp.kernel
@@ -777,7 +944,7 @@ def g2p(
     ps: Particles,
     materials: wp.array(dtype=MaterialParams),
     f_ext: wp.array(dtype=wp.vec3),
-    grid_v: wp.array3d(dtype=wp.vec3),
+    grid_v: wp.array4d(dtype=wp.vec3),
     grid: GridInfo,
     dt_arr: wp.array(dtype=float),
     stats: wp.array(dtype=float),
@@ -799,6 +966,9 @@ def g2p(
     wx = bspline_weights(fx, 0)
     wy = bspline_weights(fx, 1)
     wz = bspline_weights(fx, 2)
+    fld = int(0)
+    if grid_v.shape[0] > 1:
+        fld = ps.field[p]
 
     new_v = wp.vec3(0.0, 0.0, 0.0)
     new_C = wp.mat33(0.0)
@@ -807,7 +977,7 @@ def g2p(
             for k in range(3):
                 w = wx[i] * wy[j] * wz[k]
                 dpos = wp.vec3(float(i), float(j), float(k)) - fx
-                gv = grid_v[base[0] + i, base[1] + j, base[2] + k]
+                gv = grid_v[fld, base[0] + i, base[1] + j, base[2] + k]
                 new_v += w * gv
                 new_C += (4.0 * grid.inv_dx * w) * wp.outer(gv, dpos)
 

@@ -15,7 +15,7 @@ from typing import Optional, Sequence
 import numpy as np
 
 from ..errors import InputError, SimulationError
-from ..types.conditions import Ground, Walls
+from ..types.conditions import Ground, ObjectContact, Walls
 from ..types.material import CONSTITUTIVE_MODELS, Material
 from . import kernels as K
 from .materials import kernel_params
@@ -42,6 +42,8 @@ MAX_GRAPHS = 8  # captured launch graphs kept per solver (one per grid span and 
 MIN_CHUNK_PARTICLES = 4096
 MAX_CPU_CHUNKS = 16
 LAYER_BYTES = 32  # per grid node and chunk: mass (4) + momentum (12) + anchored mass (4) + anchored momentum (12)
+FIELD_BYTES = 28  # per grid node, chunk and object past the first with one velocity field per object:
+#                  mass (4) + momentum (12) + mass gradient (12); the mass gradient of the first too
 CHUNK_GRID_BUDGET = 256 * 2 ** 20  # bytes all chunks' accumulator layers may take together
 LAYER_SLACK = 8  # nodes of room the layers get around a span, so a growing scene reallocates rarely
 ROW_PAD = 32  # 4-byte values per row of chunk-private reductions: no false sharing between threads
@@ -143,9 +145,14 @@ def cpu_chunks(num_particles: int, device: str) -> int:
     return int(max(1, min(MAX_CPU_CHUNKS, num_particles // MIN_CHUNK_PARTICLES)))
 
 
-def layer_count(chunks: int, span_nodes: int) -> int:
+def layer_bytes(fields: int = 1) -> int:
+    """Accumulator bytes per grid node and layer with ``fields`` velocity fields."""
+    return LAYER_BYTES if fields <= 1 else LAYER_BYTES + (fields - 1) * FIELD_BYTES + 12
+
+
+def layer_count(chunks: int, span_nodes: int, fields: int = 1) -> int:
     """Accumulator layers for a span of ``span_nodes`` nodes: one per chunk within the budget, else one."""
-    return chunks if chunks > 1 and chunks * span_nodes * LAYER_BYTES <= CHUNK_GRID_BUDGET else 1
+    return chunks if chunks > 1 and chunks * span_nodes * layer_bytes(fields) <= CHUNK_GRID_BUDGET else 1
 
 
 def cpu_threads(requested: int = 0) -> int:
@@ -164,12 +171,14 @@ def cpu_threads(requested: int = 0) -> int:
     return int(requested)
 
 
-def estimate_bytes(num_particles: int, dims: Sequence[int], frames: int, recorded: int, chunks: int = 1) -> dict:
+def estimate_bytes(num_particles: int, dims: Sequence[int], frames: int, recorded: int, chunks: int = 1,
+                   fields: int = 1) -> dict:
     """Memory the run will need: device arrays, and the host copy of the recorded trajectory.
     ``chunks`` (``cpu_chunks``) > 1: the accumulator layers take at most CHUNK_GRID_BUDGET, or one
-    layer over the whole domain, whichever is more."""
+    layer over the whole domain, whichever is more. ``fields``: velocity fields (one per object
+    when objects meet on fields of their own)."""
     nodes = int(np.prod(dims))
-    accumulators = nodes * LAYER_BYTES
+    accumulators = nodes * (layer_bytes(fields) + 12 * (fields - 1))  # + the extra fields' velocities
     if chunks > 1:
         accumulators = max(min(chunks * accumulators, CHUNK_GRID_BUDGET), accumulators)
     # x v f_ext (vec3) + C F tau (mat33) + rot (quat) + mass vol plastic mat flags body torque (scalars)
@@ -216,6 +225,8 @@ class MPMSolver:
         transfer: str = "apic",
         graph: Optional[bool] = None,
         threads: int = 0,
+        objects: Optional[np.ndarray] = None,
+        object_contact: Optional[ObjectContact] = None,
     ):
         _check_materials(materials, transfer)
         self.apic = 1.0 if transfer == "apic" else 0.0
@@ -231,11 +242,13 @@ class MPMSolver:
         self._gravity_w = wp.vec3(*self.gravity.astype(np.float32))
         self.ground = ground
         self.walls = walls or Walls()
+        self.object_contact = object_contact or ObjectContact()
         self.n = x.shape[0]
         self._init_launch_state(graph, threads)
         mat_index = np.asarray(mat_index, dtype=np.int64)
         mass = self._init_mass_and_limits(mat_index, volume)
         flags, tmask = self._particle_flags(mat_index, anchored, body, torque_mask)
+        self._init_fields(mat_index if objects is None else np.asarray(objects, np.int64), flags)
         self._anchors_on = bool((flags & K.FLAG_ANCHORED).any())
         self._held = np.flatnonzero(flags & K.FLAG_ANCHORED)
         with wp.ScopedDevice(device):
@@ -271,6 +284,22 @@ class MPMSolver:
         self.threads = cpu_threads(threads) if self.device == "cpu" else 1
         self._pool: Optional[ThreadPoolExecutor] = None
         self._capturing = False
+
+    def _init_fields(self, objects: np.ndarray, flags: np.ndarray) -> None:
+        """One grid velocity field per object where objects meet on fields of their own (multi-field
+        contact, kernels.update_node_fields); one shared field for a single object, for
+        ObjectContact('shared'), and with anchors (whose passes work on one field). ``field_np``:
+        each particle's field."""
+        ids = np.unique(objects) if len(objects) else np.zeros(0, np.int64)
+        self.fields = 1
+        self.field_np = np.zeros(self.n, np.int32)
+        if len(ids) > 1 and self.object_contact.contact != "shared":
+            if (flags & K.FLAG_ANCHORED).any():
+                log.warning("Anchors hold their object on one velocity field shared by all objects: the objects "
+                            "of this scene stick where they touch instead of bouncing off each other")
+                return
+            self.fields = len(ids)
+            self.field_np = np.searchsorted(ids, objects).astype(np.int32)
 
     def _init_mass_and_limits(self, mat_index: np.ndarray, volume: np.ndarray) -> np.ndarray:
         """Particle masses (float32), and what bounds the step besides them: the stiffest
@@ -328,6 +357,7 @@ class MPMSolver:
         self.mat_id = wp.array(mat_index.astype(np.int32), dtype=int)
         self.flags = wp.array(flags, dtype=int)
         self.anchor_v = wp.zeros(n, dtype=wp.vec3)
+        self.field = wp.array(self.field_np, dtype=int)
         self.f_static = wp.zeros(n, dtype=wp.vec3)
         self.f_total = wp.zeros(n, dtype=wp.vec3)
         self.material_table = wp.array([kernel_params(m) for m in materials], dtype=K.MaterialParams)
@@ -337,16 +367,16 @@ class MPMSolver:
         with one chunk (CUDA, small scenes); with several, layers over the grid span, allocated by
         _fit_layers at the first launch."""
         wp, dims = self.wp, self.domain.dims
-        self.grid_v = wp.zeros(dims, dtype=wp.vec3)
-        # The masses of the nodes at and below the ground plane (kernels.ground_contact).
-        self.ground_m = wp.zeros((dims[0], max(self.domain.ground_node + 1, 1), dims[2]), dtype=float)
+        self.grid_v = wp.zeros((self.fields,) + tuple(dims), dtype=wp.vec3)  # one velocity field per object
+        # The masses of the nodes at and below the ground plane (kernels.ground_contact), per field.
+        self.ground_m = wp.zeros((self.fields, dims[0], max(self.domain.ground_node + 1, 1), dims[2]), dtype=float)
         self.layers = 1
         self._layer_lo = (0, 0, 0)
         self._layer_hi = tuple(int(d) - 1 for d in dims)
         if self.chunks == 1:
             self._alloc_layers(1, self._layer_lo, self._layer_hi)
         else:
-            self.grid_m = self.grid_mv = self.grid_fix = self.grid_fix_v = None  # at the first launch
+            self.grid_m = self.grid_mv = self.grid_fix = self.grid_fix_v = self.grid_g = None  # at the first launch
             self._layer_hi = (-1, -1, -1)
             self.layer_reallocations = -1
         # Each layer's box of stencil bases (p2g). Rows of chunk-private data are padded to
@@ -380,7 +410,7 @@ class MPMSolver:
         while the arrays are only written in place)."""
         ps = K.Particles()
         for name in ("x", "v", "C", "F", "F_err", "tau", "rot", "plastic", "mass", "vol", "mat_id", "flags",
-                     "anchor_v"):
+                     "anchor_v", "field"):
             setattr(ps, name, getattr(self, name))
         return ps
 
@@ -403,6 +433,9 @@ class MPMSolver:
         bc.wall_contact = _CONTACT_IDS[self.walls.contact]
         bc.wall_friction = self.walls.friction
         bc.pad = PAD
+        oc = self.object_contact
+        bc.object_contact = _CONTACT_IDS.get(oc.contact, K.CONTACT_STICKY)
+        bc.object_friction = float(oc.friction)
         return bc
 
     def _init_host_mirrors(self, x: np.ndarray, v0: Optional[np.ndarray], mass: np.ndarray, flags: np.ndarray) -> None:
@@ -431,9 +464,12 @@ class MPMSolver:
     def _alloc_layers(self, layers: int, lo: tuple, hi: tuple) -> None:
         wp = self.wp
         shape = (layers,) + tuple(int(h - l + 1) for l, h in zip(lo, hi))
+        # With several velocity fields a layer holds one slot per field (slot = layer · fields + field).
+        fshape = (layers * self.fields,) + shape[1:]
         with wp.ScopedDevice(self.device):
-            self.grid_m = wp.zeros(shape, dtype=float)
-            self.grid_mv = wp.zeros(shape, dtype=wp.vec3)
+            self.grid_m = wp.zeros(fshape, dtype=float)
+            self.grid_mv = wp.zeros(fshape, dtype=wp.vec3)
+            self.grid_g = wp.zeros(fshape if self.fields > 1 else (1, 1, 1, 1), dtype=wp.vec3)
             self.grid_fix = wp.zeros(shape, dtype=float)
             self.grid_fix_v = wp.zeros(shape, dtype=wp.vec3)
         self.layers, self._layer_lo, self._layer_hi = layers, tuple(lo), tuple(hi)
@@ -453,7 +489,7 @@ class MPMSolver:
         new_lo = tuple(max(int(l) - LAYER_SLACK, 0) for l in lo)
         new_hi = tuple(min(int(h) + LAYER_SLACK, int(d) - 1) for h, d in zip(hi, dims))
         nodes = int(np.prod([h - l + 1 for l, h in zip(new_lo, new_hi)]))
-        self._alloc_layers(layer_count(self.chunks, nodes), new_lo, new_hi)
+        self._alloc_layers(layer_count(self.chunks, nodes, self.fields), new_lo, new_hi)
         self._graphs.clear()
         self._programs.clear()
 
@@ -555,6 +591,9 @@ class MPMSolver:
         self.flags.assign(self.wp.array(flags.astype(np.int32), dtype=int, device=self.device))
         self.anchor_v.assign(self.wp.array(np.asarray(velocity, np.float32), dtype=self.wp.vec3, device=self.device))
         held = np.asarray(anchored, bool)
+        if self.fields > 1 and held.any():
+            raise InputError("Anchors need the objects on one shared velocity field: give the solver the anchors "
+                             "at the start (it then shares one field) or use ObjectContact('shared')")
         idx = np.flatnonzero(held)
         if not np.array_equal(idx, self._held):
             self._aspan = None  # other particles are held: the anchor's span is found again
@@ -744,13 +783,15 @@ class MPMSolver:
         layered = self.layers > 1  # else the chunks take turns on one layer
         prog.append((K.p2g, [self._cmd(K.p2g, count, [
             self.particles, forces, self.grid, self.dt_arr, self.grid_m, self.grid_mv, self.grid_fix,
-            self.grid_fix_v, self.apic, start, c if layered else 0, self.layer_box, self._layer_lo_w])
+            self.grid_fix_v, self.apic, start, c if layered else 0, self.layer_box, self._layer_lo_w, self.fields,
+            self.grid_g])
             for c, (start, count) in chunks], layered))
         slabs = self._grid_slabs(span_lo, dims)
         k_end = int(span_hi[2]) + 1
         prog.append((K.grid_update, [self._cmd(K.grid_update, slab_dims, [
             self.grid_m, self.grid_mv, self.grid_v, self.grid_fix, self.grid_fix_v, self.ground_m, slab_lo, self.grid,
-            self.bc, self._gravity_w, self.dt_arr, self.layer_box, self._layer_lo_w, run, k_end, int(anchors), alo, ahi])
+            self.bc, self._gravity_w, self.dt_arr, self.layer_box, self._layer_lo_w, run, k_end, int(anchors), alo, ahi,
+            self.fields, self.grid_g])
             for slab_dims, slab_lo, run in slabs], True))
         if self.ground is not None and span_lo[1] <= self.domain.ground_node:
             step(K.ground_contact, (dims[0], dims[2]), [self.grid_v, self.ground_m, self.grid_mv, lo, self.bc,

@@ -15,7 +15,7 @@ from ..errors import InputError
 from ..memory import device_available_bytes, host_available_bytes
 from ..progress import ProgressFn, Throttle
 from ..types.camera import Camera
-from ..types.conditions import Anchor, Conditions, InitialVelocity, Torque
+from ..types.conditions import Anchor, Conditions, InitialVelocity, ObjectContact, Torque
 from ..types.gaussians import Gaussians
 from ..types.material import Material
 from ..types.results import SimResult
@@ -89,6 +89,17 @@ def _object_ids(gaussians: Gaussians) -> tuple[np.ndarray, np.ndarray]:
     return obj_ids, objects
 
 
+def _object_contact(conditions: Conditions, n_objects: int) -> ObjectContact:
+    """How the objects meet: on velocity fields of their own (ObjectContact), except with anchors,
+    whose passes hold one shared field (the objects then stick where they touch; logged)."""
+    oc = conditions.object_contact()
+    if n_objects > 1 and oc.contact != "shared" and conditions.of(Anchor):
+        log.warning("This scene anchors an object: all %d objects move on one shared velocity field, so they stick "
+                    "where they touch instead of bouncing off each other", n_objects)
+        return ObjectContact("shared", oc.friction)
+    return oc
+
+
 @dataclass
 class Resolution:
     """The grid and particle spacing of a scene: ``grid_res`` cells across its largest extent."""
@@ -109,10 +120,11 @@ class Resolution:
 
 
 def check_memory(num_particles: int, domain: Domain, frames: int, recorded: int, device: str,
-                 make_room: Optional[Callable[[int, str], None]] = None) -> None:
+                 make_room: Optional[Callable[[int, str], None]] = None, fields: int = 1) -> None:
     """Refuse a run whose arrays would not fit (device memory on CUDA, RAM for the rest); on CUDA,
     ``make_room(bytes, device)`` may free memory first."""
-    need = estimate_bytes(num_particles, domain.dims, frames, recorded, chunks=cpu_chunks(num_particles, device))
+    need = estimate_bytes(num_particles, domain.dims, frames, recorded, chunks=cpu_chunks(num_particles, device),
+                          fields=fields)
     if make_room is not None and device.startswith("cuda"):
         make_room(int(need["device"]), device)
     dev_free = device_available_bytes(device)
@@ -312,7 +324,9 @@ def simulate(
     x0 = parts.x
     domain = Domain.around(x0.min(0), x0.max(0), res.dx, settings.domain_margin, ground)
     recorded = np.arange(len(x0)) if record_all else np.unique(parts.neighbours)
-    check_memory(x0.shape[0], domain, settings.frames, recorded.shape[0], device, make_room)
+    object_contact = _object_contact(conditions, len(objects))
+    fields = len(objects) if len(objects) > 1 and object_contact.contact != "shared" else 1
+    check_memory(x0.shape[0], domain, settings.frames, recorded.shape[0], device, make_room, fields)
 
     def region(r, what):
         return select(r, x0, parts.particle_object, camera, what)
@@ -322,7 +336,7 @@ def simulate(
                        ground=ground, walls=conditions.walls(), cfl=settings.cfl, device=device, v0=init.v0,
                        C0=init.C0, body=init.body, torque_mask=init.torque_mask, transfer=settings.transfer,
                        graph={"auto": None, "on": True, "off": False}[settings.graph],
-                       threads=settings.cpu_threads)
+                       threads=settings.cpu_threads, objects=parts.particle_object, object_contact=object_contact)
     schedule = LoadSchedule.compile(conditions, x0, solver.mass_np, init.torque_mask, init.anchor_sel, region)
     frame_dt = 1.0 / settings.fps
     _check_cost(solver, settings, materials, frame_dt, schedule.peak_accel(solver.mass_np),

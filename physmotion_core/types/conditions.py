@@ -154,6 +154,28 @@ class Walls:
             raise InputError(f"Walls friction μ must be a non-negative number; got {self.friction}")
 
 
+OBJECT_CONTACTS = ("friction", "slip", "sticky", "shared")
+
+
+@dataclass(frozen=True)
+class ObjectContact:
+    """How objects of a scene meet (objects: ``Gaussians.object_ids``). Each object moves on its own
+    grid velocity field; where two objects' fields meet and approach each other, their relative
+    normal velocity is removed (multi-field MPM contact, Bardenhagen et al. 2000) and the tangential
+    one follows ``contact``: Coulomb ``friction`` μ, ``slip`` (frictionless) or ``sticky`` (no
+    sliding while they press together); objects may always separate again. ``shared``: one velocity
+    field for all objects (the objects glue where they touch and never separate)."""
+
+    contact: str = "friction"
+    friction: float = 0.3
+
+    def __post_init__(self) -> None:
+        if self.contact not in OBJECT_CONTACTS:
+            raise InputError(f"Object contact must be one of {OBJECT_CONTACTS}; got '{self.contact}'")
+        if not (math.isfinite(self.friction) and self.friction >= 0):
+            raise InputError(f"Object contact friction μ must be a non-negative number; got {self.friction}")
+
+
 @dataclass(frozen=True)
 class Gravity:
     vector: Vec3 = (0.0, -9.81, 0.0)
@@ -162,8 +184,8 @@ class Gravity:
         object.__setattr__(self, "vector", as_vec3(self.vector, "Gravity vector"))
 
 
-Condition = Union[Force, Torque, InitialVelocity, Anchor, Ground, Walls, Gravity]
-CONDITION_TYPES = (Force, Torque, InitialVelocity, Anchor, Ground, Walls, Gravity)
+Condition = Union[Force, Torque, InitialVelocity, Anchor, Ground, Walls, ObjectContact, Gravity]
+CONDITION_TYPES = (Force, Torque, InitialVelocity, Anchor, Ground, Walls, ObjectContact, Gravity)
 
 
 def _check_window(t0: float, t1: float, what: str) -> None:
@@ -218,3 +240,9 @@ class Conditions:
         if len(w) > 1:
             raise InputError("Only one Walls condition may be given; remove the extra ones")
         return w[0] if w else Walls()
+
+    def object_contact(self) -> ObjectContact:
+        c = self.of(ObjectContact)
+        if len(c) > 1:
+            raise InputError("Only one ObjectContact condition may be given; remove the extra ones")
+        return c[0] if c else ObjectContact()
