@@ -40,6 +40,8 @@ from physmotion_core.report import machine_description, update_section
 
 ROOT = Path(__file__).resolve().parent.parent
 REPEATS = 3
+#: Templates whose objects come from different photos (the template keeps the splat render): not measured.
+MULTI_PHOTO = {"two_objects_colliding"}
 sys.path.insert(0, str(ROOT / "tests"))
 sys.path.insert(0, str(ROOT / "scripts"))
 
@@ -86,6 +88,9 @@ def template_scenes(names):
         sim_id = next((k for k, n in prompt.items() if n["class_type"] == "PhysMotionMPMSimulate"), None)
         seg_id = next((k for k, n in prompt.items() if n["class_type"] == "PhysMotionSegment"), None)
         if sim_id is None or seg_id is None:
+            continue
+        if sum(n["class_type"] in ("PhysMotionSegment", "PhysMotionSAMSegment") for n in prompt.values()) > 1:
+            MULTI_PHOTO.add(path.stem)  # objects lifted from different photos: no one photo textures them
             continue
         cam_src = prompt[sim_id]["inputs"]["camera"]
         img_src = prompt[seg_id]["inputs"]["image"]
@@ -188,6 +193,8 @@ def main(names) -> int:
     torch.set_num_threads(os.cpu_count() or 1)
     rows, sheet = [], []
     for scene in cached(template_scenes(names), "templates_" + "_".join(names)):
+        if scene[0] in MULTI_PHOTO:
+            continue
         rows.append(measure(*scene, sheet))
     if not names:
         for scene in cached(photo_scenes(), "photos"):
@@ -228,8 +235,16 @@ with the photo texture (`physmotion_core/render/photo_texture.py`: the surface t
 pixels, carried back to rest by each splat's motion; the back, sides and torn faces keep the splats' colours),
 both blended over the same background. "Detail" is the energy of a high-pass filter (luminance minus its
 σ = 1 px Gaussian blur) over the pixels the object covers, relative to the photo's own inside its mask: 1.0 is
-the photo's sharpness. The CPU templates run to their simulation at their own settings; the two photos go through
+the photo's sharpness. The CPU templates run to their simulation at their own settings (not
+two_objects_colliding, whose objects come from two photos: it keeps the splat render); the two photos go through
 `pipeline.generate` (jelly, a sideways push, draft quality, 24 frames) with their reference masks.
+
+Reading the detail columns: on textured photos (the coffee cup, bread, snow, the astronaut) the splat render
+keeps 0.2-0.7 of the photo's high-pass energy once the object moves and the photo texture 0.8-1.2 (bicubic
+resampling of moving pixels costs a little). Where the motion turns unphotographed sides to the camera both show
+the splats and score alike: torque_spin (0.52 against 0.21), the knocked-over rocket (0.78 against 0.83). On the smooth synthetic photos (clay, honey, water, the blocks) the photo itself has almost
+no high-pass energy, so the ratio is dominated by edges (the outline, the ground contact, creases) and exceeds 1
+for both renders: there it measures edges, not texture, and the frame-0 column is the comparison that matters.
 
 {chr(10).join(q)}
 
