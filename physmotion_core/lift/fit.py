@@ -518,6 +518,39 @@ def _align(prep: _Prep, p: _Params, lv: _Level, cx: float, cy: float, m_area: fl
 # ----------------------------------------------------------------------------------------------
 
 
+class _Adam:
+    """Adam (Kingma & Ba) on a few scalar parameters, as ``torch.optim.Adam`` computes it (same
+    bias corrections and epsilon). The fit's parameters are seven numbers; torch's optimiser adds
+    per-step overhead and, on its first use in a process, imports torch._dynamo (4-5 s on a 2-core
+    machine), which this avoids."""
+
+    def __init__(self, groups: list, betas: tuple = (0.9, 0.999), eps: float = 1e-8):
+        self.param_groups = [dict(g) for g in groups]
+        self.b1, self.b2 = betas
+        self.eps = eps
+        self.t = 0
+        self.state = {id(p): (torch.zeros_like(p), torch.zeros_like(p)) for g in self.param_groups for p in g["params"]}
+
+    def zero_grad(self, set_to_none: bool = True) -> None:
+        for g in self.param_groups:
+            for p in g["params"]:
+                p.grad = None
+
+    @torch.no_grad()
+    def step(self) -> None:
+        self.t += 1
+        bc1 = 1.0 - self.b1 ** self.t
+        bc2 = math.sqrt(1.0 - self.b2 ** self.t)
+        for g in self.param_groups:
+            for p in g["params"]:
+                if p.grad is None:
+                    continue
+                m, v = self.state[id(p)]
+                m.mul_(self.b1).add_(p.grad, alpha=1.0 - self.b1)
+                v.mul_(self.b2).addcmul_(p.grad, p.grad, value=1.0 - self.b2)
+                p.addcdiv_(m, v.sqrt() / bc2 + self.eps, value=-g["lr"] / bc1)
+
+
 def _check_number(name, value, ok, what) -> float:
     try:
         v = float(value)
@@ -723,7 +756,7 @@ def fit_gaussians_to_photo(
                   {"params": [p.uv], "lr": lr0 * 0.25}]
         if focal is None:
             groups.append({"params": [p.log_f], "lr": lr0})
-        opt = torch.optim.Adam(groups, betas=(0.8, 0.95))
+        opt = _Adam(groups, betas=(0.8, 0.95))
         for step in range(steps):
             decay = 0.5 * (1 + math.cos(math.pi * step / steps)) * 0.9 + 0.1
             for gr, base in zip(opt.param_groups, [lr0, lr0, lr0 * 0.25, lr0]):
