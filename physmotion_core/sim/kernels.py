@@ -320,6 +320,7 @@ def p2g(
     layer_lo: wp.vec3i,
     fields: int,
     grid_g: wp.array4d(dtype=wp.vec3),
+    contact_row: int,
 ):
     """Scatter particles offset .. offset + launch dim into accumulator layer ``layer`` (see
     ``grid_update``: the layers of one substep are summed there). The layers start at node
@@ -329,7 +330,17 @@ def p2g(
     With several velocity fields (one per object, ``fields`` > 1) a layer holds one slot per field
     (slot = layer · fields + field) and each particle also scatters its mass gradient, Σ m ∇w, into
     ``grid_g``: at a node it points from the field's material towards the node, the field's outward
-    normal there (field_contact)."""
+    normal there (field_contact).
+
+    A particle whose stencil reaches a node row at or below ``contact_row`` (the ground plane's, on
+    Coulomb-friction ground; −1 otherwise) transfers without its affine velocity (PIC): on such
+    ground a stiff jelly block on a μ = 0.5 slope at 0.9 μ crept downhill at ~60 mm/s, hopping at
+    ~11 Hz with most contact columns alternately slipping and lifting, an oscillation the bottom
+    particles' C (which holds the velocity jump the friction makes between the stuck ground nodes and
+    the free row above) carried from substep to substep. Without it there the block settles and
+    holds (issue 37; docs/accuracy.md, "Friction on a slope"). Dropping C for the whole particle
+    keeps its momentum exactly (the affine part sums to zero over the stencil); only the particle's
+    share of spin, ½ m dx² ω, is not carried (PIC's dissipation, in the contact layer only)."""
     p = wp.tid() + offset
     dt = dt_arr[0]
     base = stencil_base(ps.x[p], grid)
@@ -354,7 +365,10 @@ def p2g(
     m = ps.mass[p]
     # MLS-MPM: the stress enters as an affine momentum term -dt * V * (4/dx^2) * tau. The particle's
     # affine velocity m C is transferred with APIC (apic = 1) and dropped with PIC (apic = 0).
-    affine = (-dt * ps.vol[p] * 4.0 * grid.inv_dx * grid.inv_dx) * ps.tau[p] + (apic * m) * ps.C[p]
+    ap = apic
+    if base[1] <= contact_row:
+        ap = 0.0
+    affine = (-dt * ps.vol[p] * 4.0 * grid.inv_dx * grid.inv_dx) * ps.tau[p] + (ap * m) * ps.C[p]
     fl = ps.flags[p]
     mv = m * ps.v[p]
     if (fl & FLAG_RIGID) == 0:

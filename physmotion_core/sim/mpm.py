@@ -712,6 +712,12 @@ class MPMSolver:
     # torque state) as Warp launch commands, with every argument packed, and replayed each substep:
     # replaying a command costs a couple of microseconds of Python where wp.launch costs ten to
     # forty, which is most of a small scene's substep on the CPU.
+    def _contact_row(self) -> int:
+        """The node row at and below which p2g transfers without the affine velocity (kernels.p2g):
+        the ground plane's on Coulomb-friction ground, else −1 (none)."""
+        g = self.ground
+        return int(self.domain.ground_node) if g is not None and g.contact == "friction" else -1
+
     def _cmd(self, kernel, dim, inputs):
         return self.wp.launch(kernel, dim=dim, inputs=inputs, device=self.device, record_cmd=True)
 
@@ -784,7 +790,7 @@ class MPMSolver:
         prog.append((K.p2g, [self._cmd(K.p2g, count, [
             self.particles, forces, self.grid, self.dt_arr, self.grid_m, self.grid_mv, self.grid_fix,
             self.grid_fix_v, self.apic, start, c if layered else 0, self.layer_box, self._layer_lo_w, self.fields,
-            self.grid_g])
+            self.grid_g, self._contact_row()])
             for c, (start, count) in chunks], layered))
         slabs = self._grid_slabs(span_lo, dims)
         k_end = int(span_hi[2]) + 1
