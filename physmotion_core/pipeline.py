@@ -307,10 +307,14 @@ def prepare(
 
     lines: list[str] = []
 
-    def say(text: str) -> None:
-        lines.append(text)
+    def say(text: str, warn: bool = False) -> None:
+        """Tell the user: through ``report`` when given (the CLI prints it), else the log (warnings at
+        WARNING level, the rest at INFO)."""
+        lines.append(("warning: " if warn else "") + text)
         if report is not None:
-            report(text)
+            report(lines[-1])
+        elif warn:
+            log.warning("%s", text)
         else:
             log.info("%s", text)
 
@@ -423,8 +427,7 @@ def prepare(
                  else "look at it first with `physmotion segment IMAGE -o overlay.png`")
         text = (f"the object was picked automatically ({stages['segment']}, no point, box or mask given): {where}. "
                 "If it is not the object you mean, give --object-point U,V or --box X0,Y0,X1,Y1.")
-        log.warning("%s", text)
-        say("warning: " + text)
+        say(text, warn=True)
 
     # What holds it up: the ground, or the frame's edge where the photo cuts it off.
     from .support import plan_support
@@ -581,8 +584,7 @@ def generate(
 
     motion = after_run(sim, lift.camera)
     for w in motion.warnings:
-        log.warning("%s", w)
-        say("warning: " + w)
+        say(w, warn=True)
 
     t = time.perf_counter()
     from .render.photo_texture import make_photo_texture
