@@ -448,3 +448,26 @@ def test_rigid_block_on_a_coulomb_slope_holds_below_mu_and_slides_at_the_right_r
         t = res.times.numpy()
         a = 9.81 * (math.sin(th) - 0.5 * math.cos(th))
         assert travel[-1] == pytest.approx(0.5 * a * t[-1] ** 2, rel=0.05)
+
+
+@pytest.mark.parametrize("degrees", [24.2, 30.0])
+def test_stiff_jelly_block_on_a_coulomb_slope_holds_below_mu_and_slides_at_the_right_rate_above(degrees):
+    # Issue 37. As the rigid block above, for a jelly of E = 2e5 Pa (ν as the preset), which crept
+    # ~50 mm/s at 24.2° (0.9 μ; 5 cells in 1 s), hopping at ~11 Hz, until the contact layer's
+    # transfer dropped APIC's affine part (kernels.p2g). Hold: under half a cell in 1 s, the issue's
+    # bound (measured 0.26 cell by the validate case: the block settles in its first ~0.3 s, then
+    # stands still). Slide: a t²/2 within 5 % (the validate case's fit: +1.3 % at 30°; the start,
+    # where the block settles onto the ground, and its ringing).
+    th = math.radians(degrees)
+    cube = lattice((-0.05, 0.0, -0.05), (0.05, 0.05, 0.05), (9, 5, 9))
+    g = Gravity((9.81 * math.sin(th), -9.81 * math.cos(th), 0.0))
+    res = simulate(cube, material_preset("jelly", E=2.0e5), Conditions([g, Ground(0.0, "friction", 0.5)]),
+                   SimSettings(frames=11, fps=10, grid_res=10, domain_margin=4.0, rest_speed=0.0), record_all=True)
+    x = res.x.numpy().astype(np.float64)
+    travel = x[:, :, 0].mean(1) - x[0, :, 0].mean()
+    if degrees < 26.0:
+        assert abs(travel[-1]) < 0.5 * res.stats["dx"], (travel[-1], res.stats["dx"])
+    else:
+        t = res.times.numpy()
+        a = 9.81 * (math.sin(th) - 0.5 * math.cos(th))
+        assert travel[-1] == pytest.approx(0.5 * a * t[-1] ** 2, rel=0.05)

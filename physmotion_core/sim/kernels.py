@@ -332,8 +332,9 @@ def p2g(
     ``grid_g``: at a node it points from the field's material towards the node, the field's outward
     normal there (field_contact).
 
-    A particle whose stencil reaches a node row at or below ``contact_row`` (the ground plane's, on
-    Coulomb-friction ground; −1 otherwise) transfers without its affine velocity (PIC): on such
+    A particle whose stencil reaches a node row at or below ``contact_row`` (on Coulomb-friction
+    ground the row above the ground plane's, MPMSolver._contact_row; −1 otherwise) transfers without
+    its affine velocity (PIC): on such
     ground a stiff jelly block on a μ = 0.5 slope at 0.9 μ crept downhill at ~60 mm/s, hopping at
     ~11 Hz with most contact columns alternately slipping and lifting, an oscillation the bottom
     particles' C (which holds the velocity jump the friction makes between the stuck ground nodes and
