@@ -70,14 +70,25 @@ def test_every_template_loads_without_missing_nodes_and_queues_its_api_twin(page
     names = sorted(p.stem for p in (ROOT / "example_workflows").glob("*.json"))
     assert sorted(page_report["listed"]) == names
     assert sorted(page_report["templates"]) == names
+    # Nodes of ComfyUI releases newer than the server under test (TripoSplat: tests/data/
+    # comfy_upstream_nodes.json) are missing there by design; a template that uses them is checked
+    # for the rest (it loads, and nothing else is missing) but cannot queue on that server.
+    newer = set(json.loads((ROOT / "tests" / "data" / "comfy_upstream_nodes.json").read_text())["nodes"])
     for name, r in page_report["templates"].items():
         ui = json.loads((ROOT / "example_workflows" / f"{name}.json").read_text())
         assert json.loads(page_report["fetched"][name]) == ui, f"{name}: the server served another file"
-        assert r["missing"] == [], (name, r["missing"])
+        missing = [m for m in r["missing"] if m not in newer]
+        assert missing == [], (name, missing)
+        if r["missing"]:
+            continue
         assert sorted(r["loaded"]) == sorted(n["type"] for n in ui["nodes"]), name
         api = json.loads((ROOT / "example_workflows" / "api" / f"{name}.json").read_text())
         queued = {nid: {"class_type": n["class_type"], "inputs": n["inputs"]} for nid, n in r["prompt"].items()}
-        assert queued == api, name
+        diff = {nid: {k: (queued.get(nid, {}).get("inputs", {}).get(k), n["inputs"].get(k))
+                      for k in set(n["inputs"]) | set(queued.get(nid, {}).get("inputs", {}))
+                      if queued.get(nid, {}).get("inputs", {}).get(k) != n["inputs"].get(k)}
+                for nid, n in api.items()}
+        assert queued == api, (name, {k: v for k, v in diff.items() if v})
     ours = [e for e in page_report["console_errors"] if "PhysMotion" in e or "picker" in e]
     assert not ours, ours
 
@@ -127,3 +138,26 @@ def test_dragging_on_the_torque_node_sets_the_axis_and_shift_drag_the_twist(page
     assert w["tx"] == 0 and w["ty"] == 0
     assert abs(w["tz"] - (u0 - u1) * k) <= tol + 0.05 and w["tz"] > 0
     _persisted(t)
+
+
+def test_clicking_and_dragging_on_the_segment_node_sets_its_prompts(page_report):
+    """The segmentation picker in a real page: a click adds an object point, a Shift-click a
+    background point, a drag replaces the box; whole pixels, saved and queued as typed."""
+    r = page_report["picker"]["segment"]
+    w = r["widgets"]
+
+    def points(text):
+        return [tuple(float(c) for c in e.split(",")) for e in text.split(";") if e.strip()]
+
+    (obj,) = points(w["object_points"])
+    (bg,) = points(w["background_points"])
+    assert abs(obj[0] - 300) <= 2 and abs(obj[1] - 150) <= 2, w["object_points"]
+    assert abs(bg[0] - 560) <= 2 and abs(bg[1] - 60) <= 2, w["background_points"]
+    box = [float(c) for c in w["box"].split(",")]
+    assert all(abs(a - b) <= 2 for a, b in zip(box, (40, 12, 520, 392))), w["box"]
+    assert all(float(c).is_integer() for c in box)
+    assert r["before"]["box"] == "55, 6, 498, 395"  # the template's box, replaced by the drag
+    assert r["reloaded"] == r["widgets"], "values changed across save/load"
+    for name in ("object_points", "background_points", "box"):
+        assert r["prompt_inputs"][name] == w[name], name
+    assert r["wiring"] == {"old_removed": True, "new_live": True, "timer": False}, r["wiring"]

@@ -27,11 +27,36 @@ const result = { templates: {}, picker: {}, console_errors: [] };
 try {
   const page = await browser.newPage({ viewport: { width: 1600, height: 1000 } });
   page.on("pageerror", (e) => result.console_errors.push(`${e}\n${e.stack ?? ""}`));
+  // A first start shows the frontend's "Get Started with a Template" browser (and, on newer
+  // frontends, tours) over the canvas: mark the tutorial done in the user's settings before the page
+  // loads, and close any dialog still open (its close button, else Escape) until none is left.
+  await fetch(new URL("/settings/Comfy.TutorialCompleted", url), { method: "POST", body: "true" }).catch(() => {});
   await page.goto(url, { waitUntil: "domcontentloaded" });
   await page.waitForFunction(() => window.app?.graph && window.LiteGraph?.registered_node_types?.PhysMotionForce,
                              null, { timeout: 120000 });
-  // Close whatever a first start shows (template browser, tours).
-  await page.keyboard.press("Escape");
+  async function dismissDialogs(quietMs = 1500, limitMs = 20000) {
+    const t0 = Date.now();
+    let quietSince = Date.now();
+    while (Date.now() - t0 < limitMs) {
+      const open = await page.evaluate(() => {
+        const shown = [...document.querySelectorAll(".p-dialog-mask, .p-dialog, [role=dialog]")]
+          .filter((d) => d.getBoundingClientRect().width > 0 && getComputedStyle(d).visibility !== "hidden");
+        if (!shown.length) return 0;
+        const close = document.querySelector(".p-dialog-header-close, .p-dialog-close-button, [aria-label=Close]");
+        if (close) close.click();
+        return shown.length;
+      });
+      if (open) {
+        await page.keyboard.press("Escape");
+        quietSince = Date.now();
+      } else if (Date.now() - quietSince >= quietMs) {
+        return;
+      }
+      await page.waitForTimeout(200);
+    }
+    throw new Error("a dialog stayed open over the canvas for " + limitMs / 1000 + " s");
+  }
+  await dismissDialogs();
 
   // Every template as the Templates dialog loads it: listed by the server, fetched from it, opened
   // as a named workflow. The frontend's own graphToPrompt must give the API twin back.
@@ -63,7 +88,8 @@ try {
   }
 
   // The picker: drag on the photo inside a node, read the widgets, save and reload the workflow.
-  async function drivePicker(template, nodeType, kind, from, to, modifiers = []) {
+  async function drivePicker(template, nodeType, kind, from, to, modifiers = [], prop = "physmotionPicker",
+                             clicks = []) {
     const wf = JSON.parse(await fetchTemplate(template));
     await page.evaluate(async ({ wf, nodeType, template }) => {
       await window.app.loadGraphData(wf, true, false, `${template}_picker`, { showMissingNodesDialog: false,
@@ -76,31 +102,32 @@ try {
       window.app.canvas.setDirty(true, true);
       window.__pmNode = node;
     }, { wf, nodeType, template });
+    await dismissDialogs(500);
     const sel = `canvas[data-physmotion-picker="${kind}"]`;
-    await page.waitForFunction((sel) => {
+    await page.waitForFunction(({ sel, prop }) => {
       const n = window.__pmNode;
       const c = document.querySelector(sel);
-      return n?.physmotionPicker?.image?.naturalWidth > 0 && c && c.getBoundingClientRect().width > 50;
-    }, sel, { timeout: 60000 });
+      return n?.[prop]?.image?.naturalWidth > 0 && c && c.getBoundingClientRect().width > 50;
+    }, { sel, prop }, { timeout: 60000 });
     // Wait until the DOM widget sits still where the node is drawn (the canvas positions it on a
     // redraw, which lags on a busy machine) and is what the mouse will hit.
     let last = null;
     for (let i = 0; i < 40; i++) {
       await page.waitForTimeout(250);
-      const probe = await page.evaluate(({ sel, from }) => {
+      const probe = await page.evaluate(({ sel, from, prop }) => {
         const c = document.querySelector(sel);
         const r = c.getBoundingClientRect();
-        const fit = window.__pmNode.physmotionPicker.fit();
+        const fit = window.__pmNode[prop].fit();
         const x = r.x + (fit.offsetX + from[0] * fit.scale) * (r.width / c.clientWidth);
         const y = r.y + (fit.offsetY + from[1] * fit.scale) * (r.height / c.clientHeight);
         return { key: [r.x, r.y, r.width, r.height].map(Math.round).join(","), hit: document.elementFromPoint(x, y) === c };
-      }, { sel, from });
+      }, { sel, from, prop });
       if (probe.hit && last === probe.key) break;
       last = probe.key;
     }
-    const geo = await page.evaluate((sel) => {
+    const geo = await page.evaluate(({ sel, prop }) => {
       const n = window.__pmNode;
-      const p = n.physmotionPicker;
+      const p = n[prop];
       const c = document.querySelector(sel);
       const r = c.getBoundingClientRect();
       const widgets = Object.fromEntries(n.widgets.filter((w) => w.serialize !== false)
@@ -108,11 +135,18 @@ try {
       return { fit: p.fit(), rect: { x: r.x, y: r.y, w: r.width, h: r.height }, cw: c.clientWidth,
                ch: c.clientHeight, imgW: p.image.naturalWidth, imgH: p.image.naturalHeight, scale: p.scale,
                widgets };
-    }, sel);
+    }, { sel, prop });
     const sx = geo.rect.w / geo.cw;
     const sy = geo.rect.h / geo.ch;
     const screen = (u, v) => ({ x: geo.rect.x + (geo.fit.offsetX + u * geo.fit.scale) * sx,
                                 y: geo.rect.y + (geo.fit.offsetY + v * geo.fit.scale) * sy });
+    // Clicks first (the segmentation picker: object points, Shift-clicks for background points).
+    for (const [u, v, mods] of clicks) {
+      const p = screen(u, v);
+      for (const m of mods) await page.keyboard.down(m);
+      await page.mouse.click(p.x, p.y);
+      for (const m of mods) await page.keyboard.up(m);
+    }
     const a = screen(...from);
     const b = screen(...to);
     for (const m of modifiers) await page.keyboard.down(m);
@@ -122,7 +156,7 @@ try {
     await page.mouse.up();
     for (const m of modifiers) await page.keyboard.up(m);
     if (shotDir) await page.screenshot({ path: path.join(shotDir, `picker_${kind}${modifiers.length ? "_mod" : ""}.png`) });
-    const after = await page.evaluate(async () => {
+    const after = await page.evaluate(async (prop) => {
       const n = window.__pmNode;
       const values = (node) => Object.fromEntries(node.widgets.filter((w) => w.serialize !== false)
         .map((w) => [w.name, w.value]));
@@ -134,12 +168,12 @@ try {
       const prompt = (await window.app.graphToPrompt()).output;
       // The picker is wired by events, not a timer: loading a workflow removes the old node, which
       // must release its picker, and the new node gets one of its own.
-      const wiring = { old_removed: n.physmotionPicker.removed === true,
-                       new_live: !!reloaded.physmotionPicker && reloaded.physmotionPicker.removed === false,
-                       timer: "timer" in n.physmotionPicker || "timer" in (reloaded.physmotionPicker ?? {}) };
+      const wiring = { old_removed: n[prop].removed === true,
+                       new_live: !!reloaded[prop] && reloaded[prop].removed === false,
+                       timer: "timer" in n[prop] || "timer" in (reloaded[prop] ?? {}) };
       return { widgets, saved_widgets_values: saved.nodes.find((x) => x.id === n.id).widgets_values,
                reloaded: values(reloaded), prompt_inputs: prompt[String(n.id)].inputs, wiring };
-    });
+    }, prop);
     return { before: geo.widgets, geometry: geo, from, to, modifiers, ...after };
   }
 
@@ -147,6 +181,10 @@ try {
   result.picker.torque = await drivePicker("torque_spin", "PhysMotionTorque", "torque", [300, 200], [420, 200]);
   result.picker.twist = await drivePicker("torque_spin", "PhysMotionTorque", "torque", [300, 200], [240, 200],
                                           ["Shift"]);
+  // The segmentation picker: a click on the cup, a Shift-click on the table, a box dragged round both.
+  result.picker.segment = await drivePicker("push_a_jelly", "PhysMotionSegment", "segment-grabcut", [40, 12],
+                                            [520, 392], [], "physmotionSegmentPicker",
+                                            [[300, 150, []], [560, 60, ["Shift"]]]);
 } finally {
   writeFileSync(resultPath, JSON.stringify(result, null, 1));
   await browser.close();
