@@ -223,6 +223,10 @@ class PhysMotionAnchor:
         return (_chain(conditions) + Anchor(r, (vx, vy, vz), float(t_start), float(t_end)),)
 
 
+# physmotion_core.types.conditions.OBJECT_CONTACTS, spelled here so the node's widgets load without it.
+OBJECT_CONTACT_CHOICES = ("friction", "slip", "sticky", "shared")
+
+
 class PhysMotionGround:
     """The ground plane under the object and the walls of the simulation box."""
 
@@ -247,7 +251,18 @@ class PhysMotionGround:
                                             "tooltip": "Coulomb friction μ of the walls (with wall_contact "
                                                        "'friction')."}),
             },
-            "optional": {"conditions": ("PM_CONDITIONS", {"tooltip": "Conditions to add the ground to."})},
+            "optional": {
+                "conditions": ("PM_CONDITIONS", {"tooltip": "Conditions to add the ground to."}),
+                "object_contact": (list(OBJECT_CONTACT_CHOICES), {
+                    "default": "friction",
+                    "tooltip": "How the objects of a combined scene meet (each moves on its own grid velocity "
+                               "field). friction: Coulomb friction μ = object_friction, they bounce and separate. "
+                               "slip: frictionless. sticky: no sliding while pressed together. shared: one field "
+                               "for all objects (they glue where they touch, the behaviour before issue 37)."}),
+                "object_friction": ("FLOAT", {"default": 0.3, "min": 0.0, "max": 10.0, "step": 0.05,
+                                              "tooltip": "Coulomb friction μ between objects (with object_contact "
+                                                         "'friction')."}),
+            },
         }
 
     RETURN_TYPES = ("PM_CONDITIONS",)
@@ -255,11 +270,18 @@ class PhysMotionGround:
     FUNCTION = "run"
     CATEGORY = f"{CATEGORY}/physics"
 
-    def run(self, contact, friction, height, wall_contact="slip", wall_friction=0.0, conditions=None):
-        from physmotion_core.types.conditions import Ground, Walls
+    def run(self, contact, friction, height, wall_contact="slip", wall_friction=0.0, conditions=None,
+            object_contact="friction", object_friction=0.3):
+        from physmotion_core.types.conditions import Ground, ObjectContact, Walls
 
         out = _chain(conditions) + Ground(float(height), contact, float(friction))
-        return (out + Walls(wall_contact, float(wall_friction)),)
+        out = out + Walls(wall_contact, float(wall_friction))
+        contact_between = ObjectContact(object_contact, float(object_friction))
+        if contact_between != ObjectContact():
+            # The default is what a scene gets without one: adding it only when set keeps a chain
+            # that already holds an ObjectContact valid (one is allowed).
+            out = out + contact_between
+        return (out,)
 
 
 class PhysMotionGravity:

@@ -71,3 +71,26 @@ def test_fields_follow_objects_and_settings():
         MPMSolver(x, vol, np.array([0, 1]), mats, dom).set_anchors(np.array([True, False]), np.zeros((2, 3)))
     with pytest.raises(InputError):
         ObjectContact("glue")
+
+
+def test_ground_node_sets_object_contact_only_when_asked():
+    # The Ground & Walls node's optional object_contact / object_friction: left at their defaults
+    # (what a scene gets without an ObjectContact) they add nothing, so existing workflows and chains
+    # that already hold an ObjectContact keep working; set, they add one ObjectContact.
+    from comfy_harness import node_classes
+
+    from physmotion_core.types import ObjectContact as Exported
+
+    assert Exported is ObjectContact
+    ground = node_classes()["PhysMotionGround"]
+    spec = ground.INPUT_TYPES()["optional"]
+    from physmotion_core.types.conditions import OBJECT_CONTACTS
+
+    assert tuple(spec["object_contact"][0]) == OBJECT_CONTACTS
+    assert spec["object_contact"][1]["default"] == "friction" and spec["object_friction"][1]["default"] == 0.3
+    (plain,) = ground().run("friction", 0.5, 0.0)
+    assert plain.of(ObjectContact) == [] and plain.object_contact() == ObjectContact()
+    (sticky,) = ground().run("friction", 0.5, 0.0, object_contact="sticky")
+    assert sticky.object_contact() == ObjectContact("sticky", 0.3)
+    (shared,) = ground().run("slip", 0.0, 0.0, conditions=plain, object_contact="shared", object_friction=0.0)
+    assert shared.object_contact() == ObjectContact("shared", 0.0)

@@ -4,7 +4,8 @@
 ``gaussians``      Gaussians (the splats), SH_C0, quaternion <-> rotation matrix
 ``camera``         Camera (pinhole, OpenGL pose)
 ``material``       Material and the constitutive models it can name
-``conditions``     Region, Force, Torque, InitialVelocity, Anchor, Ground, Walls, Gravity, Conditions
+``conditions``     Region, Force, Torque, InitialVelocity, Anchor, Ground, Walls, ObjectContact,
+                   Gravity, Conditions
 ``settings``       SimSettings (how to simulate) and its presets
 ``results``        SimResult (the trajectory), FrameSet (rendered frames), the splat deformation rule
 =================  =====================================================================
@@ -25,7 +26,7 @@ _HOME = {
     "camera": ("Camera",),
     "material": ("CONSTITUTIVE_MODELS", "Material"),
     "conditions": ("Region", "Force", "Torque", "InitialVelocity", "Anchor", "CONTACTS", "Ground", "Walls",
-                   "Gravity", "CONDITION_TYPES", "Conditions"),
+                   "OBJECT_CONTACTS", "ObjectContact", "Gravity", "CONDITION_TYPES", "Conditions"),
     "settings": ("AUTO_GRID_RES", "QUALITY", "MAX_CFL", "SimSettings"),
     "results": ("MAX_SPLAT_STRETCH", "splat_deformation", "SimResult", "FrameSet"),
 }
