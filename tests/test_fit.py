@@ -445,3 +445,86 @@ def test_fits_under_inference_mode_as_comfyui_runs_nodes(lifted):
         assert torch.is_inference_mode_enabled()  # the caller's mode is back
     assert res.ok and res.iou >= 0.95, res.report()
     assert rotation_angle_deg(res.view_rotation @ canonical_rotations(4)[5]) <= 3.0, res.report()
+
+
+def test_own_adam_takes_the_same_steps_as_torch_adam():
+    """The fit's small Adam (no torch.optim: no torch._dynamo import on first use) is torch's update."""
+    from physmotion_core.lift.fit import _Adam
+
+    gen = torch.Generator().manual_seed(0)
+    a0, b0 = torch.randn(3, generator=gen), torch.randn(2, generator=gen)
+    ours = [a0.clone().requires_grad_(), b0.clone().requires_grad_()]
+    ref = [a0.clone().requires_grad_(), b0.clone().requires_grad_()]
+    opt = _Adam([{"params": [ours[0]], "lr": 0.02}, {"params": [ours[1]], "lr": 0.005}], betas=(0.8, 0.95))
+    ropt = torch.optim.Adam([{"params": [ref[0]], "lr": 0.02}, {"params": [ref[1]], "lr": 0.005}], betas=(0.8, 0.95))
+    for step in range(25):
+        for o in (opt, ropt):
+            for g in o.param_groups:  # a changing rate, as the fit's cosine schedule
+                g["lr"] *= 0.97
+        for (x, y), o in ((ours, opt), (ref, ropt)):
+            loss = (x.sin() * 3.0).pow(2).sum() + (y - 0.3 * step).abs().sum()
+            o.zero_grad(set_to_none=True)
+            loss.backward()
+            o.step()
+    for x, y in zip(ours, ref):
+        assert torch.allclose(x, y, atol=1e-6, rtol=1e-5)
+
+
+def test_gradient_renders_in_longer_chunks_equal_the_rasterizer(lifted):
+    """The fit's gradient renders walk the tiles GRAD_CHUNK splats at a time; image and gradients
+    are the rasterizer's own (default chunks) to round-off."""
+    from physmotion_core.lift import fit as fit_module
+    from physmotion_core.render.rasterize import _rasterize_with_torch
+
+    img, m, lift = lifted
+    g = lift.gaussians
+    prep = fit_module._prep(g, g.means.double().mean(0), float(g.means.max() - g.means.min()))
+    lv = fit_module._level(torch.from_numpy(img), torch.from_numpy(m), 64, 60.0)
+    outs, grads = [], []
+    for chunk in (None, fit_module.GRAD_CHUNK):
+        p = fit_module._Params(canonical_rotations(4)[3], math.log(60.0), (40.0, 48.0), math.log(120.0), 96.0)
+        if chunk is None:  # the plain path: the rasterizer with its defaults, through the same placement
+            means, cov = p.place(prep, 40.0, 48.0)
+            f = float(torch.exp(p.log_f.detach()))
+            cam = Camera(lv.width, lv.height, f * lv.kx, f * lv.ky, 40.0 * lv.kx, 48.0 * lv.ky, torch.eye(4),
+                         near=1e-3, far=1e3)
+            gg = Gaussians(means=means, quats=torch.tensor([[1.0, 0, 0, 0]]).expand(len(g), 4),
+                           scales=torch.ones(len(g), 3), opacities=prep.opacities, sh=torch.zeros(len(g), 1, 3),
+                           covars=cov)
+            out = _rasterize_with_torch(gg, cam, prep.rgb, prep.opacities, None, "z", 0.3)
+        else:
+            out = fit_module._render(prep, p, lv, 40.0, 48.0)
+        loss = (out.alpha * lv.mask).sum() + out.rgb.sum()
+        loss.backward()
+        outs.append(out.alpha.detach())
+        grads.append(torch.cat([p.omega.grad, p.log_sigma.grad[None], p.uv.grad]))
+    assert float(outs[0].sum()) > 100
+    assert torch.allclose(outs[0], outs[1], atol=1e-5)
+    assert torch.allclose(grads[0], grads[1], rtol=1e-3, atol=1e-3 * float(grads[0].abs().max()))
+
+
+def test_dropped_contenders_and_early_stops_save_steps_not_accuracy(lifted, monkeypatch):
+    """Contenders far behind halfway are dropped and finer levels stop on a plateau: fewer steps,
+    the same fit as running every step (the progress bar still ends full)."""
+    from physmotion_core.lift import fit as fit_module
+
+    img, m, lift = lifted
+    moved = _similarity(lift.gaussians, canonical_rotations(4)[9], 2.0, torch.tensor([0.5, -1.0, 2.0]))
+    kw = dict(object_height=0.45, levels=((48, 24), (72, 30), (96, 30)), yaw_steps=4, keep=3, screen_steps=10)
+    runs = {}
+    for name, margin, plateau in (("full", None, 0), ("cheap", fit_module.CONTENDER_MARGIN, fit_module.PLATEAU_STEPS)):
+        monkeypatch.setattr(fit_module, "CONTENDER_MARGIN", margin)
+        monkeypatch.setattr(fit_module, "PLATEAU_STEPS", plateau)
+        calls = []
+        res = fit_gaussians_to_photo(moved, img, m, progress=lambda d, t: calls.append((d, t)), **kw)
+        steps = sum(len(v) for v in res.info["trace"].values())
+        runs[name] = (res, steps, calls)
+    full, cheap = runs["full"], runs["cheap"]
+    assert full[0].ok and cheap[0].ok, (full[0].report(), cheap[0].report())
+    assert cheap[0].iou >= full[0].iou - 0.01
+    assert rotation_angle_deg(cheap[0].view_rotation @ full[0].view_rotation.T) <= 3.0
+    assert cheap[1] < full[1]
+    assert any(c["dropped"] for c in cheap[0].info["contenders"])  # 118 steps -> 77, one of 3 dropped, same IoU
+    assert not any(c["dropped"] for c in full[0].info["contenders"])
+    for _, _, calls in runs.values():
+        assert calls[-1][0] == calls[-1][1] and all(d <= t for d, t in calls)
