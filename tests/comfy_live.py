@@ -54,6 +54,10 @@ class ComfyServer:
                "--base-directory", str(base), "--disable-all-custom-nodes",
                "--whitelist-custom-nodes", PACK_NAME, "--database-url", "sqlite:///:memory:",
                "--disable-auto-launch"]
+        # COMFYUI_FRONTEND_ROOT: serve another frontend build (e.g. the static/ folder of the newest
+        # comfyui-frontend-package wheel) instead of the one pinned by this ComfyUI.
+        if os.environ.get("COMFYUI_FRONTEND_ROOT"):
+            cmd += ["--front-end-root", os.environ["COMFYUI_FRONTEND_ROOT"]]
         env = {**os.environ, "PYTHONUNBUFFERED": "1"}
         env.pop("PHYSMOTION_OUTPUT_DIR", None)
         self.log = open(self.log_path, "w")

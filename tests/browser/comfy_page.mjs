@@ -31,6 +31,10 @@ try {
   // frontends, tours) over the canvas: mark the tutorial done in the user's settings before the page
   // loads, and close any dialog still open (its close button, else Escape) until none is left.
   await fetch(new URL("/settings/Comfy.TutorialCompleted", url), { method: "POST", body: "true" }).catch(() => {});
+  // COMFY_VUE_NODES=1: the newer frontends' Vue node rendering ("Comfy.VueNodes.Enabled"), where
+  // DOM widgets are laid out by the node components instead of the canvas.
+  await fetch(new URL("/settings/Comfy.VueNodes.Enabled", url),
+              { method: "POST", body: process.env.COMFY_VUE_NODES === "1" ? "true" : "false" }).catch(() => {});
   await page.goto(url, { waitUntil: "domcontentloaded" });
   await page.waitForFunction(() => window.app?.graph && window.LiteGraph?.registered_node_types?.PhysMotionForce,
                              null, { timeout: 120000 });
@@ -164,14 +168,14 @@ try {
       // Save the workflow and load it back: the picked values must survive.
       const saved = JSON.parse(JSON.stringify(window.app.graph.serialize()));
       await window.app.loadGraphData(saved, true, false, "reloaded", { showMissingNodesDialog: false });
-      const reloaded = window.app.graph._nodes.find((x) => x.id === n.id);
+      const reloaded = window.app.graph._nodes.find((x) => String(x.id) === String(n.id));
       const prompt = (await window.app.graphToPrompt()).output;
       // The picker is wired by events, not a timer: loading a workflow removes the old node, which
       // must release its picker, and the new node gets one of its own.
       const wiring = { old_removed: n[prop].removed === true,
                        new_live: !!reloaded[prop] && reloaded[prop].removed === false,
                        timer: "timer" in n[prop] || "timer" in (reloaded[prop] ?? {}) };
-      return { widgets, saved_widgets_values: saved.nodes.find((x) => x.id === n.id).widgets_values,
+      return { widgets, saved_widgets_values: saved.nodes.find((x) => String(x.id) === String(n.id))?.widgets_values,
                reloaded: values(reloaded), prompt_inputs: prompt[String(n.id)].inputs, wiring };
     }, prop);
     return { before: geo.widgets, geometry: geo, from, to, modifiers, ...after };
