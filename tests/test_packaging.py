@@ -44,7 +44,7 @@ def test_requirements_never_pin_torch_gsplat_or_upper_bounds():
     import_names = {"numpy": "numpy", "warp": "warp-lang", "cv2": "opencv-python-headless", "av": "av",
                     "safetensors": "safetensors", "diffusers": "diffusers", "transformers": "transformers",
                     "peft": "peft", "segment_anything": "segment-anything", "PIL": "pillow",
-                    "websocket": "websocket-client"}
+                    "websocket": "websocket-client", "scipy": "scipy"}
     # Optional packages: imported lazily (inside a function, never at module level) by the parts that use
     # them, and listed in the pyproject extra named here (None: used when present, never required).
     optional = {"ray": "batch", "yaml": "batch", "pyarrow": "batch", "tomli": "batch", "tqdm": None}
