@@ -25,6 +25,9 @@ log = logging.getLogger("physmotion.sim")
 _CONTACT_IDS = {"sticky": 0, "slip": 1, "friction": 2}
 PAD = 3  # cells of boundary padding at every face of the domain
 MAX_TORQUES = 30  # torque regions are a per-particle bit mask
+# Models whose particles transfer without the affine velocity next to Coulomb-friction ground (kernels.p2g):
+# the elastic solids, which otherwise crept on a slope at 0.9 μ; flowing materials keep APIC there.
+CONTACT_PIC_MODELS = ("fixed_corotated", "neo_hookean", "fracture")
 TRANSFERS = ("apic", "pic")  # particle-grid velocity transfer: affine (APIC / MLS-MPM) or plain PIC
 SPAN_QUANTUM = 4  # grid spans are rounded out to multiples of this many nodes (fewer graph captures)
 MAX_SPAN_MARGIN = 32  # nodes of room around the particles' stencils a span may add per side (graphs)
@@ -332,6 +335,9 @@ class MPMSolver:
             raise InputError("rigid particles need a body index (one per rigid object)")
         body_np[~rigid_model] = -1
         flags[rigid_model] |= K.FLAG_RIGID
+        # Elastic solids transfer without APIC's affine part next to Coulomb ground (kernels.p2g).
+        elastic = np.array([m.model in CONTACT_PIC_MODELS for m in self.materials])[mat_index]
+        flags[elastic] |= K.FLAG_CONTACT_PIC
         self.body_np = body_np
         self.n_bodies = int(body_np.max()) + 1 if (body_np >= 0).any() else 0
         tmask = np.zeros(n, np.int32) if torque_mask is None else np.asarray(torque_mask, np.int32)
