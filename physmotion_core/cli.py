@@ -85,6 +85,9 @@ def _build_parser() -> argparse.ArgumentParser:
     g.add_argument("--preview", action="store_true",
                    help="segment, lift and weigh only: write the mask overlay (--overlay, default OUTPUT.mask.png), "
                         "print the summary (mask, support, mass, what each force will do) and stop before simulating")
+    g.add_argument("--texture", default="photo", choices=["photo", "splat"],
+                   help="photo: the surface the photo saw keeps the photo's own pixels as it moves (default); "
+                        "splat: the Gaussians' colours only")
     g.add_argument("--overlay", type=Path, help="also write the mask overlay PNG here (the outline over the photo "
                                                 "beside the filled background)")
     g.add_argument("--max-side", type=int, default=1024,
@@ -246,7 +249,7 @@ def _generate(args) -> int:
                        models=args.models, seed=args.seed, hold_edges=args.hold_edges, report=report,
                        overlay=args.overlay or (args.output.with_name(args.output.stem + ".mask.png")
                                                 if args.preview else None),
-                       preview=args.preview, **_prompts(args))
+                       preview=args.preview, texture=args.texture, **_prompts(args))
         if args.preview:
             print(f"preview: stopped before simulating; the mask overlay is {res.overlay_path}", file=sys.stderr)
             if args.stats is not None:

@@ -514,6 +514,7 @@ def generate(
     overlay: Union[str, Path, None] = None,
     report: Optional[Callable[[str], None]] = None,
     preview: bool = False,
+    texture: str = "photo",
 ):
     """Animate the object in ``image`` under ``conditions`` and return (and optionally save) the video.
 
@@ -532,6 +533,9 @@ def generate(
     separate parts, missed points); an automatic one that fails is refused with a message naming the
     overlay (``overlay``, default ``<output>.mask.png``) and how to give a point, a box or a mask; a
     prompted or given one only warns.
+
+    ``texture``: "photo" (default) renders the surface the photo saw with the photo's own pixels, carried
+    by the motion (``render.photo_texture``); "splat" renders the Gaussians' colours only.
 
     What holds it: the parts the frame's edge cuts are held there (``hold_edges``), and the ground
     goes under the lowest visible point unless that is on the frame's edge (``support.plan_support``).
@@ -553,6 +557,9 @@ def generate(
     def stage(name: str) -> Optional[ProgressFn]:
         return progress(name) if progress is not None else None
 
+    if texture not in ("photo", "splat"):
+        raise InputError(f"texture must be 'photo' (the photo's own pixels move) or 'splat' (the Gaussians' "
+                         f"colours); got {texture!r}")
     t0 = time.perf_counter()
     prep = prepare(image, conditions=conditions, material=material, material_params=material_params, mask=mask,
                    ground=ground, object_height=object_height, fov_y_deg=fov_y_deg, max_gaussians=max_gaussians,
@@ -587,13 +594,16 @@ def generate(
         say(w, warn=True)
 
     t = time.perf_counter()
-    from .render.photo_texture import make_photo_texture
+    texture_map = None
+    if texture == "photo":
+        from .render.photo_texture import make_photo_texture
 
-    # The photo itself moves (the surface it saw keeps its pixels); the soft matte where the segmentation has one.
-    matte = getattr(seg, "matte", None)
-    texture = make_photo_texture(seg.image, seg.mask if matte is None else matte, lift.camera,
-                                 background=seg.background)
-    frames = render_frames(sim, lift.camera, progress=stage("render"), photo=texture)
+        # The photo itself moves (the surface it saw keeps its pixels); the soft matte where the
+        # segmentation has one.
+        matte = getattr(seg, "matte", None)
+        texture_map = make_photo_texture(seg.image, seg.mask if matte is None else matte, lift.camera,
+                                         background=seg.background)
+    frames = render_frames(sim, lift.camera, progress=stage("render"), photo=texture_map)
     timings["render_s"] = time.perf_counter() - t
 
     video = composite(frames.rgb, frames.alpha, seg.background)

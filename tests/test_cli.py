@@ -118,12 +118,13 @@ def test_generate_passes_every_prompt_and_condition_flag(red_ball_png, tmp_path,
               "--object-point", "75,60", "--background-point", "5,5", "--box", "40,30,100,90",
               "--quality", "draft", "--velocity", "-0.5,1,0", "--spin", "0,0,3",
               "--torque", "0,0.2,0", "--torque-at", "70,55", "--torque-time", "0.1,0.3",
-              "--force", "-2,0,0", "--no-hold-edges", "--object-height", "1.5"])
+              "--force", "-2,0,0", "--no-hold-edges", "--object-height", "1.5", "--texture", "splat"])
     assert seen["object_points"] == [(70.0, 55.0), (75.0, 60.0)]
     assert seen["background_points"] == [(5.0, 5.0)]
     assert seen["box"] == (40.0, 30.0, 100.0, 90.0)
     assert seen["settings"].quality == "draft"
     assert seen["hold_edges"] is False and seen["object_height"] == 1.5 and seen["preview"] is False
+    assert seen["texture"] == "splat"
     conds = seen["conditions"]
     (tq,) = conds.of(Torque)
     assert tq.vector == (0.0, 0.2, 0.0) and (tq.t_start, tq.t_end) == (0.1, 0.3)

@@ -177,3 +177,23 @@ def test_the_same_prompts_go_to_sam_when_its_weights_are_present(monkeypatch):
     assert p.points == [(64.0, 50.0), (5.0, 90.0)] and p.labels == [1, 0] and p.box == (30.0, 20.0, 100.0, 80.0)
     generate(img, settings=FAST, preview=True, report=lambda s: None)
     assert seen[-1] == []  # no prompt: SAM's automatic mode
+
+
+def test_texture_photo_shows_the_photo_and_splat_the_gaussians_colours():
+    img, disk = photo()
+    rng = np.random.default_rng(3)
+    img = img.copy()
+    img[disk] = np.clip(img[disk] + 0.15 * rng.standard_normal((int(disk.sum()), 3)), 0, 1)  # detail to keep
+    m = torch.from_numpy(disk.astype(np.float32))
+    inner = torch.from_numpy(np.asarray(__import__("cv2").erode(disk.astype(np.uint8), np.ones((7, 7), np.uint8)) > 0))
+
+    def psnr(a, b):
+        return float(10 * torch.log10(1.0 / ((a - b) ** 2).mean()))
+
+    ref = torch.from_numpy(img)[inner]
+    photo_f0 = generate(img, mask=m, settings=FAST, report=lambda s: None).frames[0][inner]
+    splat_f0 = generate(img, mask=m, settings=FAST, texture="splat", report=lambda s: None).frames[0][inner]
+    assert psnr(photo_f0, ref) > 40.0
+    assert psnr(splat_f0, ref) < psnr(photo_f0, ref) - 10.0
+    with pytest.raises(InputError, match="texture"):
+        generate(img, mask=m, settings=FAST, texture="paint")
