@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ._gaussian_io import GAUSSIANS_INPUT, GAUSSIANS_TOOLTIP_SUFFIX, as_pm_gaussians
+from ._gaussian_io import GAUSSIANS_INPUT, GAUSSIANS_TOOLTIP_SUFFIX, SPLAT_AXES_INPUT, as_pm_gaussians
 from ._util import CATEGORY, first_image, first_mask, output_path
 
 
@@ -60,7 +60,7 @@ class PhysMotionSaveGaussians:
             "gaussians": (GAUSSIANS_INPUT, {"tooltip": "Gaussians to save." + GAUSSIANS_TOOLTIP_SUFFIX}),
             "filename_prefix": ("STRING", {"default": "PhysMotion/gaussians",
                                            "tooltip": "File name prefix inside the output folder."}),
-        }}
+        }, "optional": {"splat_axes": SPLAT_AXES_INPUT}}
 
     RETURN_TYPES = ("STRING",)
     RETURN_NAMES = ("ply_path",)
@@ -69,11 +69,11 @@ class PhysMotionSaveGaussians:
     FUNCTION = "run"
     CATEGORY = f"{CATEGORY}/io"
 
-    def run(self, gaussians, filename_prefix):
+    def run(self, gaussians, filename_prefix, splat_axes="y_down"):
         from physmotion_core.ply import write_ply
 
         path, filename, subfolder = output_path(filename_prefix, "ply")
-        write_ply(path, as_pm_gaussians(gaussians))
+        write_ply(path, as_pm_gaussians(gaussians, axes=splat_axes))
         rel = f"{subfolder}/{filename}" if subfolder else filename
         return {"ui": {"text": [rel]}, "result": (rel,)}
 

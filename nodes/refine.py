@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ._gaussian_io import GAUSSIANS_INPUT, GAUSSIANS_TOOLTIP_SUFFIX, as_pm_gaussians
+from ._gaussian_io import GAUSSIANS_INPUT, GAUSSIANS_TOOLTIP_SUFFIX, SPLAT_AXES_INPUT, as_pm_gaussians
 from ._util import (CATEGORY, first_image, first_mask, log, preview_images, progress_with_previews, require_batch,
                     save_ply_output)
 
@@ -116,6 +116,7 @@ class PhysMotionHardDepthRefine:
                                                "tooltip": "The refined Gaussians are saved as a 3DGS .ply with this "
                                                           "prefix in the output folder (for Load3D / Preview3D); "
                                                           "empty = do not save."}),
+                "splat_axes": SPLAT_AXES_INPUT,
             },
         }
 
@@ -128,7 +129,8 @@ class PhysMotionHardDepthRefine:
     CATEGORY = f"{CATEGORY}/refine"
 
     def run(self, gaussians, camera, image, mask, iterations, hard_depth_every, learning_rate, prune_floaters,
-            max_render_side, time_limit_s, seed, views=None, depth_model=None, filename_prefix="PhysMotion/refined"):
+            max_render_side, time_limit_s, seed, views=None, depth_model=None, filename_prefix="PhysMotion/refined",
+            splat_axes="y_down"):
         import torch
 
         from physmotion_core.refine import RefineSettings, build_views, refine_gaussians
@@ -151,7 +153,7 @@ class PhysMotionHardDepthRefine:
                             max_render_side=int(max_render_side), max_seconds=float(time_limit_s), seed=int(seed))
         # The progress bar shows the current render beside the photo (every 50 iterations).
         progress, preview = progress_with_previews()
-        res = refine_gaussians(as_pm_gaussians(gaussians).to(dev), rviews, st, progress=progress, preview=preview)
+        res = refine_gaussians(as_pm_gaussians(gaussians, axes=splat_axes).to(dev), rviews, st, progress=progress, preview=preview)
         for note in res.notes:
             log.info("Hard-Depth Refine: %s", note)
         log.info("Hard-Depth Refine: %d iterations in %.1f s (%.2f it/s), %d pruned", res.iterations_done,

@@ -2,6 +2,8 @@
 
 The API file is the single source of truth; run this after editing one:
     .venv/bin/python scripts/build_workflows.py
+After a node gains an optional widget, ``--fill-defaults`` first writes it at its default into every API
+twin that uses the node (the frontend sends every widget's value, so the twins must list it).
 """
 
 from __future__ import annotations
@@ -16,7 +18,7 @@ sys.path.insert(0, str(ROOT / "tests"))
 
 from comfy_schemas import all_schemas  # noqa: E402
 
-from physmotion_core.comfy.workflow import api_to_ui  # noqa: E402
+from physmotion_core.comfy.workflow import _inputs, api_to_ui, is_widget  # noqa: E402
 
 TITLES = {  # friendlier titles for the core nodes in the templates
     "LoadImage": "Load the photo",
@@ -43,10 +45,44 @@ def build_ui(prompt: dict, sch: dict | None = None) -> dict:
     return api_to_ui(prompt, sch or schemas(), titles, SIZES)
 
 
+def widget_default(spec):
+    """The value the frontend gives a new widget: the declared default, else a list's first option, else
+    the type's zero."""
+    opts = spec[1] if len(spec) > 1 and isinstance(spec[1], dict) else {}
+    if "default" in opts:
+        return opts["default"]
+    kind = spec[0]
+    if isinstance(kind, (list, tuple)):
+        return kind[0] if kind else ""
+    if kind == "COMBO":
+        return (opts.get("options") or [""])[0]
+    return {"INT": 0, "FLOAT": 0.0, "BOOLEAN": False, "STRING": ""}.get(kind, None)
+
+
+def fill_defaults(prompt: dict, sch: dict) -> int:
+    """Give every node of an API prompt the optional widgets its class gained since the file was written,
+    at their defaults (what the frontend's graphToPrompt sends for them, so the twins stay equal; the run
+    does not change). Returns how many inputs were added."""
+    added = 0
+    for node in prompt.values():
+        schema = sch.get(node["class_type"])
+        if schema is None:
+            continue
+        for name, spec, required in _inputs(schema):
+            if not required and is_widget(spec) and name not in node["inputs"]:
+                node["inputs"][name] = widget_default(spec)
+                added += 1
+    return added
+
+
 def main() -> int:
     sch = schemas()
+    fill = "--fill-defaults" in sys.argv[1:]
     for api_path in sorted((ROOT / "example_workflows" / "api").glob("*.json")):
         prompt = json.loads(api_path.read_text())
+        if fill and fill_defaults(prompt, sch):
+            api_path.write_text(json.dumps(prompt, indent=2, ensure_ascii=False) + "\n")
+            print(f"filled the new optional widgets of {api_path.relative_to(ROOT)}")
         ui = build_ui(prompt, sch)
         out = ROOT / "example_workflows" / api_path.name
         out.write_text(json.dumps(ui, indent=1) + "\n")
