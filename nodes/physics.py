@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from ._gaussian_io import GAUSSIANS_INPUT, GAUSSIANS_TOOLTIP_SUFFIX, as_pm_gaussians
+from ._gaussian_io import GAUSSIANS_INPUT, GAUSSIANS_TOOLTIP_SUFFIX, SPLAT_AXES_INPUT, as_pm_gaussians
 from ._util import CATEGORY, log, output_path, progress_callback, sim_device
 
 _VEC = {"default": 0.0, "min": -1e7, "max": 1e7, "step": 0.1}
@@ -325,7 +325,7 @@ class PhysMotionCombineObjects:
             "offset_x": ("FLOAT", {**off, "tooltip": "Move the added object along x (right), metres."}),
             "offset_y": ("FLOAT", {**off, "tooltip": "Move the added object along y (up), metres."}),
             "offset_z": ("FLOAT", {**off, "tooltip": "Move the added object along z (towards the camera), metres."}),
-        }}
+        }, "optional": {"splat_axes": SPLAT_AXES_INPUT}}
 
     RETURN_TYPES = ("PM_GAUSSIANS", "PM_MATERIAL")
     RETURN_NAMES = ("gaussians", "materials")
@@ -334,11 +334,13 @@ class PhysMotionCombineObjects:
     FUNCTION = "run"
     CATEGORY = f"{CATEGORY}/physics"
 
-    def run(self, gaussians_a, material_a, gaussians_b, material_b, offset_x, offset_y, offset_z):
+    def run(self, gaussians_a, material_a, gaussians_b, material_b, offset_x, offset_y, offset_z,
+            splat_axes="y_down"):
         from physmotion_core.scene import combine_objects
 
-        return combine_objects(as_pm_gaussians(gaussians_a, "gaussians_a"), material_a,
-                               as_pm_gaussians(gaussians_b, "gaussians_b"), material_b, (offset_x, offset_y, offset_z))
+        return combine_objects(as_pm_gaussians(gaussians_a, "gaussians_a", axes=splat_axes), material_a,
+                               as_pm_gaussians(gaussians_b, "gaussians_b", axes=splat_axes), material_b,
+                               (offset_x, offset_y, offset_z))
 
 
 class PhysMotionMPMSimulate:
@@ -386,6 +388,7 @@ class PhysMotionMPMSimulate:
                                                           "filling the frame, a branch entering from the side): the "
                                                           "rest of the body, outside the frame, holds it there. Needs "
                                                           "the camera. Off: only the ground holds it."}),
+                "splat_axes": SPLAT_AXES_INPUT,
             },
         }
 
@@ -395,7 +398,7 @@ class PhysMotionMPMSimulate:
     CATEGORY = f"{CATEGORY}/physics"
 
     def run(self, gaussians, material, frames, fps, quality, grid_res, particles_per_cell, cfl, domain_margin,
-            device, seed, conditions=None, camera=None, hold_cut_edges=True):
+            device, seed, conditions=None, camera=None, hold_cut_edges=True, splat_axes="y_down"):
         from physmotion_core.feedback import after_run, forecast
         from physmotion_core.sim import simulate
         from physmotion_core.support import edge_hold
@@ -406,7 +409,7 @@ class PhysMotionMPMSimulate:
         settings = SimSettings(frames=int(frames), fps=float(fps), grid_res=int(grid_res), quality=quality,
                                particles_per_cell=int(particles_per_cell), cfl=float(cfl),
                                domain_margin=float(domain_margin), device=sim_device(device), seed=int(seed))
-        g = as_pm_gaussians(gaussians)
+        g = as_pm_gaussians(gaussians, axes=splat_axes)
         conds = _chain(conditions)
         held = False
         if hold_cut_edges and camera is not None and (g.object_ids is None or len(set(g.object_ids.tolist())) == 1):
