@@ -153,7 +153,7 @@ def test_local_sweep_records_every_job_and_the_failures(sweep):
     bad_e, off_object = rows[6], rows[7]
     assert bad_e["error"]["kind"] == "input" and "Young's modulus" in bad_e["error"]["message"]
     assert bad_e["attempts"] == 0  # refused by the driver, never sent to a worker
-    assert off_object["error"]["kind"] == "input" and "no part of the object" in off_object["error"]["message"]
+    assert off_object["error"]["kind"] == "input" and "does not touch the object" in off_object["error"]["message"]
     assert off_object["attempts"] == 1
     digests = set()
     for r in rows[:6]:
