@@ -440,8 +440,6 @@ def prepare(
                                 "held there (a held rigid body could not move at all); it rests on the ground.")
     for line in support.lines:
         say(line)
-    if support.anchor is not None:
-        conditions = conditions + support.anchor
     if support.ground is not user_ground:
         conditions = Conditions([c for c in conditions if not isinstance(c, Ground)] + [support.ground])
 
@@ -471,6 +469,15 @@ def prepare(
                                ground_height=user_ground.height if user_ground is not None else 0.0)
         stages["lift"] = "silhouette"
     timings["lift_s"] = time.perf_counter() - t
+    if support.anchor is not None:
+        from .support import anchor_reaches
+
+        if anchor_reaches(support.anchor, lift.gaussians, lift.camera):
+            conditions = conditions + support.anchor
+        else:
+            support.anchor, support.hold = None, False
+            say("support: the lifted object does not reach the frame's edge where the mask does, so nothing is "
+                "held there; it rests on the ground.", warn=True)
     prep = Prepared(segmentation=seg, mask_report=mask_report, support=support, gaussians=lift.gaussians,
                     camera=lift.camera, material=mat, conditions=conditions, settings=settings, stages=stages,
                     lines=lines, overlay_path=overlay_path, lift=lift, timings=timings)

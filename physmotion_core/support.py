@@ -13,6 +13,7 @@ frame's bottom row. ``plan_support`` makes that choice and says it in plain word
 from __future__ import annotations
 
 import dataclasses
+import math
 from dataclasses import dataclass, field
 from typing import Optional
 
@@ -61,13 +62,19 @@ def touched_edges(mask, *, tol_px: Optional[int] = None) -> tuple[str, ...]:
 def edge_band(mask, edges, *, band_px: Optional[int] = None) -> np.ndarray:
     """Object pixels within ``band_px`` of the given frame edges (float32 (H, W) in {0, 1}).
 
-    Default band: 3 % of the short side, at least 3 px, a few grid cells of the simulation at the
-    preset resolutions: thick enough to hold, thin enough that the rest of the object moves freely.
+    Default band: 3 % of the short side and at least 7 % of the object's extent (about 1.7 grid cells
+    at the CPU preset of 24 cells across the object, so that simulation particles, two a cell along
+    each axis, always fall in it), at least 3 px: thick enough to hold, thin enough that the rest of
+    the object moves freely.
     """
     m = _as_bool_mask(mask)
     H, W = m.shape
     if band_px is None:
-        band_px = max(3, int(round(0.03 * min(H, W))))
+        extent = 0
+        if m.any():
+            ys, xs = np.nonzero(m)
+            extent = max(int(ys.max() - ys.min()) + 1, int(xs.max() - xs.min()) + 1)
+        band_px = max(3, int(round(0.03 * min(H, W))), int(math.ceil(0.07 * extent)))
     b = int(band_px)
     band = np.zeros_like(m)
     for e in edges:
@@ -113,7 +120,7 @@ def plan_support(mask, *, ground: Optional[Ground], object_height: float, hold_e
     hold = bool(hold_edges) and bool(edges)
     if hold:
         band = edge_band(mask, edges)
-        anchor = Anchor(Region(kind="image", mask=band))
+        anchor = Anchor(Region(kind="image", mask=band), optional=True)
         lines.append(f"support: the photo cuts the object at the {_join(edges)} edge{'s' if len(edges) > 1 else ''}; "
                      f"it is held there (the rest of the body, outside the frame, holds it). Turn this off with "
                      f"{how_to_unhold}.")
@@ -150,9 +157,18 @@ def view_mask(gaussians, camera) -> np.ndarray:
 
     from .render.rasterize import rasterize
 
+    import cv2
+
     with torch.no_grad():
         out = rasterize(gaussians, camera)
-    return (out.alpha.detach().float().cpu().numpy() > 0.5)
+    m = (out.alpha.detach().float().cpu().numpy() > 0.5).astype(np.uint8)
+    # The splats' footprints reach 2-4 px past the outline they came from (measured on the cup: its
+    # mask ends 5 px above the frame's bottom edge, its render 1 px): shrink by 1 % of the short side
+    # (at least 2 px) so only an object the frame really cuts touches an edge. OpenCV's erosion does
+    # not erode from outside the image, so a part running off the frame still reaches it.
+    r = max(2, int(round(0.01 * min(m.shape))))
+    m = cv2.erode(m, cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * r + 1, 2 * r + 1)))
+    return m > 0
 
 
 def edge_hold(gaussians, camera, material=None) -> tuple[Optional[Anchor], tuple[str, ...], str]:
@@ -166,5 +182,19 @@ def edge_hold(gaussians, camera, material=None) -> tuple[Optional[Anchor], tuple
     if material is not None and getattr(material, "model", None) == "rigid":
         return None, edges, (f"support: the photo cuts the object at {where}, but a rigid object is not held there "
                              "(it could not move at all).")
-    return (Anchor(Region(kind="image", mask=edge_band(m, edges))), edges,
+    return (Anchor(Region(kind="image", mask=edge_band(m, edges)), optional=True), edges,
             f"support: the photo cuts the object at {where}; it is held there. Turn off hold_cut_edges to let it go.")
+
+
+def anchor_reaches(anchor: Optional[Anchor], gaussians, camera) -> bool:
+    """Whether the hold's band covers some of the lifted object (its Gaussians' centres): a learned lift
+    need not fill the mask it came from to the frame's edge, and an anchor on nothing cannot hold."""
+    if anchor is None:
+        return False
+    from .sim.regions import select
+
+    x = gaussians.means.detach().float().cpu().numpy()
+    try:
+        return bool(select(anchor.region, x, np.zeros(len(x), np.int64), camera, "hold").any())
+    except InputError:
+        return False

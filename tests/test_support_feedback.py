@@ -221,3 +221,37 @@ def test_leaving_the_frame_warns_with_the_frame():
     assert rep.left_frame_at == 3
     assert any("left the frame" in w and "frame 3" in w for w in rep.warnings)
     assert after_run(_fake_sim([(0.01 * k, 0, 0) for k in range(8)]), CAM).left_frame_at is None
+
+
+def test_the_node_path_finds_the_same_cut_edges_as_the_mask():
+    """MPM Simulate decides the hold from a render of the Gaussians (it has no mask): an object that
+    stops a few pixels short of the frame is not cut (the splats' footprints reach past the outline),
+    one that runs off the frame is."""
+    from physmotion_core.lift import silhouette_lift
+    from physmotion_core.support import edge_hold
+
+    img = np.full((120, 160, 3), 0.6, np.float32)
+    short = disc(cx=80, cy=85, r=30)  # ends 5 px above the bottom edge
+    cut = oval()  # runs off the bottom edge
+    for m, want in ((short, ()), (cut, ("bottom",))):
+        assert touched_edges(m) == want
+        lift = silhouette_lift(img, m, max_gaussians=3000, fit_colors=False)
+        anchor, edges, line = edge_hold(lift.gaussians, lift.camera)
+        assert edges == want, (edges, want)
+        assert (anchor is not None) == bool(want)
+        assert ("it is held there" in line) == bool(want)
+
+
+def test_a_hold_on_nothing_is_skipped_but_a_users_anchor_on_nothing_is_refused():
+    from physmotion_core.errors import InputError
+    from physmotion_core.sim import simulate
+    from physmotion_core.types import Anchor, Region
+    from physmotion_core.validate.stress import gaussian_box
+
+    g = gaussian_box((-0.05, 0.0, -0.05), (0.05, 0.1, 0.05), (5, 5, 5))
+    nowhere = Region("box", lo=(1.0, 1.0, 1.0), hi=(2.0, 2.0, 2.0))
+    settings = SimSettings(frames=2, fps=24.0, grid_res=6, device="cpu")
+    res = simulate(g, Material.preset("rubber"), Conditions([Anchor(nowhere, optional=True)]), settings)
+    assert res.x.shape[0] == 2
+    with pytest.raises(InputError, match="contains no part of the object"):
+        simulate(g, Material.preset("rubber"), Conditions([Anchor(nowhere)]), settings)

@@ -174,7 +174,17 @@ def initial_state(conditions: Conditions, parts: FilledObjects, materials: Seque
         if np.any(w != 0):
             C0 = np.zeros((len(x0), 3, 3)) if C0 is None else C0
             C0[sel] += np.array([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]])
-    anchor_sel = [region(a.region, "anchor") for a in conditions.of(Anchor)]
+    def held(a):
+        try:
+            return region(a.region, "anchor")
+        except InputError:
+            if not a.optional:
+                raise
+            # A hold chosen by the run (the frame's edge, support.py) that no particle lies in: nothing to hold.
+            log.warning("the hold at the frame's edge covers no particle of the object; nothing is held there")
+            return np.zeros(len(x0), bool)
+
+    anchor_sel = [held(a) for a in conditions.of(Anchor)]
     anchored = np.zeros(len(x0), bool)
     for sel in anchor_sel:
         anchored |= sel

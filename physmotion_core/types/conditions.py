@@ -114,6 +114,7 @@ class Anchor:
     velocity: Vec3 = (0.0, 0.0, 0.0)
     t_start: float = 0.0
     t_end: float = float("inf")
+    optional: bool = False  # a hold the run chose itself (support.py): holding nothing is skipped, not an error
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "velocity", as_vec3(self.velocity, "Anchor velocity"))
