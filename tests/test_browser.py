@@ -83,6 +83,8 @@ def test_every_template_loads_without_missing_nodes_and_queues_its_api_twin(page
             continue
         assert sorted(r["loaded"]) == sorted(n["type"] for n in ui["nodes"]), name
         api = json.loads((ROOT / "example_workflows" / "api" / f"{name}.json").read_text())
+        odd = {nid: n for nid, n in r["prompt"].items() if "class_type" not in n}
+        assert not odd, (name, odd)
         queued = {nid: {"class_type": n["class_type"], "inputs": n["inputs"]} for nid, n in r["prompt"].items()}
         diff = {nid: {k: (queued.get(nid, {}).get("inputs", {}).get(k), n["inputs"].get(k))
                       for k in set(n["inputs"]) | set(queued.get(nid, {}).get("inputs", {}))
