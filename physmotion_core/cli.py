@@ -207,21 +207,19 @@ def _generate(args) -> int:
     check_outputs({"-o/--output": args.output, "--stats": args.stats, "--save-ply": args.save_ply,
                    "--overlay": args.overlay}, inputs=inputs)
     video_format(args.output)
-    conds = []
-    for i, f in enumerate(args.force):
-        vec = _floats(f, 3, "--force")
-        region = Region()
-        if i < len(args.at):
-            u, v = _floats(args.at[i], 2, "--at")
-            region = Region.at_pixel(u, v, args.radius)
-        conds.append(Force(vec, region, t0, t1))
-    for i, tq in enumerate(args.torque):
-        vec = _floats(tq, 3, "--torque")
-        region = Region()
-        if i < len(args.torque_at):
-            u, v = _floats(args.torque_at[i], 2, "--torque-at")
-            region = Region.at_pixel(u, v, args.radius)
-        conds.append(Torque(vec, region, q0, q1))
+    def loads(kind, vectors, pixels, vec_opt, at_opt, window):
+        """One load per vector; the i-th pixel option (if given) is where the i-th one acts."""
+        out = []
+        for i, text in enumerate(vectors):
+            region = Region()
+            if i < len(pixels):
+                u, v = _floats(pixels[i], 2, at_opt)
+                region = Region.at_pixel(u, v, args.radius)
+            out.append(kind(_floats(text, 3, vec_opt), region, *window))
+        return out
+
+    conds = (loads(Force, args.force, args.at, "--force", "--at", (t0, t1))
+             + loads(Torque, args.torque, args.torque_at, "--torque", "--torque-at", (q0, q1)))
     if args.velocity or args.spin:
         conds.append(InitialVelocity(_floats(args.velocity, 3, "--velocity") if args.velocity else (0.0, 0.0, 0.0),
                                      _floats(args.spin, 3, "--spin") if args.spin else (0.0, 0.0, 0.0)))
