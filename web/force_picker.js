@@ -31,6 +31,7 @@ import {
   torqueToArrow,
   viewParams,
 } from "./picker_math.js";
+import { comfyClassOf, mountPicker, pickerRegistry, releasePicker } from "./picker_widget.js";
 
 const PICKER_NODES = {
   PhysMotionForce: { kind: "force", scaleProperty: "picker_newtons_per_image_height",
@@ -368,90 +369,26 @@ class Picker {
   }
 
   remove() {
-    if (this.removed) return;
-    this.removed = true;
-    if (this.frame != null) {
-      if (typeof cancelAnimationFrame === "function") cancelAnimationFrame(this.frame);
-      clearTimeout(this.frame);
-      this.frame = null;
-    }
-    this.resizeObserver?.disconnect();
-    this.listeners.abort();
-    livePickers.delete(this);
-    this.image = null;
+    releasePicker(this, registry);
   }
 }
 
-/** Every picker on the page; the graph-wide triggers refresh each of them. */
-const livePickers = new Set();
+/** Every Force/Torque picker on the page, and the graph-wide triggers that refresh them. */
+const registry = pickerRegistry(app, api);
 
-/** obj[name] = its old value (if any) followed by `after`, same arguments and return value. */
-function chain(obj, name, after) {
-  const prev = obj[name];
-  obj[name] = function (...args) {
-    const r = prev?.apply(this, args);
-    after.apply(this, args);
-    return r;
-  };
-}
-
-let sharedTriggersInstalled = false;
-
-/** Once per page: changes made elsewhere in the graph (another node's widget, a link upstream, a
- *  node's new preview image) refresh every picker. The frontend dispatches `graphChanged` on the api
- *  when the serialised graph differs after a user action, and `executed` when a node shows an output;
- *  besides, each draw of the graph canvas (it draws when something on it changed) runs the cheap
- *  refresh check of every picker, which also covers changes that raise no event. */
-function installSharedTriggers() {
-  if (sharedTriggersInstalled) return;
-  const canvas = app.canvas;
-  if (!canvas) return; // too early: the extension's setup() installs them
-  sharedTriggersInstalled = true;
-  const invalidateAll = () => { for (const p of livePickers) p.invalidate(); };
-  api.addEventListener?.("graphChanged", invalidateAll);
-  api.addEventListener?.("executed", invalidateAll);
-  chain(canvas, "onDrawForeground", () => { for (const p of livePickers) p.refresh(); });
-}
-
-/** The ComfyUI class of a node as the frontend creates it (node.type is set only after the
- *  constructor, where nodeCreated runs). */
-function comfyClassOf(node) {
-  return node.comfyClass ?? node.constructor?.comfyClass ?? node.constructor?.nodeData?.name ?? node.type;
-}
-
-/** Give a Force/Torque node its picker: a DOM widget, and the node's own events wired to refresh it. */
+/** Give a Force/Torque node its picker: a DOM widget, and the node's own events wired to refresh it
+ *  (and its Properties panel, which holds the picker's scale). */
 function attachPicker(node, spec) {
-  const picker = new Picker(node, spec);
-  // The node's own inputs: each widget's callback runs when the user (or the picker) sets it.
-  for (const w of node.widgets ?? []) chain(w, "callback", () => picker.invalidate());
-  const w = node.addDOMWidget("physmotion_picker", "physmotion_picker", picker.el, {
-    serialize: false,
-    hideOnZoom: false,
-    getMinHeight: () => PICKER_HEIGHT,
-    getHeight: () => PICKER_HEIGHT,
+  return mountPicker(node, new Picker(node, spec), registry, {
+    widgetName: "physmotion_picker", nodeField: "physmotionPicker", height: PICKER_HEIGHT,
+    alsoOn: ["onPropertyChanged"],
   });
-  w.serialize = false; // not a backend input: never part of widgets_values or the prompt
-  w.physmotionPicker = picker;
-  node.physmotionPicker = picker;
-  const invalidate = () => picker.invalidate();
-  chain(node, "onWidgetChanged", invalidate); // litegraph: a widget of this node changed on the canvas
-  chain(node, "onConnectionsChange", invalidate); // a link to or from this node made or removed
-  chain(node, "onPropertyChanged", invalidate); // the picker's scale (Properties panel)
-  chain(node, "onConfigure", invalidate); // widget values loaded from a workflow
-  chain(node, "onAdded", invalidate); // put on a graph
-  chain(node, "onRemoved", () => picker.remove());
-  chain(w, "onRemove", () => picker.remove());
-  livePickers.add(picker);
-  installSharedTriggers();
-  const size = node.computeSize?.();
-  if (size) node.setSize?.([Math.max(node.size?.[0] ?? 0, 340), Math.max(node.size?.[1] ?? 0, size[1])]);
-  return picker;
 }
 
 app.registerExtension({
   name: "PhysMotion.ForceTorquePicker",
   setup() {
-    installSharedTriggers();
+    registry.installSharedTriggers();
   },
   // Runs after the constructor of every node the frontend creates (a new node, a pasted one, or one
   // loaded from a workflow, before its saved values are applied: onConfigure refreshes then).
@@ -461,6 +398,6 @@ app.registerExtension({
   },
   // A workflow was loaded: its nodes are configured and linked now.
   afterConfigureGraph() {
-    for (const p of livePickers) p.invalidate();
+    registry.invalidateAll();
   },
 });

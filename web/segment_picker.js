@@ -23,6 +23,7 @@
 import { app } from "../../scripts/app.js";
 import { api } from "../../scripts/api.js";
 import { MIN_DRAG_PX, canvasToImage, fitImage, imageToCanvas } from "./picker_math.js";
+import { comfyClassOf, mountPicker, pickerRegistry, releasePicker } from "./picker_widget.js";
 import {
   PROMPT_WIDGETS,
   SEGMENT_KINDS,
@@ -317,91 +318,30 @@ class SegmentPicker {
   }
 
   remove() {
-    if (this.removed) return;
-    this.removed = true;
-    if (this.frame != null) {
-      if (typeof cancelAnimationFrame === "function") cancelAnimationFrame(this.frame);
-      clearTimeout(this.frame);
-      this.frame = null;
-    }
-    this.resizeObserver?.disconnect();
-    this.listeners.abort();
-    livePickers.delete(this);
-    this.image = null;
+    releasePicker(this, registry);
   }
 }
 
-/** Every segment picker on the page; the graph-wide triggers refresh each of them. */
-const livePickers = new Set();
-
-/** obj[name] = its old value (if any) followed by `after`, same arguments and return value. */
-function chain(obj, name, after) {
-  const prev = obj[name];
-  obj[name] = function (...args) {
-    const r = prev?.apply(this, args);
-    after.apply(this, args);
-    return r;
-  };
-}
-
-let sharedTriggersInstalled = false;
-
-/** Once per page: changes elsewhere in the graph (another node's widget, a link upstream, a new
- *  preview) refresh every picker: the api's `graphChanged` and `executed` events, and a cheap check
- *  on each draw of the graph canvas for changes that raise no event. */
-function installSharedTriggers() {
-  if (sharedTriggersInstalled) return;
-  const canvas = app.canvas;
-  if (!canvas) return; // too early: the extension's setup() installs them
-  sharedTriggersInstalled = true;
-  const invalidateAll = () => { for (const p of livePickers) p.invalidate(); };
-  api.addEventListener?.("graphChanged", invalidateAll);
-  api.addEventListener?.("executed", invalidateAll);
-  chain(canvas, "onDrawForeground", () => { for (const p of livePickers) p.refresh(); });
-}
-
-/** The ComfyUI class of a node as the frontend creates it (node.type is set after the constructor). */
-function comfyClassOf(node) {
-  return node.comfyClass ?? node.constructor?.comfyClass ?? node.constructor?.nodeData?.name ?? node.type;
-}
+/** Every segment picker on the page, and the graph-wide triggers that refresh them. */
+const registry = pickerRegistry(app, api);
 
 /** Give a Segment node its picker: a DOM widget, and the node's own events wired to refresh it. */
 function attachPicker(node, kind) {
-  const picker = new SegmentPicker(node, kind);
-  for (const w of node.widgets ?? []) chain(w, "callback", () => picker.invalidate());
-  const w = node.addDOMWidget("physmotion_segment_picker", "physmotion_segment_picker", picker.el, {
-    serialize: false,
-    hideOnZoom: false,
-    getMinHeight: () => PICKER_HEIGHT,
-    getHeight: () => PICKER_HEIGHT,
+  return mountPicker(node, new SegmentPicker(node, kind), registry, {
+    widgetName: "physmotion_segment_picker", nodeField: "physmotionSegmentPicker", height: PICKER_HEIGHT,
   });
-  w.serialize = false; // not a backend input: never part of widgets_values or the prompt
-  w.physmotionPicker = picker;
-  node.physmotionSegmentPicker = picker;
-  const invalidate = () => picker.invalidate();
-  chain(node, "onWidgetChanged", invalidate); // a widget of this node changed on the canvas
-  chain(node, "onConnectionsChange", invalidate); // a link to or from this node made or removed
-  chain(node, "onConfigure", invalidate); // widget values loaded from a workflow
-  chain(node, "onAdded", invalidate); // put on a graph
-  chain(node, "onRemoved", () => picker.remove());
-  chain(w, "onRemove", () => picker.remove());
-  livePickers.add(picker);
-  installSharedTriggers();
-  const size = node.computeSize?.();
-  if (size) node.setSize?.([Math.max(node.size?.[0] ?? 0, 340), Math.max(node.size?.[1] ?? 0, size[1])]);
-  return picker;
 }
 
 app.registerExtension({
   name: "PhysMotion.SegmentPicker",
   setup() {
-    installSharedTriggers();
+    registry.installSharedTriggers();
   },
   nodeCreated(node) {
     const kind = SEGMENT_KINDS[comfyClassOf(node)];
     if (kind) attachPicker(node, kind);
   },
   afterConfigureGraph() {
-    for (const p of livePickers) p.invalidate();
+    registry.invalidateAll();
   },
 });

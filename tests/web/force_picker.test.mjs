@@ -109,6 +109,7 @@ async function loadPicker(fakes) {
     ['"../../scripts/app.js"', '"./app.js"'],
     ['"../../scripts/api.js"', '"./api.js"'],
     ['"./picker_math.js"', JSON.stringify(pathToFileURL(path.join(WEB, "picker_math.js")).href)],
+    ['"./picker_widget.js"', JSON.stringify(pathToFileURL(path.join(WEB, "picker_widget.js")).href)],
   ];
   for (const [from, to] of swaps) {
     assert.ok(src.includes(from), `force_picker.js no longer imports ${from}`);

@@ -102,6 +102,7 @@ async function loadExtension(fakes) {
     ['"../../scripts/app.js"', '"./app.js"'],
     ['"../../scripts/api.js"', '"./api.js"'],
     ['"./picker_math.js"', JSON.stringify(pathToFileURL(path.join(WEB, "picker_math.js")).href)],
+    ['"./picker_widget.js"', JSON.stringify(pathToFileURL(path.join(WEB, "picker_widget.js")).href)],
     ['"./segment_math.js"', JSON.stringify(pathToFileURL(path.join(WEB, "segment_math.js")).href)],
   ]) {
     assert.ok(src.includes(from), `segment_picker.js no longer imports ${from}`);

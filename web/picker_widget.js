@@ -1,0 +1,99 @@
+// PhysMotion pickers' shared wiring: how a picker (the force/torque picker, the segmentation-prompt
+// picker) becomes a DOM widget of its node, which of the node's events refresh it, the graph-wide
+// triggers that refresh every picker of a page, and its release on removal. No frontend imports:
+// the picker files pass ComfyUI's `app` and `api` in, so this module also loads under Node's tests.
+//
+// A picker object has: `el` (its DOM element), `invalidate()` (redraw soon), `refresh()` (a cheap
+// check that redraws only when something it shows changed), `remove()` (which calls
+// `releasePicker`), and the fields `releasePicker` clears (frame, resizeObserver, listeners, image).
+
+/** obj[name] = its old value (if any) followed by `after`, same arguments and return value. */
+export function chain(obj, name, after) {
+  const prev = obj[name];
+  obj[name] = function (...args) {
+    const r = prev?.apply(this, args);
+    after.apply(this, args);
+    return r;
+  };
+}
+
+/** The ComfyUI class of a node as the frontend creates it (node.type is set only after the
+ *  constructor, where nodeCreated runs). */
+export function comfyClassOf(node) {
+  return node.comfyClass ?? node.constructor?.comfyClass ?? node.constructor?.nodeData?.name ?? node.type;
+}
+
+/** The live pickers of one extension, and its graph-wide triggers. One per picker file: each
+ *  extension keeps its own set, installs its own triggers once, and forgets a picker on removal. */
+export function pickerRegistry(app, api) {
+  const live = new Set();
+  let installed = false;
+  return {
+    live,
+    /** Once per page: changes made elsewhere in the graph (another node's widget, a link upstream,
+     *  a node's new preview image) refresh every picker. The frontend dispatches `graphChanged` on
+     *  the api when the serialised graph differs after a user action, and `executed` when a node
+     *  shows an output; besides, each draw of the graph canvas (it draws when something on it
+     *  changed) runs the cheap refresh check of every picker, which also covers changes that raise
+     *  no event. Too early (no canvas yet): the extension's setup() calls it again. */
+    installSharedTriggers() {
+      if (installed) return;
+      const canvas = app.canvas;
+      if (!canvas) return;
+      installed = true;
+      const invalidateAll = () => { for (const p of live) p.invalidate(); };
+      api.addEventListener?.("graphChanged", invalidateAll);
+      api.addEventListener?.("executed", invalidateAll);
+      chain(canvas, "onDrawForeground", () => { for (const p of live) p.refresh(); });
+    },
+    invalidateAll() {
+      for (const p of live) p.invalidate();
+    },
+  };
+}
+
+/** Give `node` the `picker` as a DOM widget named `widgetName` (`height` px, never serialised), with
+ *  the node's own events wired to refresh it: each widget's callback (the user or the picker set
+ *  it), onWidgetChanged (litegraph: a widget changed on the canvas), onConnectionsChange (a link
+ *  made or removed), onConfigure (values loaded from a workflow), onAdded (put on a graph), and
+ *  any `alsoOn` events (e.g. onPropertyChanged for a picker with properties); removal of the node
+ *  or the widget removes the picker. `node[nodeField]` holds the picker. */
+export function mountPicker(node, picker, registry, { widgetName, nodeField, height, alsoOn = [] }) {
+  for (const w of node.widgets ?? []) chain(w, "callback", () => picker.invalidate());
+  const w = node.addDOMWidget(widgetName, widgetName, picker.el, {
+    serialize: false,
+    hideOnZoom: false,
+    getMinHeight: () => height,
+    getHeight: () => height,
+  });
+  w.serialize = false; // not a backend input: never part of widgets_values or the prompt
+  w.physmotionPicker = picker;
+  node[nodeField] = picker;
+  const invalidate = () => picker.invalidate();
+  for (const event of ["onWidgetChanged", "onConnectionsChange", ...alsoOn, "onConfigure", "onAdded"]) {
+    chain(node, event, invalidate);
+  }
+  chain(node, "onRemoved", () => picker.remove());
+  chain(w, "onRemove", () => picker.remove());
+  registry.live.add(picker);
+  registry.installSharedTriggers();
+  const size = node.computeSize?.();
+  if (size) node.setSize?.([Math.max(node.size?.[0] ?? 0, 340), Math.max(node.size?.[1] ?? 0, size[1])]);
+  return picker;
+}
+
+/** A picker's removal: once only; its pending frame, resize observer and every listener go, and
+ *  the registry forgets it. */
+export function releasePicker(picker, registry) {
+  if (picker.removed) return;
+  picker.removed = true;
+  if (picker.frame != null) {
+    if (typeof cancelAnimationFrame === "function") cancelAnimationFrame(picker.frame);
+    clearTimeout(picker.frame);
+    picker.frame = null;
+  }
+  picker.resizeObserver?.disconnect();
+  picker.listeners.abort();
+  registry.live.delete(picker);
+  picker.image = null;
+}
