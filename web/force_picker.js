@@ -20,10 +20,8 @@ import {
   DEFAULT_FORCE_FULL_SCALE,
   DEFAULT_TORQUE_FULL_SCALE,
   MIN_DRAG_PX,
-  canvasToImage,
   dragToForce,
   dragToTorque,
-  fitImage,
   forceToArrow,
   imageToCanvas,
   magnitude,
@@ -31,7 +29,7 @@ import {
   torqueToArrow,
   viewParams,
 } from "./picker_math.js";
-import { comfyClassOf, mountPicker, pickerRegistry, releasePicker } from "./picker_widget.js";
+import { ImagePicker, comfyClassOf, mountPicker, pickerRegistry } from "./picker_widget.js";
 
 const PICKER_NODES = {
   PhysMotionForce: { kind: "force", scaleProperty: "picker_newtons_per_image_height",
@@ -118,48 +116,19 @@ function drawArrow(ctx, a, b, colour, width) {
   ctx.fill();
 }
 
-class Picker {
+class Picker extends ImagePicker {
   constructor(node, spec) {
-    this.node = node;
-    this.spec = spec;
-    this.image = null;
-    this.imageURL = null;
-    this.drag = null; // {start:{u,v}, end:{u,v}, twist, startCanvas}
-    this.stateKey = "";
+    super(node, registry, { className: "physmotion-picker", tag: spec.kind });
+    this.spec = spec; // this.drag: {start:{u,v}, end:{u,v}, twist, startCanvas}
     node.properties = node.properties ?? {};
     if (node.properties[spec.scaleProperty] == null) node.properties[spec.scaleProperty] = spec.defaultScale;
-
-    const el = document.createElement("div");
-    el.className = "physmotion-picker";
-    el.style.cssText = "width:100%;height:100%;display:flex;flex-direction:column;";
-    const canvas = document.createElement("canvas");
-    canvas.style.cssText = "flex:1 1 auto;width:100%;min-height:120px;cursor:crosshair;touch-action:none;" +
-      "background:#1b1b1b;border-radius:4px;";
-    canvas.dataset.physmotionPicker = spec.kind;
     const hint = document.createElement("div");
     hint.style.cssText = "font:11px sans-serif;color:#aaa;padding:2px 4px;white-space:nowrap;overflow:hidden;";
     hint.textContent = spec.kind === "force"
       ? "drag on the object: push (start = where, arrow = direction and strength)"
       : "drag: torque axis (trackball) · Shift-drag: twist about the view axis";
-    el.append(canvas, hint);
-    this.el = el;
-    this.canvas = canvas;
+    this.el.append(hint);
     this.hint = hint;
-
-    // Everything this picker listens to is released at once on removal.
-    this.listeners = new AbortController();
-    const opts = { signal: this.listeners.signal };
-    canvas.addEventListener("pointerdown", (e) => this.onDown(e), opts);
-    canvas.addEventListener("pointermove", (e) => this.onMove(e), opts);
-    canvas.addEventListener("pointerup", (e) => this.onUp(e), opts);
-    canvas.addEventListener("pointercancel", () => { this.drag = null; this.draw(); }, opts);
-
-    // No timer: the picker refreshes when something it shows may have changed (see attachPicker
-    // and installSharedTriggers); a resize of its canvas is one of those things.
-    this.frame = null;
-    this.removed = false;
-    this.resizeObserver = typeof ResizeObserver === "function" ? new ResizeObserver(() => this.invalidate()) : null;
-    this.resizeObserver?.observe(canvas);
   }
 
   get scale() {
@@ -174,27 +143,6 @@ class Picker {
     out.region = widget(this.node, "region")?.value;
     out.radius = get("radius_px");
     return out;
-  }
-
-  fit() {
-    const w = this.canvas.clientWidth;
-    const h = this.canvas.clientHeight;
-    if (!this.image?.naturalWidth) return null;
-    return fitImage(this.image.naturalWidth, this.image.naturalHeight, w, h);
-  }
-
-  eventPoint(e) {
-    const r = this.canvas.getBoundingClientRect();
-    // The node may be zoomed (a CSS transform): map client pixels to the canvas' own pixels.
-    const x = (e.clientX - r.left) * (this.canvas.clientWidth / (r.width || 1));
-    const y = (e.clientY - r.top) * (this.canvas.clientHeight / (r.height || 1));
-    return { x, y };
-  }
-
-  toImage(p) {
-    const fit = this.fit();
-    if (!fit) return null;
-    return canvasToImage(p.x, p.y, fit, this.image.naturalWidth, this.image.naturalHeight);
   }
 
   onDown(e) {
@@ -266,34 +214,12 @@ class Picker {
   }
 
   /** Refresh on the next frame (many triggers in one frame give one refresh). */
-  invalidate() {
-    if (this.removed || this.frame != null) return;
-    const run = () => { this.frame = null; this.refresh(); };
-    this.frame = typeof requestAnimationFrame === "function" ? requestAnimationFrame(run) : setTimeout(run, 0);
+  sourceURL() {
+    return sourceImageURL(this.node);
   }
 
-  /** Follow the graph to the photo (loading it if it changed) and redraw if anything shown changed.
-   *  Cheap when nothing changed: a walk over the few linked nodes and one string compare. */
-  refresh() {
-    if (this.removed || !this.node.graph) return;
-    const url = sourceImageURL(this.node);
-    if (url !== this.imageURL) {
-      this.imageURL = url;
-      if (!url) {
-        this.image = null;
-      } else {
-        const img = new Image();
-        img.onload = () => { if (this.imageURL === url) { this.image = img; this.draw(); } };
-        img.onerror = () => { if (this.imageURL === url) { this.image = null; this.draw(); } };
-        img.src = url;
-      }
-    }
-    const v = this.values();
-    const key = JSON.stringify([url, v, this.scale, this.canvas.clientWidth, this.canvas.clientHeight]);
-    if (key !== this.stateKey) {
-      this.stateKey = key;
-      this.draw();
-    }
+  shownState() {
+    return [this.values(), this.scale];
   }
 
   draw() {
@@ -368,9 +294,6 @@ class Picker {
     ctx.fillText(label, 8, h - 8);
   }
 
-  remove() {
-    releasePicker(this, registry);
-  }
 }
 
 /** Every Force/Torque picker on the page, and the graph-wide triggers that refresh them. */

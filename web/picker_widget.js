@@ -5,7 +5,10 @@
 //
 // A picker object has: `el` (its DOM element), `invalidate()` (redraw soon), `refresh()` (a cheap
 // check that redraws only when something it shows changed), `remove()` (which calls
-// `releasePicker`), and the fields `releasePicker` clears (frame, resizeObserver, listeners, image).
+// `releasePicker`), and the fields `releasePicker` clears (frame, resizeObserver, listeners, image);
+// the ImagePicker class below gives all of these.
+
+import { canvasToImage, fitImage } from "./picker_math.js";
 
 /** obj[name] = its old value (if any) followed by `after`, same arguments and return value. */
 export function chain(obj, name, after) {
@@ -96,4 +99,105 @@ export function releasePicker(picker, registry) {
   picker.listeners.abort();
   registry.live.delete(picker);
   picker.image = null;
+}
+
+/** What both pickers share: the photo drawn on a canvas inside the node, pointer events mapped to
+ *  the photo's pixels, redraws batched to one per frame, the photo followed through the graph and
+ *  reloaded when it changes, and release on removal. A subclass appends its own controls under
+ *  `this.canvas` (in `this.el`) and defines `sourceURL()` (the photo's URL or null), `shownState()`
+ *  (what else the drawing depends on, JSON-able), `draw()`, and `onDown/onMove/onUp(e)`. */
+export class ImagePicker {
+  constructor(node, registry, { className, tag }) {
+    this.node = node;
+    this.registry = registry;
+    this.image = null;
+    this.imageURL = null;
+    this.drag = null;
+    this.stateKey = "";
+
+    const el = document.createElement("div");
+    el.className = className;
+    el.style.cssText = "width:100%;height:100%;display:flex;flex-direction:column;";
+    const canvas = document.createElement("canvas");
+    canvas.style.cssText = "flex:1 1 auto;width:100%;min-height:120px;cursor:crosshair;touch-action:none;" +
+      "background:#1b1b1b;border-radius:4px;";
+    canvas.dataset.physmotionPicker = tag;
+    el.append(canvas);
+    this.el = el;
+    this.canvas = canvas;
+
+    // Everything this picker listens to is released at once on removal.
+    this.listeners = new AbortController();
+    const opts = this.listenerOptions();
+    canvas.addEventListener("pointerdown", (e) => this.onDown(e), opts);
+    canvas.addEventListener("pointermove", (e) => this.onMove(e), opts);
+    canvas.addEventListener("pointerup", (e) => this.onUp(e), opts);
+    canvas.addEventListener("pointercancel", () => { this.drag = null; this.draw(); }, opts);
+
+    // No timer: the picker refreshes when something it shows may have changed (see mountPicker and
+    // the registry's shared triggers); a resize of its canvas is one of those things.
+    this.frame = null;
+    this.removed = false;
+    this.resizeObserver = typeof ResizeObserver === "function" ? new ResizeObserver(() => this.invalidate()) : null;
+    this.resizeObserver?.observe(canvas);
+  }
+
+  /** Options for a listener that goes when the picker is removed. */
+  listenerOptions() {
+    return { signal: this.listeners.signal };
+  }
+
+  /** Where the photo sits on the canvas (fitImage's answer), or null before it has loaded. */
+  fit() {
+    if (!this.image?.naturalWidth) return null;
+    return fitImage(this.image.naturalWidth, this.image.naturalHeight, this.canvas.clientWidth, this.canvas.clientHeight);
+  }
+
+  eventPoint(e) {
+    const r = this.canvas.getBoundingClientRect();
+    // The node may be zoomed (a CSS transform): map client pixels to the canvas' own pixels.
+    const x = (e.clientX - r.left) * (this.canvas.clientWidth / (r.width || 1));
+    const y = (e.clientY - r.top) * (this.canvas.clientHeight / (r.height || 1));
+    return { x, y };
+  }
+
+  /** A canvas point in the photo's pixels ({u, v, inside}), or null before the photo has loaded. */
+  toImage(p) {
+    const fit = this.fit();
+    if (!fit) return null;
+    return canvasToImage(p.x, p.y, fit, this.image.naturalWidth, this.image.naturalHeight);
+  }
+
+  /** Redraw at the next frame (once, however often it is asked). */
+  invalidate() {
+    if (this.removed || this.frame != null) return;
+    const run = () => { this.frame = null; this.refresh(); };
+    this.frame = typeof requestAnimationFrame === "function" ? requestAnimationFrame(run) : setTimeout(run, 0);
+  }
+
+  /** Follow the graph to the photo (loading it if it changed) and redraw if anything shown changed.
+   *  Cheap when nothing changed: a walk over the few linked nodes and one string compare. */
+  refresh() {
+    if (this.removed || !this.node.graph) return;
+    const url = this.sourceURL();
+    if (url !== this.imageURL) {
+      this.imageURL = url;
+      this.image = null;
+      if (url) {
+        const img = new Image();
+        img.onload = () => { if (this.imageURL === url && !this.removed) { this.image = img; this.draw(); } };
+        img.onerror = () => { if (this.imageURL === url && !this.removed) { this.image = null; this.draw(); } };
+        img.src = url;
+      }
+    }
+    const key = JSON.stringify([url, this.shownState(), this.canvas.clientWidth, this.canvas.clientHeight]);
+    if (key !== this.stateKey) {
+      this.stateKey = key;
+      this.draw();
+    }
+  }
+
+  remove() {
+    releasePicker(this, this.registry);
+  }
 }

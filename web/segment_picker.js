@@ -22,8 +22,8 @@
 
 import { app } from "../../scripts/app.js";
 import { api } from "../../scripts/api.js";
-import { MIN_DRAG_PX, canvasToImage, fitImage, imageToCanvas } from "./picker_math.js";
-import { comfyClassOf, mountPicker, pickerRegistry, releasePicker } from "./picker_widget.js";
+import { MIN_DRAG_PX, imageToCanvas } from "./picker_math.js";
+import { ImagePicker, comfyClassOf, mountPicker, pickerRegistry } from "./picker_widget.js";
 import {
   PROMPT_WIDGETS,
   SEGMENT_KINDS,
@@ -61,22 +61,10 @@ function setWidget(node, name, value) {
   w.callback?.(value, app.canvas, node);
 }
 
-class SegmentPicker {
+class SegmentPicker extends ImagePicker {
   constructor(node, kind) {
-    this.node = node;
-    this.kind = kind;
-    this.image = null;
-    this.imageURL = null;
-    this.drag = null; // {startCanvas, endCanvas, start:{u,v}, end:{u,v}, background, add}
-    this.stateKey = "";
-
-    const el = document.createElement("div");
-    el.className = "physmotion-segment-picker";
-    el.style.cssText = "width:100%;height:100%;display:flex;flex-direction:column;";
-    const canvas = document.createElement("canvas");
-    canvas.style.cssText = "flex:1 1 auto;width:100%;min-height:120px;cursor:crosshair;touch-action:none;" +
-      "background:#1b1b1b;border-radius:4px;";
-    canvas.dataset.physmotionPicker = `segment-${kind}`;
+    super(node, registry, { className: "physmotion-segment-picker", tag: `segment-${kind}` });
+    this.kind = kind; // this.drag: {startCanvas, endCanvas, start:{u,v}, end:{u,v}, background, add}
     const row = document.createElement("div");
     row.style.cssText = "display:flex;align-items:center;gap:6px;padding:2px 4px;";
     const hint = document.createElement("div");
@@ -90,26 +78,12 @@ class SegmentPicker {
     clear.title = "remove every point and box";
     clear.style.cssText = "flex:0 0 auto;font:11px sans-serif;padding:1px 8px;cursor:pointer;";
     row.append(hint, clear);
-    el.append(canvas, row);
-    this.el = el;
-    this.canvas = canvas;
+    this.el.append(row);
     this.hint = hint;
     this.clearButton = clear;
-
-    // Everything this picker listens to is released at once on removal.
-    this.listeners = new AbortController();
-    const opts = { signal: this.listeners.signal };
-    canvas.addEventListener("pointerdown", (e) => this.onDown(e), opts);
-    canvas.addEventListener("pointermove", (e) => this.onMove(e), opts);
-    canvas.addEventListener("pointerup", (e) => this.onUp(e), opts);
-    canvas.addEventListener("pointercancel", () => { this.drag = null; this.draw(); }, opts);
+    const opts = this.listenerOptions();
     clear.addEventListener("pointerdown", (e) => e.stopPropagation(), opts);
     clear.addEventListener("click", (e) => { e.preventDefault?.(); e.stopPropagation?.(); this.clear(); }, opts);
-
-    this.frame = null;
-    this.removed = false;
-    this.resizeObserver = typeof ResizeObserver === "function" ? new ResizeObserver(() => this.invalidate()) : null;
-    this.resizeObserver?.observe(canvas);
   }
 
   /** The node's prompt widget values (strings; `coordinates` on the SAM node). */
@@ -124,25 +98,6 @@ class SegmentPicker {
   /** The prompt the widgets say now, in pixels of the shown photo. */
   prompt() {
     return readPrompt(this.kind, this.values(), this.imageSize());
-  }
-
-  fit() {
-    if (!this.image?.naturalWidth) return null;
-    return fitImage(this.image.naturalWidth, this.image.naturalHeight, this.canvas.clientWidth, this.canvas.clientHeight);
-  }
-
-  eventPoint(e) {
-    const r = this.canvas.getBoundingClientRect();
-    // The node may be zoomed (a CSS transform): map client pixels to the canvas' own pixels.
-    const x = (e.clientX - r.left) * (this.canvas.clientWidth / (r.width || 1));
-    const y = (e.clientY - r.top) * (this.canvas.clientHeight / (r.height || 1));
-    return { x, y };
-  }
-
-  toImage(p) {
-    const fit = this.fit();
-    if (!fit) return null;
-    return canvasToImage(p.x, p.y, fit, this.image.naturalWidth, this.image.naturalHeight);
   }
 
   onDown(e) {
@@ -216,31 +171,12 @@ class SegmentPicker {
   }
 
   /** Refresh on the next frame (many triggers in one frame give one refresh). */
-  invalidate() {
-    if (this.removed || this.frame != null) return;
-    const run = () => { this.frame = null; this.refresh(); };
-    this.frame = typeof requestAnimationFrame === "function" ? requestAnimationFrame(run) : setTimeout(run, 0);
+  sourceURL() {
+    return sourceImageURL(this.node.graph, this.node.id, (route) => api.apiURL(route));
   }
 
-  /** Follow the graph to the photo (loading it if it changed) and redraw if anything shown changed. */
-  refresh() {
-    if (this.removed || !this.node.graph) return;
-    const url = sourceImageURL(this.node.graph, this.node.id, (route) => api.apiURL(route));
-    if (url !== this.imageURL) {
-      this.imageURL = url;
-      this.image = null;
-      if (url) {
-        const img = new Image();
-        img.onload = () => { if (this.imageURL === url && !this.removed) { this.image = img; this.draw(); } };
-        img.onerror = () => { if (this.imageURL === url && !this.removed) { this.image = null; this.draw(); } };
-        img.src = url;
-      }
-    }
-    const key = JSON.stringify([url, this.values(), this.canvas.clientWidth, this.canvas.clientHeight]);
-    if (key !== this.stateKey) {
-      this.stateKey = key;
-      this.draw();
-    }
+  shownState() {
+    return this.values();
   }
 
   draw() {
@@ -317,9 +253,6 @@ class SegmentPicker {
     }
   }
 
-  remove() {
-    releasePicker(this, registry);
-  }
 }
 
 /** Every segment picker on the page, and the graph-wide triggers that refresh them. */
