@@ -24,6 +24,102 @@ import torch
 _lock = threading.Lock()
 _built = None
 
+#: ``blend``'s loop over one row of the box, in C++ (a Warp native function, as ``_warp_raster._ROW``): plain
+#: pointer arithmetic that the compiler optimises as a whole (the same loop in Warp's kernel language ran 3-4x
+#: slower: vector and float64 temporaries kept through its generated code).
+_BLEND_ROW = r"""
+const double* U = u.data + (size_t)by * bw;
+const double* V = v.data + (size_t)by * bw;
+const unsigned char* OK = ok.data + (size_t)by * bw;
+const float* P = planes.data;
+const float* dr = dist.data + (size_t)by * bw;
+const int y = y0 + by;
+auto deriv = [&](const double* c, const unsigned char* o, int i, bool lo_in, bool hi_in, long step,
+                 double& d) -> bool {
+    bool lo = lo_in && o[i - step] != 0, hi = hi_in && o[i + step] != 0;
+    if (lo && hi) { d = (c[i + step] - c[i - step]) * 0.5; return true; }
+    if (hi) { d = c[i + step] - c[i]; return true; }
+    if (lo) { d = c[i] - c[i - step]; return true; }
+    return false;
+};
+auto keys = [](float t, float* w) {
+    const float a = -0.75f;
+    float s = t + 1.0f;
+    w[0] = ((a * s - 5.0f * a) * s + 8.0f * a) * s - 4.0f * a;
+    w[1] = ((a + 2.0f) * t - (a + 3.0f)) * t * t + 1.0f;
+    float r = 1.0f - t;
+    w[2] = ((a + 2.0f) * r - (a + 3.0f)) * r * r + 1.0f;
+    w[3] = 1.0f - w[0] - w[1] - w[2];
+};
+for (int bx = 0; bx < bw; ++bx) {
+    const long p = (long)y * W + x0 + bx;
+    const float a = alpha.data[p];
+    const float c0 = rgb.data[3 * p], c1 = rgb.data[3 * p + 1], c2 = rgb.data[3 * p + 2];
+    float w = 0.0f;
+    float smp[4] = {0.0f, 0.0f, 0.0f, 0.0f};
+    if (OK[bx]) {
+        const float S = ext.data[p * C + C - 1];
+        float sh = S / (a > 1e-12f ? a : 1e-12f);
+        sh = sh < 0.0f ? 0.0f : (sh > 1.0f ? 1.0f : sh);
+        float ramp = a * (1.0f / min_cov);
+        ramp = ramp < 0.0f ? 0.0f : (ramp > 1.0f ? 1.0f : ramp);
+        w = sh * ramp;
+        double ux, vx, uy, vy;
+        if (deriv(U, OK, bx, bx > 0, bx < bw - 1, 1, ux)) {
+            deriv(V, OK, bx, bx > 0, bx < bw - 1, 1, vx);
+        } else { ux = 1.0; vx = 0.0; }
+        if (deriv(U, OK, bx, by > 0, by < bh - 1, bw, uy)) {
+            deriv(V, OK, bx, by > 0, by < bh - 1, bw, vy);
+        } else { uy = 0.0; vy = 1.0; }
+        const double E = ux * ux + vx * vx + uy * uy + vy * vy;
+        const double D = __builtin_fabs(ux * vy - uy * vx);
+        const double q = E * E - 4.0 * D * D;
+        const double smin2 = 0.5 * (E - __builtin_sqrt(q > 0.0 ? q : 0.0));
+        double fade = 1.0;
+        if (smin2 * st1 * st1 < 1.0) fade = 0.0;
+        else if (smin2 * st0 * st0 < 1.0) fade = (st1 - 1.0 / __builtin_sqrt(smin2)) / (st1 - st0);
+        w = w * (float)fade;
+        const double mx = U[bx] - 0.5, my = V[bx] - 0.5;
+        const double fx = __builtin_floor(mx), fy = __builtin_floor(my);
+        if (fx > -3.0 && fx < (double)(PW + 1) && fy > -3.0 && fy < (double)(PH + 1)) {
+            const int ix = (int)fx, iy = (int)fy;
+            float wx[4], wy[4];
+            keys((float)(mx - fx), wx);
+            keys((float)(my - fy), wy);
+            for (int j = 0; j < 4; ++j) {
+                const int yy = iy - 1 + j;
+                if (yy < 0 || yy >= PH) continue;
+                float row[4] = {0.0f, 0.0f, 0.0f, 0.0f};
+                for (int k = 0; k < 4; ++k) {
+                    const int xx = ix - 1 + k;
+                    if (xx < 0 || xx >= PW) continue;
+                    const float* t = P + 4 * ((long)yy * PW + xx);
+                    row[0] += wx[k] * t[0]; row[1] += wx[k] * t[1]; row[2] += wx[k] * t[2]; row[3] += wx[k] * t[3];
+                }
+                smp[0] += wy[j] * row[0]; smp[1] += wy[j] * row[1]; smp[2] += wy[j] * row[2]; smp[3] += wy[j] * row[3];
+            }
+        }
+    }
+    float m_s = smp[3] < 0.0f ? 0.0f : (smp[3] > 1.0f ? 1.0f : smp[3]);
+    const float keep = 1.0f - w;
+    const float am = w * m_s + keep * a;
+    float ramp_in = (dr[bx] - in0) / (in1 - in0);
+    ramp_in = ramp_in < 0.0f ? 0.0f : (ramp_in > 1.0f ? 1.0f : ramp_in);
+    const float fl = a * ramp_in;
+    const float ex = fl - am > 0.0f ? fl - am : 0.0f;
+    out_a.data[p] = am + ex;
+    const float g = ex / (a > 1e-6f ? a : 1e-6f);
+    for (int k = 0; k < 3; ++k) {
+        float cs = smp[k] > 0.0f ? smp[k] : 0.0f;
+        cs = cs < m_s ? cs : m_s;
+        const float ck = rgb.data[3 * p + k];
+        out_rgb.data[3 * p + k] = w * cs + keep * ck + g * ck;
+    }
+}
+return 0;
+"""
+
+
 
 def _build():
     global _built
@@ -78,105 +174,26 @@ def _build():
             else:
                 ok[i] = wp.uint8(0)
 
-        @wp.func
-        def deriv(c: wp.array(dtype=f64), ok: wp.array(dtype=wp.uint8), i: int, lo: int, hi: int, step: int):
-            # d c / d (pixel) along one axis at box index i from its neighbours i -/+ step (lo / hi: whether they
-            # are inside the box): central where both have coordinates, one-sided where one has; nan where none.
-            has_lo = False
-            has_hi = False
-            if lo != 0:
-                has_lo = ok[i - step] != wp.uint8(0)
-            if hi != 0:
-                has_hi = ok[i + step] != wp.uint8(0)
-            if has_lo and has_hi:
-                return (c[i + step] - c[i - step]) * f64(0.5)
-            if has_hi:
-                return c[i + step] - c[i]
-            if has_lo:
-                return c[i] - c[i - step]
-            return f64(wp.nan)
-
-        @wp.func
-        def keys(t: float):
-            # Keys' cubic convolution weights (a = -0.75, OpenCV's bicubic) for the taps at -1, 0, 1, 2 of a
-            # sample at fraction t in [0, 1).
-            a = float(-0.75)
-            s = t + 1.0
-            w0 = ((a * s - 5.0 * a) * s + 8.0 * a) * s - 4.0 * a
-            w1 = ((a + 2.0) * t - (a + 3.0)) * t * t + 1.0
-            r = 1.0 - t
-            w2 = ((a + 2.0) * r - (a + 3.0)) * r * r + 1.0
-            return wp.vec4(w0, w1, w2, 1.0 - w0 - w1 - w2)
+        @wp.func_native(_BLEND_ROW)
+        def blend_row(u: wp.array(dtype=f64), v: wp.array(dtype=f64), ok: wp.array(dtype=wp.uint8),
+                      ext: wp.array(dtype=float), C: int, rgb: wp.array(dtype=float), alpha: wp.array(dtype=float),
+                      dist: wp.array(dtype=float), W: int, x0: int, y0: int, bw: int, bh: int, by: int,
+                      planes: wp.array(dtype=float), PW: int, PH: int, min_cov: float, in0: float, in1: float,
+                      st0: f64, st1: f64, out_rgb: wp.array(dtype=float), out_a: wp.array(dtype=float)) -> int:
+            ...
 
         @wp.kernel(enable_backward=False)
-        def blend(u_in: wp.array(dtype=f64), v_in: wp.array(dtype=f64), ok: wp.array(dtype=wp.uint8),
+        def blend(u: wp.array(dtype=f64), v: wp.array(dtype=f64), ok: wp.array(dtype=wp.uint8),
                   ext: wp.array(dtype=float), C: int, rgb: wp.array(dtype=float), alpha: wp.array(dtype=float),
                   dist: wp.array(dtype=float), W: int, x0: int, y0: int, bw: int, bh: int,
-                  planes: wp.array(dtype=wp.vec4), PW: int, PH: int, min_cov: float, in0: float, in1: float,
+                  planes: wp.array(dtype=float), PW: int, PH: int, min_cov: float, in0: float, in1: float,
                   st0: f64, st1: f64, out_rgb: wp.array(dtype=float), out_a: wp.array(dtype=float)):
-            i = wp.tid()
-            bx = i % bw
-            by = i / bw
-            p = (y0 + by) * W + x0 + bx
-            a = alpha[p]
-            c0 = rgb[3 * p]
-            c1 = rgb[3 * p + 1]
-            c2 = rgb[3 * p + 2]
-            w = float(0.0)
-            smp = wp.vec4(0.0, 0.0, 0.0, 0.0)
-            if ok[i] != wp.uint8(0):
-                S = ext[p * C + C - 1]
-                w = wp.clamp(S / wp.max(a, 1.0e-12), 0.0, 1.0) * wp.clamp(a * (1.0 / min_cov), 0.0, 1.0)
-                # Stretch: the largest factor by which the frame magnifies the photo along any direction, the
-                # inverse of the Jacobian's smallest singular value (photo px per frame px).
-                ux = deriv(u_in, ok, i, int(bx > 0), int(bx < bw - 1), 1)
-                vx = deriv(v_in, ok, i, int(bx > 0), int(bx < bw - 1), 1)
-                uy = deriv(u_in, ok, i, int(by > 0), int(by < bh - 1), bw)
-                vy = deriv(v_in, ok, i, int(by > 0), int(by < bh - 1), bw)
-                if wp.isnan(ux):
-                    ux = f64(1.0)
-                    vx = f64(0.0)
-                if wp.isnan(uy):
-                    uy = f64(0.0)
-                    vy = f64(1.0)
-                E = ux * ux + vx * vx + uy * uy + vy * vy
-                D = wp.abs(ux * vy - uy * vx)
-                smin2 = f64(0.5) * (E - wp.sqrt(wp.max(E * E - f64(4.0) * D * D, f64(0.0))))
-                fade = f64(1.0)
-                if smin2 * st1 * st1 < f64(1.0):
-                    fade = f64(0.0)
-                elif smin2 * st0 * st0 < f64(1.0):
-                    fade = (st1 - f64(1.0) / wp.sqrt(smin2)) / (st1 - st0)
-                w = w * float(fade)
-                # Bicubic sample of (premultiplied colour, matte) at the photo coordinate; zero outside the photo.
-                mx = u_in[i] - f64(0.5)
-                my = v_in[i] - f64(0.5)
-                fx = wp.floor(mx)
-                fy = wp.floor(my)
-                if fx > f64(-3.0) and fx < f64(PW + 1) and fy > f64(-3.0) and fy < f64(PH + 1):
-                    ix = int(fx)
-                    iy = int(fy)
-                    wx = keys(float(mx - fx))
-                    wy = keys(float(my - fy))
-                    for j in range(4):
-                        yy = iy - 1 + j
-                        if yy >= 0 and yy < PH:
-                            row = wp.vec4(0.0, 0.0, 0.0, 0.0)
-                            for k in range(4):
-                                xx = ix - 1 + k
-                                if xx >= 0 and xx < PW:
-                                    row = row + wx[k] * planes[yy * PW + xx]
-                            smp = smp + wy[j] * row
-            m_s = wp.clamp(smp[3], 0.0, 1.0)
-            keep = 1.0 - w
-            am = w * m_s + keep * a
-            floor = a * wp.clamp((dist[i] - in0) / (in1 - in0), 0.0, 1.0)
-            ex = wp.max(floor - am, 0.0)
-            out_a[p] = am + ex
-            g = ex / wp.max(a, 1.0e-6)
-            out_rgb[3 * p] = w * wp.min(wp.max(smp[0], 0.0), m_s) + keep * c0 + g * c0
-            out_rgb[3 * p + 1] = w * wp.min(wp.max(smp[1], 0.0), m_s) + keep * c1 + g * c1
-            out_rgb[3 * p + 2] = w * wp.min(wp.max(smp[2], 0.0), m_s) + keep * c2 + g * c2
+            # One row of the box: per pixel the stretch of the photo coordinates (the inverse of their Jacobian's
+            # smallest singular value, from the neighbours' coordinates), the photo's share (faded by it), the
+            # bicubic sample of (premultiplied colour, matte) and the frame's colour and coverage (``_BLEND_ROW``).
+            by = wp.tid()
+            blend_row(u, v, ok, ext, C, rgb, alpha, dist, W, x0, y0, bw, bh, by, planes, PW, PH, min_cov, in0, in1,
+                      st0, st1, out_rgb, out_a)
 
         _built = (wp, coords, blend)
         return _built
@@ -204,9 +221,9 @@ def _arr(wp, t: torch.Tensor, dtype, keep: list):
 
 
 def planes_array(planes: np.ndarray):
-    """The texture's (H,W,4) float32 planes as a Warp array of vec4 (no copy)."""
+    """The texture's (H,W,4) float32 planes as a flat Warp array (no copy)."""
     wp = _build()[0]
-    return wp.array(planes.reshape(-1, 4), dtype=wp.vec4, device="cpu", copy=False)
+    return wp.array(planes.reshape(-1), dtype=float, device="cpu", copy=False)
 
 
 def photo_coords(ext: torch.Tensor, depth: torch.Tensor, box: tuple, camera, photo_camera, one_map=None):
@@ -244,7 +261,7 @@ def blend(u, v, ok, ext, rgb, alpha, dist, box, planes, planes_wp, consts, out_r
     keep: list = []
     PH, PW = planes.shape[:2]
     min_cov, in0, in1, st0, st1 = consts
-    wp.launch(kernel, dim=bh * bw, device="cpu",
+    wp.launch(kernel, dim=bh, device="cpu",
               inputs=[_arr(wp, u, wp.float64, keep), _arr(wp, v, wp.float64, keep), _arr(wp, ok, wp.uint8, keep),
                       _arr(wp, ext, float, keep), C, _arr(wp, rgb, float, keep), _arr(wp, alpha, float, keep),
                       _arr(wp, dist, float, keep), W, x0, y0, bw, bh, planes_wp, PW, PH, float(min_cov), float(in0),
