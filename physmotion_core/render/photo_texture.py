@@ -17,8 +17,16 @@ shows it, and reads the photo there:
   centre, a fraction of a pixel). Two channels instead of the nine an exact 3D map needs
   (``controls._flow_features``), so the compiled compositor keeps its vectorised path: the texture costs
   little more than the splat render.
-* The photo is sampled there bicubically (exact at frame 0: the maps are the identity and the coordinate is
-  the pixel's own centre; a surface moved by a fraction of a pixel keeps its detail).
+* The photo is sampled there bicubically (Keys' cubic, a = -0.75, at the exact coordinate; exact at frame 0: the
+  maps are the identity and the coordinate is the pixel's own centre; a surface moved by a fraction of a pixel
+  keeps its detail).
+* Where the frame magnifies the photo (a surface the photo saw at a grazing angle, turned toward the camera: a few
+  photo pixels would be stretched over many, the streaks of a spinning body's side), the photo's share fades to
+  the splats' own colours: by the smallest singular value of the photo coordinates' Jacobian with respect to the
+  pixel position (``PHOTO_STRETCH``), spread over a few pixels (``STRETCH_SPREAD``).
+* The per-pixel passes (photo coordinates, stretch, sampling, blending) run compiled on the CPU
+  (``_warp_shade``: Warp, the blend and stretch loops in C++), with their tensor twin in ``shade(compiled=False)``
+  as the fallback; the two agree to float32 round-off.
 * Which splats the photo saw ("seen", per Gaussian, in [0, 1]) comes from a depth test in the input view at
   rest (``seen_weights``): a splat whose centre lies on the rendered front surface was photographed, one
   behind it (the back, a hidden side, the inside a tear opens) was not. It is composited as a channel too
