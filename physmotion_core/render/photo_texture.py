@@ -66,6 +66,12 @@ PHOTO_STRETCH = (1.5, 3.0)
 #: between them; the fade catches the plateaus, and spread, the steps too.
 STRETCH_SPREAD = 3
 
+#: The splats the photo did not see show their own colours low-passed in 3D: averaged over a box of (2
+#: UNSEEN_BLUR_CELLS + 1)³ cells of one particle spacing. A lift colours those splats from the photo pixel they
+#: project to (the silhouette lift's whole depth column takes that pixel's colour), so a side or back turned into view
+#: shows the photo's detail drawn out along the old viewing direction: the streaky seam of a spinning body.
+UNSEEN_BLUR_CELLS = 1
+
 #: The splats' coverage is a floor from INTERIOR_PX[1] px inside their silhouette (none within INTERIOR_PX[0]).
 INTERIOR_PX = (1.5, 3.5)
 
@@ -177,6 +183,28 @@ def seen_weights(gaussians: Gaussians, camera: Camera, *, backend: str = "auto")
         s = (1.0 - (z - d_front - tol) / tol.clamp_min(1e-9)).clamp(0.0, 1.0)
         s = torch.where(inside & covered & (d_front > 0), s, torch.zeros_like(s))
     return s.float()
+
+
+def smoothed_colours(means: torch.Tensor, rgb: torch.Tensor, cell: float, half: int = 1) -> torch.Tensor:
+    """(N,3): each splat's colour averaged over the splats in the (2 ``half`` + 1)³ cells of side ``cell`` about
+    its own (a box filter on a grid of the positions ``means``; at most 2²² cells, coarser when the grid would
+    exceed that)."""
+    x = means.double()
+    lo = x.min(0).values
+    ext = (x.max(0).values - lo).clamp_min(1e-12)
+    cell = max(float(cell), float(ext.max()) / 256.0, 1e-9)
+    while float(torch.prod(torch.floor(ext / cell + 0.5) + 1 + 2 * half)) > 2 ** 22:
+        cell *= 1.25
+    idx = torch.floor((x - lo) / cell + 0.5).long() + half  # cells centred on lo + k cell
+    dims = [int(d) for d in (idx.max(0).values + 1 + half).tolist()]
+    flat = (idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2]
+    grid = torch.zeros(dims[0] * dims[1] * dims[2], 4, dtype=torch.float32)
+    grid.index_add_(0, flat, torch.cat([rgb.float(), torch.ones(rgb.shape[0], 1)], 1))
+    vol = grid.view(dims[0], dims[1], dims[2], 4).permute(3, 0, 1, 2)[None]
+    k = 2 * half + 1
+    box = torch.nn.functional.avg_pool3d(vol, k, stride=1, padding=half)[0]  # the same scale for sums and counts
+    summed = box.permute(1, 2, 3, 0).reshape(-1, 4)[flat]
+    return summed[:, :3] / summed[:, 3:].clamp_min(1e-12)
 
 
 def texture_features(seen: torch.Tensor, shift: Optional[torch.Tensor]) -> torch.Tensor:
@@ -429,6 +457,18 @@ class TexturedPoser:
         z = mc[:, 2].clamp_min(1e-9)
         pc = texture.camera
         self.uv0 = torch.stack([pc.fx * mc[:, 0] / z + pc.cx, pc.fy * mc[:, 1] / z + pc.cy], 1)
+        # The splats' colours for the render: their own where the photo saw them, low-passed where it did not
+        # (UNSEEN_BLUR_CELLS).
+        rgb = g0.rgb.float()
+        self.colors = rgb
+        if UNSEEN_BLUR_CELLS > 0 and bool((self.seen < 1.0).any()):
+            spacing = (sim.stats or {}).get("particle_spacing") if hasattr(sim, "stats") else None
+            if not spacing:
+                spacing = 4.0 * float(g0.scales.max(1).values.median()) if g0.scales.numel() else 0.0
+            if spacing and spacing > 0:
+                blur = smoothed_colours(g0.means, rgb, float(spacing), UNSEEN_BLUR_CELLS)
+                s = self.seen.float().clamp(0.0, 1.0)[:, None]
+                self.colors = s * rgb + (1.0 - s) * blur
 
     def features(self, frame: int, g: Gaussians):
         """(extra_features for ``rasterize``, one_map or None) of frame ``frame`` posed as ``g``."""
