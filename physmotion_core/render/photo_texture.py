@@ -186,25 +186,37 @@ def seen_weights(gaussians: Gaussians, camera: Camera, *, backend: str = "auto")
 
 
 def smoothed_colours(means: torch.Tensor, rgb: torch.Tensor, cell: float, half: int = 1) -> torch.Tensor:
-    """(N,3): each splat's colour averaged over the splats in the (2 ``half`` + 1)³ cells of side ``cell`` about
-    its own (a box filter on a grid of the positions ``means``; at most 2²² cells, coarser when the grid would
-    exceed that)."""
+    """(N,3): the splats' colours low-passed in 3D: averaged over the (2 ``half`` + 1)³ cells of side ``cell`` about
+    each cell (a box filter on a grid of the positions ``means``; at most 2²² cells, coarser when the grid would
+    exceed that), read at each splat's position by trilinear interpolation between the cell centres (so the
+    colours vary smoothly, without the cells' blocks)."""
     x = means.double()
     lo = x.min(0).values
     ext = (x.max(0).values - lo).clamp_min(1e-12)
     cell = max(float(cell), float(ext.max()) / 256.0, 1e-9)
-    while float(torch.prod(torch.floor(ext / cell + 0.5) + 1 + 2 * half)) > 2 ** 22:
+    while float(torch.prod(torch.floor(ext / cell) + 2 + 2 * half)) > 2 ** 22:
         cell *= 1.25
-    idx = torch.floor((x - lo) / cell + 0.5).long() + half  # cells centred on lo + k cell
-    dims = [int(d) for d in (idx.max(0).values + 1 + half).tolist()]
+    f = (x - lo) / cell + half  # cell k's centre at k (cells centred on lo + (k - half) cell)
+    idx = torch.floor(f + 0.5).long()
+    dims = [int(d) for d in (idx.max(0).values + 2 + half).tolist()]
     flat = (idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2]
     grid = torch.zeros(dims[0] * dims[1] * dims[2], 4, dtype=torch.float32)
     grid.index_add_(0, flat, torch.cat([rgb.float(), torch.ones(rgb.shape[0], 1)], 1))
     vol = grid.view(dims[0], dims[1], dims[2], 4).permute(3, 0, 1, 2)[None]
     k = 2 * half + 1
     box = torch.nn.functional.avg_pool3d(vol, k, stride=1, padding=half)[0]  # the same scale for sums and counts
-    summed = box.permute(1, 2, 3, 0).reshape(-1, 4)[flat]
-    return summed[:, :3] / summed[:, 3:].clamp_min(1e-12)
+    box = box.permute(1, 2, 3, 0).reshape(-1, 4)
+    base = torch.floor(f).long()
+    t = (f - base).float()
+    acc = torch.zeros(x.shape[0], 4)
+    for c in range(8):
+        o = [(c >> 2) & 1, (c >> 1) & 1, c & 1]
+        wgt = torch.ones(x.shape[0])
+        for ax in range(3):
+            wgt = wgt * (t[:, ax] if o[ax] else 1.0 - t[:, ax])
+        ci = ((base[:, 0] + o[0]) * dims[1] + base[:, 1] + o[1]) * dims[2] + base[:, 2] + o[2]
+        acc += wgt[:, None] * box[ci]
+    return acc[:, :3] / acc[:, 3:].clamp_min(1e-12)
 
 
 def texture_features(seen: torch.Tensor, shift: Optional[torch.Tensor]) -> torch.Tensor:
