@@ -249,8 +249,8 @@ two_objects_colliding, whose objects come from two photos: it keeps the splat re
 `pipeline.generate` (jelly, a sideways push, draft quality, 24 frames) with their reference masks.
 
 Reading the detail columns: on textured photos (the coffee cup, bread, snow, the astronaut) the splat render
-keeps 0.2-0.7 of the photo's high-pass energy once the object moves and the photo texture 0.8-1.2 (bicubic
-resampling of moving pixels costs a little). Where the motion turns unphotographed sides to the camera the photo
+keeps 0.3-0.55 of the photo's high-pass energy once the object moves and the photo texture 0.6-1.0 (measured
+2026-12-06; bicubic resampling of moving pixels costs a little, and the unseen sides show low-passed colours). Where the motion turns unphotographed sides to the camera the photo
 texture shows the splats' colours there, low-passed (the streaks of the lift's colours removed), so it can score
 below the splat render: {turned}. On the smooth synthetic photos (clay, honey, water, the blocks) the photo itself has almost
 no high-pass energy, so the ratio is dominated by edges (the outline, the ground contact, creases) and exceeds 1
