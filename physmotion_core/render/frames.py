@@ -145,8 +145,8 @@ def render_frames(sim: SimResult, camera: Camera, *, device: Optional[torch.devi
     rest) gets that frame's render, copied, not drawn again.
 
     ``photo``: a ``photo_texture.PhotoTexture`` of the input photo: the surface the photo saw shows the photo's
-    own pixels, carried back to rest by each splat's motion (``photo_texture``); None renders the splats'
-    colours only.
+    own pixels, carried back to rest by each splat's motion (``photo_texture``), and the splats it did not see show
+    their colours low-passed in 3D (``photo_texture.UNSEEN_BLUR_CELLS``); None renders the splats' colours only.
 
     The clip's memory is checked before the first frame (``check_frames_fit``) and the frames are
     written into preallocated tensors, so a clip that fits never needs twice its size.
