@@ -145,7 +145,7 @@ def test_block_sliding_over_a_block_stops_at_coulombs_distance():
     # Issue 37. Friction between objects decelerates a sliding block at μ g, so from 0.5 m/s at μ = 0.5
     # it stops after v0² / (2 μ g) = 25.5 mm (in 0.10 s; run 0.24 s). The contact acts only where the
     # two bodies' material fills a node (kernels.update_node_fields' fill check): before it, every node
-    # both stencils reached took part and the block stopped after 4-8 mm. Measured over five offsets
+    # both stencils reached took part and the block stopped after 4-12 mm. Measured over five offsets
     # of the interface within a cell: 22.3-25.0 mm (−12 … −2 %); 15 % covers that spread (what is
     # left: the block pitches onto its leading edge, where the contact normal tilts).
     v0, mu = 0.5, 0.5
