@@ -1,0 +1,397 @@
+"""Differentiable Gaussian-splat compositing compiled with Warp, for the CPU renders that need gradients (the
+refinement steps of ``lift/fit.py``).
+
+``composite_tiles`` (the PyTorch path) evaluates every (splat, pixel) entry of a tile's list in dense blocks
+and, with gradients, goes through about thirty whole-block tensor passes per chunk in its backward pass
+(``_BlendChunk``); on the fit's small, deep renders that backward pass was most of a refinement step. Here two
+compiled loops do the same job one pixel at a time:
+
+* forward: each pixel walks its tile's depth-ordered list (``_torch_raster.tile_lists``, the same lists as
+  ``composite_tiles``), skips entries below alpha 1/255 before taking an exponential, accumulates
+  Σ w_k f_k and Σ w_k, and stops at the splat that would bring its transmittance to ``T_DONE`` or below
+  (exclusive, the rule of ``composite_tiles``). It keeps, per pixel, the final transmittance and where in the
+  list it stopped;
+* backward: each pixel walks its list from where it stopped back to the front, recovering the transmittance
+  before each splat by division (T_{k-1} = T_k / (1 - alpha_k), the 3DGS backward kernel's way), with the
+  running sum S of the later splats' contributions, so that
+
+      dL/dalpha_k = T_{k-1} v_k - S_k / (1 - alpha_k),   v_k = f_k · dL/dF + dL/dA,  S_k = Σ_{j>k} w_j v_j,
+
+  chained to the exponent (d alpha / d power = alpha below the 0.99 clamp, 0 at it) and from there to the
+  2D mean, the conic and the log-opacity; dL/df_k = w_k dL/dF. The per-splat gradients are sums over pixels
+  (a serial loop on the CPU, so plain adds).
+
+Image-formation model, culling and termination are those of ``composite_tiles``: alpha = min(0.99,
+o exp(-½ dᵀ conic d)) at the pixel centre (x + 0.5, y + 0.5), entries with alpha <= 1/255 skipped, w_k =
+alpha_k T_{k-1}. Computed in float32 (float64 inputs are rendered by ``composite_tiles``, exactly), so values
+and gradients differ from the float64 tensor path by float32 round-off (and where round-off moves an entry
+across the 1/255 threshold or a pixel across the termination test).
+
+When Warp cannot be imported or built (or a launch fails) ``composite`` falls back to ``composite_tiles``
+for the rest of the process, with one warning.
+"""
+
+# No "from __future__ import annotations": Warp reads the kernels' annotations, which name the local `wp`.
+
+import logging
+import math
+import threading
+from typing import Optional
+
+import torch
+
+from ..errors import InputError
+from ._torch_raster import ALPHA_MAX, ALPHA_MIN, T_DONE, Projected, composite_tiles, tile_lists
+
+log = logging.getLogger(__name__)
+
+#: Tile side (px) of the lists the pixels walk. Every pixel of a tile walks the whole list, so smaller tiles
+#: mean shorter walks but more (splat, tile) entries to list and sort.
+TILE = 8
+
+#: Most features per splat the compiled path composites (the fit's: colour and depth, 4); more go to
+#: ``composite_tiles``.
+MAX_FEATURES = 8
+
+_lock = threading.Lock()
+_built = None
+_failed = False
+
+# Shared by the two C++ loops below (Warp native functions, compiled by Warp's clang with -O2 -march=native). A
+# tile's 64 pixels are the inner loop, written without branches (selects) and with an inlined polynomial exp so
+# that the compiler vectorises it; sums over the pixels are kept in LANES partial sums (a float reduction is not
+# vectorised without reassociation, which the compiler may not do on its own). exp: Cephes' single-precision
+# range reduction and degree-7 polynomial (within a float32 ulp over the range used, [ln(1/255), 0]); the
+# forward and backward loops evaluate it identically, so they make the same skip and termination decisions.
+_COMMON = r"""
+constexpr int TS = 8, P = 64, LANES = 16, CMAX = MAX_FEATURES;
+auto expo = [](float x) -> float {
+    float pw = x < -87.0f ? -87.0f : (x > 0.0f ? 0.0f : x);
+    float n = __builtin_floorf(pw * 1.44269504088896341f + 0.5f);
+    float r = (pw - n * 0.693359375f) + n * 2.12194440e-4f;
+    float e = 1.9875691500e-4f;
+    e = e * r + 1.3981999507e-3f;
+    e = e * r + 8.3334519073e-3f;
+    e = e * r + 4.1665795894e-2f;
+    e = e * r + 1.6666665459e-1f;
+    e = e * r + 5.0000001201e-1f;
+    e = e * r * r + r + 1.0f;
+    int bits = ((int)n + 127) << 23;
+    float scale;
+    __builtin_memcpy(&scale, &bits, 4);
+    return e * scale;
+};
+const int bx = (tile % TX) * TS, by = (tile / TX) * TS;
+const long long s0 = start.data[tile], cnt = count.data[tile];
+float px[P], py[P];
+int inside[P];
+for (int j = 0; j < P; ++j) {
+    int x = bx + (j & 7), y = by + (j >> 3);
+    px[j] = (float)x + 0.5f;
+    py[j] = (float)y + 0.5f;
+    inside[j] = (x < W) & (y < H);
+}
+"""
+
+_FORWARD = _COMMON + r"""
+float T[P], wb[P], acc[CMAX + 1][P];
+int alive[P], lst[P];
+int nalive = 0;
+for (int j = 0; j < P; ++j) {
+    T[j] = 1.0f;
+    alive[j] = inside[j];
+    lst[j] = 0;
+    nalive += inside[j];
+}
+for (int c = 0; c <= C; ++c)
+    for (int j = 0; j < P; ++j)
+        acc[c][j] = 0.0f;
+for (int k = 0; k < cnt && nalive > 0; ++k) {
+    const float* r = table.data + (size_t)glist.data[s0 + k] * D;
+    const float u = r[0], v = r[1], A = r[2], B = r[3], Cc = r[4], lo = r[5];
+    int n = 0, any = 0;
+    for (int j = 0; j < P; ++j) {
+        float dx = u - px[j], dy = v - py[j];
+        float pw = lo - (A * dx * dx + B * dx * dy + Cc * dy * dy);
+        float al = expo(pw);
+        al = al > ALPHA_MAX ? ALPHA_MAX : al;
+        int use = (pw > POWER_MIN) & (al > ALPHA_MIN) & alive[j];
+        float t = T[j];
+        float tn = t * (1.0f - al);
+        int die = use & (tn <= T_DONE);
+        int keep = use & (die ^ 1);
+        wb[j] = keep ? al * t : 0.0f;
+        T[j] = keep ? tn : t;
+        alive[j] = die ? 0 : alive[j];
+        lst[j] = keep ? k + 1 : lst[j];
+        n += alive[j];
+        any |= keep;
+    }
+    nalive = n;
+    if (any) {
+        for (int c = 0; c < C; ++c) {
+            const float f = r[6 + c];
+            for (int j = 0; j < P; ++j)
+                acc[c][j] += wb[j] * f;
+        }
+        for (int j = 0; j < P; ++j)
+            acc[C][j] += wb[j];
+    }
+}
+for (int j = 0; j < P; ++j) {
+    if (!inside[j])
+        continue;
+    size_t p = (size_t)(by + (j >> 3)) * W + bx + (j & 7);
+    for (int c = 0; c <= C; ++c)
+        out.data[p * (C + 1) + c] = acc[c][j];
+    tfin.data[p] = T[j];
+    last.data[p] = lst[j];
+}
+return 0;
+"""
+
+_BACKWARD = _COMMON + r"""
+float T[P], S[P], vb[P], g[CMAX + 1][P];
+float wb[P], b0[P], b1[P], b2[P], b3[P], b4[P], b5[P];
+int lst[P];
+int kmax = 0;
+for (int j = 0; j < P; ++j) {
+    size_t p = inside[j] ? (size_t)(by + (j >> 3)) * W + bx + (j & 7) : 0;
+    T[j] = inside[j] ? tfin.data[p] : 1.0f;
+    lst[j] = inside[j] ? last.data[p] : 0;
+    S[j] = 0.0f;
+    for (int c = 0; c <= C; ++c)
+        g[c][j] = inside[j] ? gout.data[p * (C + 1) + c] : 0.0f;
+    kmax = lst[j] > kmax ? lst[j] : kmax;
+}
+auto sum = [](const float* b) -> float {  // the 64 values in LANES partial sums, then a tree
+    float part[LANES];
+    for (int l = 0; l < LANES; ++l)
+        part[l] = b[l];
+    for (int j = LANES; j < P; j += LANES)
+        for (int l = 0; l < LANES; ++l)
+            part[l] += b[j + l];
+    for (int h = LANES / 2; h > 0; h /= 2)
+        for (int l = 0; l < h; ++l)
+            part[l] += part[l + h];
+    return part[0];
+};
+for (int k = kmax - 1; k >= 0; --k) {
+    const long long m = glist.data[s0 + k];
+    const float* r = table.data + (size_t)m * D;
+    const float u = r[0], v = r[1], A = r[2], B = r[3], Cc = r[4], lo = r[5];
+    for (int j = 0; j < P; ++j)
+        vb[j] = g[C][j];
+    for (int c = 0; c < C; ++c) {
+        const float f = r[6 + c];
+        for (int j = 0; j < P; ++j)
+            vb[j] += f * g[c][j];
+    }
+    int any = 0;
+    for (int j = 0; j < P; ++j) {
+        float dx = u - px[j], dy = v - py[j];
+        float pw = lo - (A * dx * dx + B * dx * dy + Cc * dy * dy);
+        float raw = expo(pw);
+        float al = raw > ALPHA_MAX ? ALPHA_MAX : raw;
+        int use = (pw > POWER_MIN) & (al > ALPHA_MIN) & (k < lst[j]);
+        float q = 1.0f - al;
+        float t = T[j];
+        float tb = t / q;  // T before this splat
+        float w = al * tb;
+        float vv = vb[j];
+        float da = tb * vv - S[j] / q;  // dL/dalpha
+        S[j] = use ? S[j] + w * vv : S[j];
+        T[j] = use ? tb : t;
+        float gp = (use & (raw < ALPHA_MAX)) ? da * al : 0.0f;  // dL/dpower (0 where alpha is clamped)
+        wb[j] = use ? w : 0.0f;
+        b0[j] = gp;
+        b1[j] = -gp * (2.0f * A * dx + B * dy);
+        b2[j] = -gp * (B * dx + 2.0f * Cc * dy);
+        b3[j] = -gp * dx * dx;
+        b4[j] = -gp * dx * dy;
+        b5[j] = -gp * dy * dy;
+        any |= use;
+    }
+    if (!any)
+        continue;
+    float* gr = gtable.data + (size_t)m * D;
+    gr[0] += sum(b1);
+    gr[1] += sum(b2);
+    gr[2] += sum(b3);
+    gr[3] += sum(b4);
+    gr[4] += sum(b5);
+    gr[5] += sum(b0);
+    for (int c = 0; c < C; ++c) {
+        for (int j = 0; j < P; ++j)
+            vb[j] = wb[j] * g[c][j];
+        gr[6 + c] += sum(vb);
+    }
+}
+return 0;
+"""
+
+
+def _f32(x: float) -> str:
+    """A C++ float literal of the float32 nearest to ``x``."""
+    import numpy as np
+
+    return f"{float(np.float32(x))!r}f"
+
+
+def _source(code: str) -> str:
+    # Below POWER_MIN alpha is under 1/255 for any rounding of the exponential (a margin of 1e-4 on ln(1/255)).
+    for name, value in (("ALPHA_MAX", _f32(ALPHA_MAX)), ("ALPHA_MIN", _f32(ALPHA_MIN)), ("T_DONE", _f32(T_DONE)),
+                        ("POWER_MIN", _f32(math.log(ALPHA_MIN) - 1e-4)), ("MAX_FEATURES", str(MAX_FEATURES))):
+        code = code.replace(name, value)
+    return code
+
+
+def _build():
+    global _built
+    with _lock:
+        if _built is not None:
+            return _built
+        import warp as wp
+
+        wp.config.quiet = True
+        wp.init()
+
+        @wp.func_native(_source(_FORWARD))
+        def tile_forward(start: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int64),
+                         glist: wp.array(dtype=wp.int64), table: wp.array(dtype=float), D: int, C: int, TX: int,
+                         W: int, H: int, tile: int, out: wp.array(dtype=float), tfin: wp.array(dtype=float),
+                         last: wp.array(dtype=wp.int32)) -> int:
+            ...
+
+        @wp.func_native(_source(_BACKWARD))
+        def tile_backward(start: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int64),
+                          glist: wp.array(dtype=wp.int64), table: wp.array(dtype=float), D: int, C: int, TX: int,
+                          W: int, H: int, tile: int, tfin: wp.array(dtype=float), last: wp.array(dtype=wp.int32),
+                          gout: wp.array(dtype=float), gtable: wp.array(dtype=float)) -> int:
+            ...
+
+        @wp.kernel(enable_backward=False)
+        def forward(start: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int64),
+                    glist: wp.array(dtype=wp.int64), table: wp.array(dtype=float), D: int, C: int, TX: int, W: int,
+                    H: int, out: wp.array(dtype=float), tfin: wp.array(dtype=float),
+                    last: wp.array(dtype=wp.int32)):
+            tile_forward(start, count, glist, table, D, C, TX, W, H, wp.tid(), out, tfin, last)
+
+        @wp.kernel(enable_backward=False)
+        def backward(start: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int64),
+                     glist: wp.array(dtype=wp.int64), table: wp.array(dtype=float), D: int, C: int, TX: int,
+                     W: int, H: int, tfin: wp.array(dtype=float), last: wp.array(dtype=wp.int32),
+                     gout: wp.array(dtype=float), gtable: wp.array(dtype=float)):
+            tile_backward(start, count, glist, table, D, C, TX, W, H, wp.tid(), tfin, last, gout, gtable)
+
+        _built = (wp, forward, backward)
+        return _built
+
+
+def available() -> bool:
+    """Whether Warp imports and the kernels build (a broken install falls back to ``composite_tiles``, and is
+    not tried again)."""
+    if _failed:
+        return False
+    try:
+        _build()
+        return True
+    except Exception as exc:  # noqa: BLE001 - ImportError, or a Warp that cannot initialise or compile
+        mark_failed(exc)
+        return False
+
+
+def mark_failed(exc: BaseException) -> None:
+    """Turn this path off for the rest of the process, with one warning."""
+    global _failed
+    if not _failed:
+        log.warning("The compiled differentiable compositing failed (%s: %s); renders with gradients use the "
+                    "PyTorch compositing for the rest of this session.", type(exc).__name__, exc)
+    _failed = True
+
+
+def _wp(wp, t: torch.Tensor, dtype):
+    return wp.array(t.numpy(), dtype=dtype, device="cpu", copy=False)
+
+
+class _Composite(torch.autograd.Function):
+    """table (M, 6 + C) of (u, v, A, B, C, log o, features...) per splat, with the exponent
+    log o - (A dx² + B dx dy + C dy²) -> (H, W, C + 1) image (Σ w f, then Σ w); see the module doc."""
+
+    @staticmethod
+    def forward(ctx, table, lists, width, height):
+        wp, fwd, _ = _build()
+        glist, start, count = lists
+        M, D = table.shape
+        C = D - 6
+        TX = -(-width // TILE)
+        tab = table.detach().contiguous()
+        out = torch.zeros(height * width, C + 1, dtype=torch.float32)
+        tfin = torch.empty(height * width, dtype=torch.float32)
+        last = torch.empty(height * width, dtype=torch.int32)
+        n_tiles = int(start.numel())
+        if n_tiles:
+            wp.launch(fwd, dim=n_tiles, device="cpu",
+                      inputs=[_wp(wp, start, wp.int64), _wp(wp, count, wp.int64), _wp(wp, glist, wp.int64),
+                              _wp(wp, tab.view(-1), float), int(D), int(C), int(TX), int(width), int(height),
+                              _wp(wp, out.view(-1), float), _wp(wp, tfin, float), _wp(wp, last, wp.int32)])
+            wp.synchronize_device("cpu")
+        ctx.save_for_backward(tab, glist, start, count, tfin, last)
+        ctx.dims = (int(width), int(height), int(TX))
+        return out.view(height, width, C + 1)
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_img):
+        wp, _, bwd = _build()
+        tab, glist, start, count, tfin, last = ctx.saved_tensors
+        width, height, TX = ctx.dims
+        M, D = tab.shape
+        C = D - 6
+        g_out = g_img.detach().to(torch.float32).contiguous().view(-1)
+        g_tab = torch.zeros(M, D, dtype=torch.float32)
+        n_tiles = int(start.numel())
+        if n_tiles:
+            wp.launch(bwd, dim=n_tiles, device="cpu",
+                      inputs=[_wp(wp, start, wp.int64), _wp(wp, count, wp.int64), _wp(wp, glist, wp.int64),
+                              _wp(wp, tab.view(-1), float), int(D), int(C), int(TX), int(width), int(height),
+                              _wp(wp, tfin, float), _wp(wp, last, wp.int32), _wp(wp, g_out, float),
+                              _wp(wp, g_tab.view(-1), float)])
+            wp.synchronize_device("cpu")
+        return g_tab, None, None, None
+
+
+def usable(*tensors: torch.Tensor) -> bool:
+    """Whether this path takes these inputs: CPU float32 tensors and Warp available (float64 keeps the exact
+    tensor path)."""
+    if any(t.device.type != "cpu" or t.dtype != torch.float32 for t in tensors):
+        return False
+    return available()
+
+
+def composite(proj: Projected, features: torch.Tensor, width: int, height: int, *, cull: bool = True,
+              fallback: Optional[dict] = None) -> torch.Tensor:
+    """``composite_tiles`` with gradients, compiled: (H, W, C + 1), the composited features Σ f w then alpha Σ w,
+    of the projected splats ``proj`` (front to back) with features (M, C) in the same order, differentiable
+    w.r.t. ``proj.uv``, ``proj.conic``, ``proj.log_opacity`` and ``features``. Inputs that are not CPU float32,
+    more than ``MAX_FEATURES`` features, or no working Warp go to ``composite_tiles`` (with ``fallback`` as its
+    tiling options)."""
+    ins = (proj.uv, proj.conic, proj.log_opacity, features)
+    if features.shape[1] <= MAX_FEATURES and usable(*ins):
+        try:
+            M = int(features.shape[0])
+            if M == 0:
+                return features.new_zeros(height, width, features.shape[1] + 1) + features.sum() * 0
+            glist, start, count, _ = tile_lists(proj, TILE, width, height, cull)
+            c = proj.conic
+            table = torch.cat([proj.uv, 0.5 * c[:, :1], c[:, 1:2], 0.5 * c[:, 2:], proj.log_opacity[:, None],
+                               features], 1)
+            return _Composite.apply(table, (glist, start, count), int(width), int(height))
+        except InputError:
+            raise
+        except Exception as exc:  # noqa: BLE001 - any failure of the compiled path falls back
+            mark_failed(exc)
+    return composite_tiles(proj, features, width, height, cull=cull, **(fallback or {}))
+
+
+__all__ = ["MAX_FEATURES", "TILE", "available", "composite", "usable"]
