@@ -124,3 +124,30 @@ def test_falls_back_to_the_tensor_path_without_warp(monkeypatch):
     got64, _ = _render_and_grads(WG.composite, p64, feats, torch.float64, weights, cam.width, cam.height)
     ref64, _ = _render_and_grads(composite_tiles, p64, feats, torch.float64, weights, cam.width, cam.height)
     assert torch.equal(got64, ref64)
+
+
+def test_tile_lists_hold_every_splat_that_reaches_a_tile_in_depth_order():
+    """The compiled tile lists: every splat with alpha above 1/255 (float64, at a pixel centre) at some pixel
+    of a tile is in that tile's list, lists are front to back (increasing index), and they hold no more
+    entries than the tensor path's row-band lists."""
+    from physmotion_core.render._torch_raster import tile_lists
+
+    cam, p32, p64, _ = _scene(n=300, seed=2, size=0.05, width=45, height=31)
+    W, H, ts = cam.width, cam.height, WG.TILE
+    glist, start, count = WG.tile_lists_warp(p32, W, H)
+    ys, xs = torch.meshgrid(torch.arange(H, dtype=torch.float64) + 0.5, torch.arange(W, dtype=torch.float64) + 0.5,
+                            indexing="ij")
+    dx = p64.uv[:, 0, None, None] - xs
+    dy = p64.uv[:, 1, None, None] - ys
+    a, b, c = (p64.conic[:, k, None, None] for k in range(3))
+    alpha = torch.exp(p64.log_opacity[:, None, None] - 0.5 * (a * dx * dx + 2 * b * dx * dy + c * dy * dy))
+    TX, TY = -(-W // ts), -(-H // ts)
+    hit = torch.nn.functional.pad(alpha > 1.0 / 255.0, (0, TX * ts - W, 0, TY * ts - H))
+    hit = hit.view(-1, TY, ts, TX, ts).any(4).any(2).reshape(-1, TX * TY)  # (splat, tile)
+    assert int(hit.sum()) > 100
+    for t in range(TX * TY):
+        lst = glist[int(start[t]):int(start[t]) + int(count[t])].long()
+        assert torch.all(lst[1:] > lst[:-1]), t
+        need = hit[:, t].nonzero().squeeze(1)
+        assert bool(torch.isin(need, lst).all()), t
+    assert int(count.sum()) <= tile_lists(p32, ts, W, H)[3]

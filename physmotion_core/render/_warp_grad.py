@@ -41,7 +41,7 @@ from typing import Optional
 import torch
 
 from ..errors import InputError
-from ._torch_raster import ALPHA_MAX, ALPHA_MIN, T_DONE, Projected, composite_tiles, tile_lists
+from ._torch_raster import ALPHA_MAX, ALPHA_MIN, T_DONE, Projected, check_intersections, composite_tiles
 
 log = logging.getLogger(__name__)
 
@@ -85,7 +85,7 @@ auto expo = [](float x) -> float {
     return e * scale;
 };
 const int bx = (tile % TX) * TS, by = (tile / TX) * TS;
-const long long s0 = start.data[tile], cnt = count.data[tile];
+const int s0 = start.data[tile], cnt = count.data[tile];
 float px[P], py[P];
 int inside[P];
 for (int j = 0; j < P; ++j) {
@@ -176,7 +176,7 @@ auto total = [](const float* part) -> float {  // LANES partial sums, added as a
     return h[0];
 };
 for (int k = kmax - 1; k >= 0; --k) {
-    const long long m = glist.data[s0 + k];
+    const int m = glist.data[s0 + k];
     const float* r = table.data + (size_t)m * D;
     const float u = r[0], v = r[1], A = r[2], B = r[3], Cc = r[4], lo = r[5];
     const float A2 = 2.0f * A, C2 = 2.0f * Cc;
@@ -270,36 +270,105 @@ def _build():
 
         wp.config.quiet = True
         wp.init()
+        TILE_ = wp.constant(TILE)
+
+        # Below this exponent no pixel is evaluated (POWER_MIN), plus a relative margin far above float32 round-off.
+        R2_LOG255 = wp.constant(math.log(255.0) + 1e-4)
+
+        @wp.func
+        def reaches(u: float, v: float, cn: wp.vec3, lo: float, x0: float, x1: float, y0: float, y1: float):
+            # Whether the splat's ellipse at the lowest alpha evaluated holds a point of the rectangle
+            # [x0, x1] x [y0, y1] (a tile's pixel centres): the minimum of the convex form
+            # q = a dx² + 2 b dx dy + c dy² over the rectangle, 0 when the centre is inside, else on an edge
+            # (along an edge q is a parabola: its minimiser clamped to the edge).
+            r2 = 2.0 * (lo + R2_LOG255)
+            r2 = r2 * 1.001 + 1.0e-3
+            if r2 <= 0.0:
+                return False
+            a = cn[0]
+            b = cn[1]
+            c = cn[2]
+            X0 = x0 - u
+            X1 = x1 - u
+            Y0 = y0 - v
+            Y1 = y1 - v
+            if X0 <= 0.0 and X1 >= 0.0 and Y0 <= 0.0 and Y1 >= 0.0:
+                return True
+            best = float(1.0e30)
+            for e in range(2):
+                Y = Y0
+                if e == 1:
+                    Y = Y1
+                dx = wp.clamp(-b * Y / a, X0, X1)
+                best = wp.min(best, a * dx * dx + 2.0 * b * dx * Y + c * Y * Y)
+                X = X0
+                if e == 1:
+                    X = X1
+                dy = wp.clamp(-b * X / c, Y0, Y1)
+                best = wp.min(best, a * X * X + 2.0 * b * X * dy + c * dy * dy)
+            return best <= r2
+
+        @wp.func
+        def tile_hit(uv: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3), logo: wp.array(dtype=float),
+                     m: int, tx: int, ty: int, W: int, H: int):
+            x0 = float(tx * TILE_) + 0.5
+            y0 = float(ty * TILE_) + 0.5
+            x1 = float(wp.min(tx * TILE_ + TILE_, W) - 1) + 0.5
+            y1 = float(wp.min(ty * TILE_ + TILE_, H) - 1) + 0.5
+            return reaches(uv[m][0], uv[m][1], conic[m], logo[m], x0, x1, y0, y1)
+
+        @wp.kernel(enable_backward=False)
+        def count_tiles(uv: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3), logo: wp.array(dtype=float),
+                        lo: wp.array(dtype=wp.vec2i), hi: wp.array(dtype=wp.vec2i), TX: int, W: int, H: int,
+                        per_tile: wp.array(dtype=wp.int32)):
+            m = wp.tid()
+            for ty in range(lo[m][1] / TILE_, hi[m][1] / TILE_ + 1):
+                for tx in range(lo[m][0] / TILE_, hi[m][0] / TILE_ + 1):
+                    if tile_hit(uv, conic, logo, m, tx, ty, W, H):
+                        wp.atomic_add(per_tile, ty * TX + tx, 1)
+
+        @wp.kernel(enable_backward=False)
+        def fill_tiles(uv: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3), logo: wp.array(dtype=float),
+                       lo: wp.array(dtype=wp.vec2i), hi: wp.array(dtype=wp.vec2i), TX: int, W: int, H: int, M: int,
+                       cursor: wp.array(dtype=wp.int32), glist: wp.array(dtype=wp.int32)):
+            # One thread, the splats in depth order: each tile's list comes out front to back.
+            for m in range(M):
+                for ty in range(lo[m][1] / TILE_, hi[m][1] / TILE_ + 1):
+                    for tx in range(lo[m][0] / TILE_, hi[m][0] / TILE_ + 1):
+                        if tile_hit(uv, conic, logo, m, tx, ty, W, H):
+                            t = ty * TX + tx
+                            glist[cursor[t]] = m
+                            cursor[t] = cursor[t] + 1
 
         @wp.func_native(_source(_FORWARD))
-        def tile_forward(start: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int64),
-                         glist: wp.array(dtype=wp.int64), table: wp.array(dtype=float), D: int, C: int, TX: int,
+        def tile_forward(start: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
+                         glist: wp.array(dtype=wp.int32), table: wp.array(dtype=float), D: int, C: int, TX: int,
                          W: int, H: int, tile: int, out: wp.array(dtype=float), tfin: wp.array(dtype=float),
                          last: wp.array(dtype=wp.int32)) -> int:
             ...
 
         @wp.func_native(_source(_BACKWARD))
-        def tile_backward(start: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int64),
-                          glist: wp.array(dtype=wp.int64), table: wp.array(dtype=float), D: int, C: int, TX: int,
+        def tile_backward(start: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
+                          glist: wp.array(dtype=wp.int32), table: wp.array(dtype=float), D: int, C: int, TX: int,
                           W: int, H: int, tile: int, tfin: wp.array(dtype=float), last: wp.array(dtype=wp.int32),
                           gout: wp.array(dtype=float), gtable: wp.array(dtype=float)) -> int:
             ...
 
         @wp.kernel(enable_backward=False)
-        def forward(start: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int64),
-                    glist: wp.array(dtype=wp.int64), table: wp.array(dtype=float), D: int, C: int, TX: int, W: int,
+        def forward(start: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
+                    glist: wp.array(dtype=wp.int32), table: wp.array(dtype=float), D: int, C: int, TX: int, W: int,
                     H: int, out: wp.array(dtype=float), tfin: wp.array(dtype=float),
                     last: wp.array(dtype=wp.int32)):
             tile_forward(start, count, glist, table, D, C, TX, W, H, wp.tid(), out, tfin, last)
 
         @wp.kernel(enable_backward=False)
-        def backward(start: wp.array(dtype=wp.int64), count: wp.array(dtype=wp.int64),
-                     glist: wp.array(dtype=wp.int64), table: wp.array(dtype=float), D: int, C: int, TX: int,
+        def backward(start: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
+                     glist: wp.array(dtype=wp.int32), table: wp.array(dtype=float), D: int, C: int, TX: int,
                      W: int, H: int, tfin: wp.array(dtype=float), last: wp.array(dtype=wp.int32),
                      gout: wp.array(dtype=float), gtable: wp.array(dtype=float)):
             tile_backward(start, count, glist, table, D, C, TX, W, H, wp.tid(), tfin, last, gout, gtable)
 
-        _built = (wp, forward, backward)
+        _built = (wp, forward, backward, count_tiles, fill_tiles)
         return _built
 
 
@@ -335,7 +404,7 @@ class _Composite(torch.autograd.Function):
 
     @staticmethod
     def forward(ctx, table, lists, width, height):
-        wp, fwd, _ = _build()
+        wp, fwd = _build()[:2]
         glist, start, count = lists
         M, D = table.shape
         C = D - 6
@@ -347,7 +416,7 @@ class _Composite(torch.autograd.Function):
         n_tiles = int(start.numel())
         if n_tiles:
             wp.launch(fwd, dim=n_tiles, device="cpu",
-                      inputs=[_wp(wp, start, wp.int64), _wp(wp, count, wp.int64), _wp(wp, glist, wp.int64),
+                      inputs=[_wp(wp, start, wp.int32), _wp(wp, count, wp.int32), _wp(wp, glist, wp.int32),
                               _wp(wp, tab.view(-1), float), int(D), int(C), int(TX), int(width), int(height),
                               _wp(wp, out.view(-1), float), _wp(wp, tfin, float), _wp(wp, last, wp.int32)])
             wp.synchronize_device("cpu")
@@ -358,7 +427,7 @@ class _Composite(torch.autograd.Function):
     @staticmethod
     @torch.autograd.function.once_differentiable
     def backward(ctx, g_img):
-        wp, _, bwd = _build()
+        wp, bwd = _build()[0], _build()[2]
         tab, glist, start, count, tfin, last = ctx.saved_tensors
         width, height, TX = ctx.dims
         M, D = tab.shape
@@ -368,12 +437,42 @@ class _Composite(torch.autograd.Function):
         n_tiles = int(start.numel())
         if n_tiles:
             wp.launch(bwd, dim=n_tiles, device="cpu",
-                      inputs=[_wp(wp, start, wp.int64), _wp(wp, count, wp.int64), _wp(wp, glist, wp.int64),
+                      inputs=[_wp(wp, start, wp.int32), _wp(wp, count, wp.int32), _wp(wp, glist, wp.int32),
                               _wp(wp, tab.view(-1), float), int(D), int(C), int(TX), int(width), int(height),
                               _wp(wp, tfin, float), _wp(wp, last, wp.int32), _wp(wp, g_out, float),
                               _wp(wp, g_tab.view(-1), float)])
             wp.synchronize_device("cpu")
         return g_tab, None, None, None
+
+
+def tile_lists_warp(proj: Projected, width: int, height: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Each ``TILE`` px tile's depth-ordered list of the splats whose ellipse at the lowest alpha the loops
+    evaluate (exponent ln(1/255) - 1e-4, plus a margin) reaches one of its pixel centres, compiled: (glist,
+    start, count), int32, tile t's list being ``glist[start[t]:start[t] + count[t]]``. The same job as
+    ``_torch_raster.tile_lists`` (whose lists are a superset: its test is per tile row) without its dozens
+    of whole-array passes, float64 arithmetic and sort."""
+    wp, _, _, count_tiles, fill_tiles = _build()
+    M = int(proj.uv.shape[0])
+    TX, TY = -(-width // TILE), -(-height // TILE)
+    with torch.no_grad():
+        check_intersections(proj, TILE, width, height)
+        f32 = torch.float32
+        uv = _wp(wp, proj.uv.detach().to(f32).contiguous(), wp.vec2)
+        conic = _wp(wp, proj.conic.detach().to(f32).contiguous(), wp.vec3)
+        logo = _wp(wp, proj.log_opacity.detach().to(f32).contiguous(), float)
+        lo_t = proj.pix_lo.to(torch.int32).contiguous()
+        hi_t = proj.pix_hi.to(torch.int32).contiguous()
+        lo, hi = _wp(wp, lo_t, wp.vec2i), _wp(wp, hi_t, wp.vec2i)
+        count = torch.zeros(TX * TY, dtype=torch.int32)
+        wp.launch(count_tiles, dim=M, device="cpu", inputs=[uv, conic, logo, lo, hi, TX, width, height,
+                                                             _wp(wp, count, wp.int32)])
+        start = (torch.cumsum(count, 0, dtype=torch.int32) - count).contiguous()
+        glist = torch.empty(max(int(count.sum()), 1), dtype=torch.int32)
+        cursor = start.clone()
+        wp.launch(fill_tiles, dim=1, device="cpu", inputs=[uv, conic, logo, lo, hi, TX, width, height, M,
+                                                            _wp(wp, cursor, wp.int32), _wp(wp, glist, wp.int32)])
+        wp.synchronize_device("cpu")
+    return glist, start, count
 
 
 def usable(*tensors: torch.Tensor) -> bool:
@@ -397,7 +496,7 @@ def composite(proj: Projected, features: torch.Tensor, width: int, height: int, 
             M = int(features.shape[0])
             if M == 0:
                 return features.new_zeros(height, width, features.shape[1] + 1) + features.sum() * 0
-            glist, start, count, _ = tile_lists(proj, TILE, width, height, cull)
+            glist, start, count = tile_lists_warp(proj, int(width), int(height))
             c = proj.conic
             table = torch.cat([proj.uv, 0.5 * c[:, :1], c[:, 1:2], 0.5 * c[:, 2:], proj.log_opacity[:, None],
                                features], 1)
