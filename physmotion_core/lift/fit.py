@@ -41,6 +41,7 @@ import logging
 import math
 import time
 from dataclasses import dataclass, field
+from functools import partial
 from typing import Optional, Sequence
 
 import numpy as np
@@ -449,10 +450,16 @@ def _render(prep: _Prep, p: _Params, lv: _Level, cx: float, cy: float, colors: b
         # splat that saturates it); the fit's renders are small and deep, so the per-chunk cost (one
         # autograd node each, recomputed in backward) dominated: 1.3-1.7x less time per step (the
         # stand-in cup at 73x49-243x162 px).
+        from ..render import _warp_grad
         from ..render.rasterize import _rasterize_with_torch
 
         per_tile = n * 64.0 / float(lv.width * lv.height)
         chunk = 2 * GRAD_CHUNK if per_tile >= 48 else GRAD_CHUNK
+        if _warp_grad.usable(g.means):
+            # The compiled compositing with a hand-written backward pass (render/_warp_grad.py): the same
+            # image and gradients to float32 round-off, a fraction of the tensor path's time per step.
+            return _rasterize_with_torch(g, cam, rgb, g.opacities, None, "z", 0.3, compositor=partial(
+                _warp_grad.composite, fallback={"chunk": chunk}))
         return _rasterize_with_torch(g, cam, rgb, g.opacities, None, "z", 0.3, chunk=chunk)
     return rasterize(g, cam, colors=rgb)
 
