@@ -28,6 +28,7 @@ scratch arrays (the same work g2p does after its gather).
 from __future__ import annotations
 
 import argparse
+import contextlib
 import datetime
 import os
 import time
@@ -37,6 +38,7 @@ import warp as wp
 
 from physmotion_core.report import machine_description, update_section
 from physmotion_core.sim import kernels as K
+from physmotion_core.sim.fpmode import FlushedDenormals
 from physmotion_core.sim.mpm import Domain, MPMSolver
 from physmotion_core.types.material import Material
 
@@ -179,8 +181,9 @@ def m_g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dt
 class MinimalMPM:
     """A minimal MLS-MPM (fixed-corotated, APIC) over the whole g³ grid, for comparison."""
 
-    def __init__(self, x: np.ndarray, vol: float, grid_cells: int, device: str):
+    def __init__(self, x: np.ndarray, vol: float, grid_cells: int, device: str, flush_denormals: bool = False):
         n = len(x)
+        self.flushed = FlushedDenormals(device) if flush_denormals else contextlib.nullcontext()
         self.device, self.n, self.g = device, n, grid_cells + 1
         mu, lam = E / (2 * (1 + NU)), E * NU / ((1 + NU) * (1 - 2 * NU))
         self.mu, self.lam, self.vol, self.mass = mu, lam, vol, vol * RHO
@@ -203,6 +206,10 @@ class MinimalMPM:
             self.kernel_times[kernel.key] = self.kernel_times.get(kernel.key, 0.0) + time.perf_counter() - t0
 
     def substep(self, dt: float) -> None:
+        with self.flushed:
+            self._substep(dt)
+
+    def _substep(self, dt: float) -> None:
         g3 = (self.g,) * 3
         self._run(m_stress, self.n, [self.F, self.mu, self.lam, self.tau])
         self._run(m_clear, g3, [self.gm, self.gv])
@@ -250,7 +257,8 @@ def time_material(s: MPMSolver, reps: int = 3) -> float:
     best = []
     for _ in range(reps):
         t0 = time.perf_counter()
-        s._run_step(material_only, cmds, True)
+        with s._flushed:  # as in a substep (fpmode)
+            s._run_step(material_only, cmds, True)
         wp.synchronize_device(s.device)
         best.append(time.perf_counter() - t0)
     return float(np.median(best))
@@ -274,6 +282,8 @@ def measure_size(n_side: int, device: str, rounds: int, steps: int, thread_count
     grid_cells = SIZES.get(n_side, 2 * n_side)
     x, vol = scene(n_side, grid_cells)
     engines = {"minimal": MinimalMPM(x, vol, grid_cells, device)}
+    if device == "cpu":
+        engines["minimal + FTZ"] = MinimalMPM(x, vol, grid_cells, device, flush_denormals=True)
     for t in thread_counts:
         engines[f"project {t}t"] = project_solver(x, vol, grid_cells, device, t)
     names = list(engines)
@@ -291,6 +301,8 @@ def measure_size(n_side: int, device: str, rounds: int, steps: int, thread_count
            "ratio": {k: float(np.median(np.asarray(times[k]) / mins)) for k in names if k != "minimal"},
            "ratio_range": {k: (float(np.min(np.asarray(times[k]) / mins)), float(np.max(np.asarray(times[k]) / mins)))
                            for k in names if k != "minimal"},
+           "ratio_ftz": {k: float(np.median(np.asarray(times[k]) / np.asarray(times["minimal + FTZ"])))
+                         for k in names if k.startswith("project") and "minimal + FTZ" in times},
            "split": {}, "chunks": None, "layers": None}
     # per-kernel split, launches synchronised
     split_steps = max(2, steps // 2)
@@ -300,7 +312,7 @@ def measure_size(n_side: int, device: str, rounds: int, steps: int, thread_count
         run_steps(e, split_steps)
         kt = {name: 1e3 * v / split_steps for name, v in e.kernel_times.items()}
         e.kernel_times = None
-        if k != "minimal":
+        if k.startswith("project"):
             kt["update_material (alone)"] = 1e3 * time_material(e)
             out["chunks"], out["layers"] = e.chunks, e.layers
         out["split"][k] = kt
@@ -315,15 +327,18 @@ def write_section(results: list, device: str, rounds: int, steps: int, load: str
              "cell in a unit box, the same lattice and dt for both engines. The minimal kernel is a plain MLS-MPM "
              "program in Warp written in the benchmark (one thread, atomics, whole grid cleared each substep, "
              "SVD stress); the project runs its full substep. "
+             "“minimal + FTZ” is the same minimal kernel with denormals flushed to zero, as the project's "
+             "substeps now run (physmotion_core/sim/fpmode.py). "
              f"Interleaved rounds ({rounds} rounds of {steps} substeps per engine); ratio = median over rounds "
              "of project / minimal time in the same round (min-max in brackets).", "",
-             "| particles | grid | engine | ms / substep | ns / particle-substep | project / minimal |",
-             "|---:|---:|---|---:|---:|---:|"]
+             "| particles | grid | engine | ms / substep | ns / particle-substep | / minimal | / minimal + FTZ |",
+             "|---:|---:|---|---:|---:|---:|---:|"]
     for r in results:
         for k, ms in r["ms"].items():
             ratio = "1" if k == "minimal" else (f"{r['ratio'][k]:.2f} ({r['ratio_range'][k][0]:.2f}-"
                                                  f"{r['ratio_range'][k][1]:.2f})")
-            lines.append(f"| {r['n']:,} | {r['grid']}³ | {k} | {ms:.1f} | {1e6 * ms / r['n']:.0f} | {ratio} |")
+            ftz = f"{r['ratio_ftz'][k]:.2f}" if k in r["ratio_ftz"] else ("1" if k == "minimal + FTZ" else "")
+            lines.append(f"| {r['n']:,} | {r['grid']}³ | {k} | {ms:.1f} | {1e6 * ms / r['n']:.0f} | {ratio} | {ftz} |")
     lines += ["", "**Per kernel** (ns per particle and substep, each launch synchronised; the project's "
               "g2p includes its material update, which is also timed alone over the same particles):", ""]
     for r in results:

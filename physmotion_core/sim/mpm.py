@@ -17,6 +17,7 @@ import numpy as np
 from ..errors import InputError, SimulationError
 from ..types.conditions import Ground, ObjectContact, Walls
 from ..types.material import CONSTITUTIVE_MODELS, Material
+from . import fpmode
 from . import kernels as K
 from .materials import kernel_params
 
@@ -316,6 +317,9 @@ class MPMSolver:
         self.threads = cpu_threads(threads) if self.device == "cpu" else 1
         self._pool: Optional[ThreadPoolExecutor] = None
         self._capturing = False
+        # The substeps compute with denormals flushed to zero on the CPU (fpmode: a scene at rest made them
+        # ~3x slower per particle).
+        self._flushed = fpmode.FlushedDenormals(self.device)
 
     def _init_fields(self, objects: np.ndarray, flags: np.ndarray) -> None:
         """One grid velocity field per object where objects meet on fields of their own (multi-field
@@ -765,7 +769,9 @@ class MPMSolver:
         if self.threads <= 1 or self._capturing:
             return False
         if self._pool is None:
-            self._pool = ThreadPoolExecutor(self.threads - 1, thread_name_prefix="physmotion-mpm")
+            self._pool = ThreadPoolExecutor(self.threads - 1, thread_name_prefix="physmotion-mpm",
+                                            initializer=fpmode.flush_denormals_in_this_thread,
+                                            initargs=(self.device,))
             weakref.finalize(self, self._pool.shutdown, wait=False)
         return True
 
@@ -958,7 +964,7 @@ class MPMSolver:
         wp = self.wp
         self.cond.fill_(1)
         self.launches += 1
-        with wp.ScopedDevice(self.device):
+        with wp.ScopedDevice(self.device), self._flushed:
             if eager or not self.use_graph or self.kernel_times is not None:
                 wp.capture_while(self.cond, self._substep_kernels, span_lo=span[0], span_hi=span[1],
                                  torques=self._torques_on)
@@ -1058,7 +1064,7 @@ class MPMSolver:
         self._status[K.I_LAUNCH_SUBSTEPS] = 0
         self._status[K.I_CHUNK] = 1
         self._push()
-        with self.wp.ScopedDevice(self.device):
+        with self.wp.ScopedDevice(self.device), self._flushed:
             self._substep_kernels(self._span[0], self._span[1], self._torques_on)
         self._pull()
         self._ctl[K.C_FORCE_DT] = 0.0
