@@ -27,21 +27,53 @@ _built = None
 #: ``blend``'s loop over one row of the box, in C++ (a Warp native function, as ``_warp_raster._ROW``): plain
 #: pointer arithmetic that the compiler optimises as a whole (the same loop in Warp's kernel language ran 3-4x
 #: slower: vector and float64 temporaries kept through its generated code).
+_STRETCH_ROW = r"""
+const double* U = u.data + (size_t)by * bw;
+const double* V = v.data + (size_t)by * bw;
+const unsigned char* OK = ok.data + (size_t)by * bw;
+float* F = fade.data + (size_t)by * bw;
+// d c / d (pixel) at i from its neighbours (`stride` apart in memory): central where both have coordinates,
+// one-sided where one has; false where none.
+auto deriv = [&](const double* c, int i, bool lo_in, bool hi_in, long stride, double& d) -> bool {
+    bool lo = lo_in && OK[i - stride] != 0, hi = hi_in && OK[i + stride] != 0;
+    if (lo && hi) { d = (c[i + stride] - c[i - stride]) * 0.5; return true; }
+    if (hi) { d = c[i + stride] - c[i]; return true; }
+    if (lo) { d = c[i] - c[i - stride]; return true; }
+    return false;
+};
+for (int bx = 0; bx < bw; ++bx) {
+    double f = 1.0;
+    if (OK[bx]) {
+        double ux, vx, uy, vy;
+        if (deriv(U, bx, bx > 0, bx < bw - 1, 1, ux)) {
+            deriv(V, bx, bx > 0, bx < bw - 1, 1, vx);
+        } else { ux = 1.0; vx = 0.0; }
+        if (deriv(U, bx, by > 0, by < bh - 1, bw, uy)) {
+            deriv(V, bx, by > 0, by < bh - 1, bw, vy);
+        } else { uy = 0.0; vy = 1.0; }
+        const double E = ux * ux + vx * vx + uy * uy + vy * vy;
+        const double D = __builtin_fabs(ux * vy - uy * vx);
+        const double q = E * E - 4.0 * D * D;
+        const double smin2 = 0.5 * (E - __builtin_sqrt(q > 0.0 ? q : 0.0));
+        if (smin2 * st1 * st1 < 1.0) f = 0.0;
+        else if (smin2 * st0 * st0 < 1.0) f = (st1 - 1.0 / __builtin_sqrt(smin2)) / (st1 - st0);
+    }
+    F[bx] = (float)f;
+}
+return 0;
+"""
+
+#: ``blend``'s loop over one row of the box, in C++ (a Warp native function, as ``_warp_raster._ROW``): plain
+#: pointer arithmetic that the compiler optimises as a whole (the same loop in Warp's kernel language ran 3-4x
+#: slower: vector and float64 temporaries kept through its generated code).
 _BLEND_ROW = r"""
 const double* U = u.data + (size_t)by * bw;
 const double* V = v.data + (size_t)by * bw;
 const unsigned char* OK = ok.data + (size_t)by * bw;
+const float* F = fade.data + (size_t)by * bw;
 const float* P = planes.data;
 const float* dr = dist.data + (size_t)by * bw;
 const int y = y0 + by;
-auto deriv = [&](const double* c, const unsigned char* o, int i, bool lo_in, bool hi_in, long step,
-                 double& d) -> bool {
-    bool lo = lo_in && o[i - step] != 0, hi = hi_in && o[i + step] != 0;
-    if (lo && hi) { d = (c[i + step] - c[i - step]) * 0.5; return true; }
-    if (hi) { d = c[i + step] - c[i]; return true; }
-    if (lo) { d = c[i] - c[i - step]; return true; }
-    return false;
-};
 auto keys = [](float t, float* w) {
     const float a = -0.75f;
     float s = t + 1.0f;
@@ -64,21 +96,7 @@ for (int bx = 0; bx < bw; ++bx) {
         float ramp = a * (1.0f / min_cov);
         ramp = ramp < 0.0f ? 0.0f : (ramp > 1.0f ? 1.0f : ramp);
         w = sh * ramp;
-        double ux, vx, uy, vy;
-        if (deriv(U, OK, bx, bx > 0, bx < bw - 1, 1, ux)) {
-            deriv(V, OK, bx, bx > 0, bx < bw - 1, 1, vx);
-        } else { ux = 1.0; vx = 0.0; }
-        if (deriv(U, OK, bx, by > 0, by < bh - 1, bw, uy)) {
-            deriv(V, OK, bx, by > 0, by < bh - 1, bw, vy);
-        } else { uy = 0.0; vy = 1.0; }
-        const double E = ux * ux + vx * vx + uy * uy + vy * vy;
-        const double D = __builtin_fabs(ux * vy - uy * vx);
-        const double q = E * E - 4.0 * D * D;
-        const double smin2 = 0.5 * (E - __builtin_sqrt(q > 0.0 ? q : 0.0));
-        double fade = 1.0;
-        if (smin2 * st1 * st1 < 1.0) fade = 0.0;
-        else if (smin2 * st0 * st0 < 1.0) fade = (st1 - 1.0 / __builtin_sqrt(smin2)) / (st1 - st0);
-        w = w * (float)fade;
+        w = w * F[bx];
         const double mx = U[bx] - 0.5, my = V[bx] - 0.5;
         const double fx = __builtin_floor(mx), fy = __builtin_floor(my);
         if (fx > -3.0 && fx < (double)(PW + 1) && fy > -3.0 && fy < (double)(PH + 1)) {
@@ -174,12 +192,24 @@ def _build():
             else:
                 ok[i] = wp.uint8(0)
 
+        @wp.func_native(_STRETCH_ROW)
+        def stretch_row(u: wp.array(dtype=f64), v: wp.array(dtype=f64), ok: wp.array(dtype=wp.uint8), bw: int,
+                        bh: int, by: int, st0: f64, st1: f64, fade: wp.array(dtype=float)) -> int:
+            ...
+
+        @wp.kernel(enable_backward=False)
+        def stretch(u: wp.array(dtype=f64), v: wp.array(dtype=f64), ok: wp.array(dtype=wp.uint8), bw: int, bh: int,
+                    st0: f64, st1: f64, fade: wp.array(dtype=float)):
+            # One row of the box: the photo's weight left by the stretch of its coordinates (``_STRETCH_ROW``).
+            stretch_row(u, v, ok, bw, bh, wp.tid(), st0, st1, fade)
+
         @wp.func_native(_BLEND_ROW)
         def blend_row(u: wp.array(dtype=f64), v: wp.array(dtype=f64), ok: wp.array(dtype=wp.uint8),
                       ext: wp.array(dtype=float), C: int, rgb: wp.array(dtype=float), alpha: wp.array(dtype=float),
                       dist: wp.array(dtype=float), W: int, x0: int, y0: int, bw: int, bh: int, by: int,
                       planes: wp.array(dtype=float), PW: int, PH: int, min_cov: float, in0: float, in1: float,
-                      st0: f64, st1: f64, out_rgb: wp.array(dtype=float), out_a: wp.array(dtype=float)) -> int:
+                      fade: wp.array(dtype=float), out_rgb: wp.array(dtype=float),
+                      out_a: wp.array(dtype=float)) -> int:
             ...
 
         @wp.kernel(enable_backward=False)
@@ -187,15 +217,14 @@ def _build():
                   ext: wp.array(dtype=float), C: int, rgb: wp.array(dtype=float), alpha: wp.array(dtype=float),
                   dist: wp.array(dtype=float), W: int, x0: int, y0: int, bw: int, bh: int,
                   planes: wp.array(dtype=float), PW: int, PH: int, min_cov: float, in0: float, in1: float,
-                  st0: f64, st1: f64, out_rgb: wp.array(dtype=float), out_a: wp.array(dtype=float)):
-            # One row of the box: per pixel the stretch of the photo coordinates (the inverse of their Jacobian's
-            # smallest singular value, from the neighbours' coordinates), the photo's share (faded by it), the
-            # bicubic sample of (premultiplied colour, matte) and the frame's colour and coverage (``_BLEND_ROW``).
+                  fade: wp.array(dtype=float), out_rgb: wp.array(dtype=float), out_a: wp.array(dtype=float)):
+            # One row of the box: per pixel the photo's share (times ``fade``), the bicubic sample of (premultiplied
+            # colour, matte) and the frame's colour and coverage (``_BLEND_ROW``).
             by = wp.tid()
             blend_row(u, v, ok, ext, C, rgb, alpha, dist, W, x0, y0, bw, bh, by, planes, PW, PH, min_cov, in0, in1,
-                      st0, st1, out_rgb, out_a)
+                      fade, out_rgb, out_a)
 
-        _built = (wp, coords, blend)
+        _built = (wp, coords, stretch, blend)
         return _built
 
 
@@ -228,7 +257,7 @@ def planes_array(planes: np.ndarray):
 
 def photo_coords(ext: torch.Tensor, depth: torch.Tensor, box: tuple, camera, photo_camera, one_map=None):
     """(u, v) float64 (bh*bw) and ok uint8 (bh*bw): the photo coordinates of the box's pixels (``coords``)."""
-    wp, coords, _ = _build()
+    wp, coords, _, _ = _build()
     y0, y1, x0, x1 = box
     bh, bw = y1 - y0, x1 - x0
     H, W, C = ext.shape
@@ -252,20 +281,35 @@ def photo_coords(ext: torch.Tensor, depth: torch.Tensor, box: tuple, camera, pho
     return u, v, ok
 
 
-def blend(u, v, ok, ext, rgb, alpha, dist, box, planes, planes_wp, consts, out_rgb, out_a) -> None:
+def stretch_fade(u, v, ok, box, lo: float, hi: float) -> torch.Tensor:
+    """(bh, bw) float32: the photo's weight left by the stretch of the box's photo coordinates (``_STRETCH_ROW``:
+    1 up to a magnification of ``lo``, 0 from ``hi``, linear in it between; 1 where a pixel has no coordinate)."""
+    wp, _, kernel, _ = _build()
+    y0, y1, x0, x1 = box
+    bh, bw = y1 - y0, x1 - x0
+    keep: list = []
+    fade = torch.empty(bh, bw, dtype=torch.float32)
+    wp.launch(kernel, dim=bh, device="cpu",
+              inputs=[_arr(wp, u, wp.float64, keep), _arr(wp, v, wp.float64, keep), _arr(wp, ok, wp.uint8, keep), bw,
+                      bh, float(lo), float(hi), _arr(wp, fade, float, keep)])
+    wp.synchronize_device("cpu")
+    return fade
+
+
+def blend(u, v, ok, fade, ext, rgb, alpha, dist, box, planes, planes_wp, consts, out_rgb, out_a) -> None:
     """The ``blend`` loop over the box, writing ``out_rgb`` (H,W,3) and ``out_a`` (H,W) there (contiguous)."""
-    wp, _, kernel = _build()
+    wp, _, _, kernel = _build()
     y0, y1, x0, x1 = box
     bh, bw = y1 - y0, x1 - x0
     H, W, C = ext.shape
     keep: list = []
     PH, PW = planes.shape[:2]
-    min_cov, in0, in1, st0, st1 = consts
+    min_cov, in0, in1 = consts
     wp.launch(kernel, dim=bh, device="cpu",
               inputs=[_arr(wp, u, wp.float64, keep), _arr(wp, v, wp.float64, keep), _arr(wp, ok, wp.uint8, keep),
                       _arr(wp, ext, float, keep), C, _arr(wp, rgb, float, keep), _arr(wp, alpha, float, keep),
                       _arr(wp, dist, float, keep), W, x0, y0, bw, bh, planes_wp, PW, PH, float(min_cov), float(in0),
-                      float(in1), float(st0), float(st1)],
+                      float(in1), _arr(wp, fade, float, keep)],
               outputs=[wp.array(out_rgb.numpy().reshape(-1), dtype=float, device="cpu", copy=False),
                        wp.array(out_a.numpy().reshape(-1), dtype=float, device="cpu", copy=False)])
     wp.synchronize_device("cpu")

@@ -46,16 +46,17 @@ from ..types.gaussians import Gaussians
 #: weight ramps in linearly up to it.
 MIN_COVERAGE = 0.02
 
-#: A splat whose footprint grows past STRETCH_FADE[0] times its footprint in the photo (a rim or a side the photo
-#: saw edge-on, turned toward the camera) fades from the photo to its own colour, wholly at STRETCH_FADE[1]:
-#: the photo has too few pixels of it. Frame 0 is never affected (ratio 1).
-STRETCH_FADE = (1.5, 3.0)
-
 #: Where the frame magnifies the photo (its photo coordinates' Jacobian with respect to the pixel position has a
 #: smallest singular value under 1 / PHOTO_STRETCH[0]: a surface the photo saw at a grazing angle, turned toward the
 #: camera, which the photo holds in a few pixels stretched over many), the photo's share fades to the splats' own
 #: colours, wholly at PHOTO_STRETCH[1]: stretched further, the photo's pixels would streak across the surface.
-PHOTO_STRETCH = (2.0, 4.0)
+PHOTO_STRETCH = (1.5, 3.0)
+
+#: The stretch fade is spread over this many pixels (the least weight about each pixel): with one rigid map the
+#: photo coordinate follows the splats' blended depth, constant over each splat's core, so a surface the photo saw
+#: at a grazing angle comes out as splat-sized plateaus of nearly one photo coordinate (the streaks) with steps
+#: between them; the fade catches the plateaus, and spread, the steps too.
+STRETCH_SPREAD = 3
 
 #: The splats' coverage is a floor from INTERIOR_PX[1] px inside their silhouette (none within INTERIOR_PX[0]).
 INTERIOR_PX = (1.5, 3.5)
@@ -170,28 +171,6 @@ def seen_weights(gaussians: Gaussians, camera: Camera, *, backend: str = "auto")
     return s.float()
 
 
-def projected_area(g: Gaussians, camera: Camera, eps2d: float = 0.0) -> torch.Tensor:
-    """(N,) each splat's footprint in ``camera``'s image, px² (√det of its EWA 2D covariance, plus ``eps2d`` px²
-    of dilation: none by default, so a splat seen edge-on has the sliver of a footprint it really has, not the
-    rasterizer's 0.3 px² floor); 0 behind the camera."""
-    w2c = camera.w2c_opencv().to(torch.float32)
-    R = w2c[:3, :3]
-    mc = g.means.float() @ R.T + w2c[:3, 3]
-    z = mc[:, 2]
-    rz = 1.0 / z.clamp_min(1e-6)
-    # The Jacobian's rows in world axes: t0 = fx/z (R0 - x/z R2), t1 = fy/z (R1 - y/z R2).
-    t0 = (camera.fx * rz)[:, None] * (R[0] - (mc[:, 0] * rz)[:, None] * R[2])
-    t1 = (camera.fy * rz)[:, None] * (R[1] - (mc[:, 1] * rz)[:, None] * R[2])
-    cov = g.covariance().float()
-    s0 = (cov * t0[:, None, :]).sum(-1)  # Σ t0
-    s1 = (cov * t1[:, None, :]).sum(-1)
-    a = (t0 * s0).sum(1) + eps2d
-    c = (t1 * s1).sum(1) + eps2d
-    b = (t0 * s1).sum(1)
-    det = a * c - b * b
-    return torch.where(z > camera.near, det.clamp_min(0.0).sqrt(), torch.zeros_like(det))
-
-
 def texture_features(seen: torch.Tensor, shift: Optional[torch.Tensor]) -> torch.Tensor:
     """The per-Gaussian channels a textured frame composites: s·Δ (2, when each splat has its own map: Δ from
     where its centre is now to where the photo shows it, in photo pixels) and s."""
@@ -276,8 +255,9 @@ def _derivative(c: torch.Tensor, ok: torch.Tensor, dim: int) -> torch.Tensor:
 
 
 def _stretch_fade(u: torch.Tensor, v: torch.Tensor, ok: torch.Tensor) -> torch.Tensor:
-    """(bh,bw) float64: the photo's weight kept where the frame magnifies the photo coordinates (``PHOTO_STRETCH``):
-    1 up to PHOTO_STRETCH[0], 0 from PHOTO_STRETCH[1], linear in the magnification between."""
+    """(bh,bw) float32: the photo's weight left where the frame magnifies the photo coordinates (``PHOTO_STRETCH``):
+    1 up to PHOTO_STRETCH[0], 0 from PHOTO_STRETCH[1], linear in the magnification between; 1 where a pixel has no
+    coordinate (tensor twin of ``_warp_shade.stretch_fade``)."""
     ux, vx = _derivative(u, ok, 1), _derivative(v, ok, 1)
     uy, vy = _derivative(u, ok, 0), _derivative(v, ok, 0)
     nx, ny = torch.isnan(ux), torch.isnan(uy)
@@ -289,7 +269,18 @@ def _stretch_fade(u: torch.Tensor, v: torch.Tensor, ok: torch.Tensor) -> torch.T
     st0, st1 = PHOTO_STRETCH
     fade = ((st1 - 1.0 / smin2.sqrt()) / (st1 - st0)).clamp(max=1.0)
     fade = torch.where(smin2 * st0 * st0 < 1.0, fade, torch.ones_like(fade))
-    return torch.where(smin2 * st1 * st1 < 1.0, torch.zeros_like(fade), fade)
+    fade = torch.where(smin2 * st1 * st1 < 1.0, torch.zeros_like(fade), fade)
+    return torch.where(ok, fade, torch.ones_like(fade)).float()
+
+
+def _spread_fade(fade: torch.Tensor) -> torch.Tensor:
+    """The stretch fade spread over STRETCH_SPREAD px (its minimum over the square about each pixel)."""
+    if STRETCH_SPREAD <= 0:
+        return fade
+    import cv2
+
+    k = np.ones((2 * STRETCH_SPREAD + 1, 2 * STRETCH_SPREAD + 1), np.uint8)
+    return torch.from_numpy(cv2.erode(fade.numpy(), k, borderType=cv2.BORDER_REPLICATE))
 
 
 def _photo_coords(extra: torch.Tensor, depth: torch.Tensor, box: tuple, camera: Camera, pc: Camera, one_map):
@@ -361,19 +352,18 @@ def shade(texture: PhotoTexture, camera: Camera, rgb: torch.Tensor, alpha: torch
         from . import _warp_shade
 
         u, v, ok = _warp_shade.photo_coords(extra, depth, box, camera, pc, photo_map)
+        fade = _spread_fade(_warp_shade.stretch_fade(u, v, ok, box, PHOTO_STRETCH[0], PHOTO_STRETCH[1]))
         planes = _texture_planes(texture)
         pw = texture.__dict__.get("_planes_wp")
         if pw is None:
             pw = texture.__dict__["_planes_wp"] = _warp_shade.planes_array(planes)
         if out_rgb.is_contiguous() and out_a.is_contiguous():
-            _warp_shade.blend(u, v, ok, extra, rgb, alpha, dist, box, planes, pw,
-                              (MIN_COVERAGE, INTERIOR_PX[0], INTERIOR_PX[1], PHOTO_STRETCH[0], PHOTO_STRETCH[1]),
-                              out_rgb, out_a)
+            _warp_shade.blend(u, v, ok, fade, extra, rgb, alpha, dist, box, planes, pw,
+                              (MIN_COVERAGE, INTERIOR_PX[0], INTERIOR_PX[1]), out_rgb, out_a)
             return out_rgb, out_a
         tmp_rgb, tmp_a = rgb.clone(), alpha.clone()
-        _warp_shade.blend(u, v, ok, extra, rgb, alpha, dist, box, planes, pw,
-                          (MIN_COVERAGE, INTERIOR_PX[0], INTERIOR_PX[1], PHOTO_STRETCH[0], PHOTO_STRETCH[1]),
-                          tmp_rgb, tmp_a)
+        _warp_shade.blend(u, v, ok, fade, extra, rgb, alpha, dist, box, planes, pw,
+                          (MIN_COVERAGE, INTERIOR_PX[0], INTERIOR_PX[1]), tmp_rgb, tmp_a)
         out_rgb.copy_(tmp_rgb)
         out_a.copy_(tmp_a)
         return out_rgb, out_a
@@ -384,7 +374,7 @@ def shade(texture: PhotoTexture, camera: Camera, rgb: torch.Tensor, alpha: torch
     # The photo's share of the pixel: the seen splats' share of its coverage, ramped in over faint tails, faded
     # out where the photo is stretched past what it resolved.
     w = (Sb / a.clamp_min(1e-12)).clamp(0.0, 1.0) * (a * (1.0 / MIN_COVERAGE)).clamp(0.0, 1.0)
-    w = w * _stretch_fade(u, v, ok_box).float()
+    w = w * _spread_fade(_stretch_fade(u, v, ok_box))
     w = torch.where(ok_box, w, torch.zeros_like(w))
     # Bicubic (Keys): a surface moved by a fraction of a pixel keeps its detail (bilinear sampling halves the
     # high-pass energy at half-pixel offsets: 0.60 of the photo's over a jelly's clip against 0.90,
@@ -431,8 +421,6 @@ class TexturedPoser:
         z = mc[:, 2].clamp_min(1e-9)
         pc = texture.camera
         self.uv0 = torch.stack([pc.fx * mc[:, 0] / z + pc.cx, pc.fy * mc[:, 1] / z + pc.cy], 1)
-        # Footprints in the photo, in render pixels² (a resized render camera scales them).
-        self.area0 = projected_area(g0, pc) * (camera.fx * camera.fy) / (pc.fx * pc.fy)
 
     def features(self, frame: int, g: Gaussians):
         """(extra_features for ``rasterize``, one_map or None) of frame ``frame`` posed as ``g``."""
@@ -449,15 +437,7 @@ class TexturedPoser:
             r = torch.stack([ms[:, 0] / z, ms[:, 1] / z, torch.ones_like(z)], 1)
             px, py = _render_to_photo_px(self.camera, self.texture.camera, r)
             shift = self.uv0 - torch.stack([px, py], 1)
-        seen = self.seen
-        # Stretched past what the photo resolved: the splat's own colour (see STRETCH_FADE). Not at frame 0, nor
-        # for a frame that only translates the body (footprints change by perspective alone, a few %).
-        translated = one is not None and float((one[0] - torch.eye(3, dtype=one[0].dtype)).abs().max()) < 0.01
-        if frame != 0 and not translated:
-            ratio = projected_area(g, self.camera) / self.area0.clamp_min(1e-4)
-            lo, hi = STRETCH_FADE
-            seen = seen * ((hi - ratio) / (hi - lo)).clamp(0.0, 1.0)
-        return texture_features(seen.to(torch.float64), shift).to(g.means.dtype).to(g.means.device), one
+        return texture_features(self.seen.to(torch.float64), shift).to(g.means.dtype).to(g.means.device), one
 
     def _clearly_deformed(self, frame: int) -> bool:
         """Whether the particles' deformation gradients at ``frame`` differ from one another by more than 0.1 %
