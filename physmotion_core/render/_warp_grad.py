@@ -41,7 +41,8 @@ from typing import Optional
 import torch
 
 from ..errors import InputError
-from ._torch_raster import ALPHA_MAX, ALPHA_MIN, T_DONE, Projected, check_intersections, composite_tiles
+from ._torch_raster import (ALPHA_MAX, ALPHA_MIN, MAX_EXTENT, T_DONE, Projected, check_intersections,
+                            composite_tiles)
 
 log = logging.getLogger(__name__)
 
@@ -368,7 +369,89 @@ def _build():
                      gout: wp.array(dtype=float), gtable: wp.array(dtype=float)):
             tile_backward(start, count, glist, table, D, C, TX, W, H, wp.tid(), tfin, last, gout, gtable)
 
-        _built = (wp, forward, backward, count_tiles, fill_tiles)
+        MAX_EXTENT_ = wp.constant(MAX_EXTENT)
+        ALPHA_MIN_ = wp.constant(ALPHA_MIN)
+        INF = wp.constant(math.inf)
+
+        @wp.func
+        def screen(X: wp.vec3, C: wp.mat33, A: wp.mat33, b: wp.vec3, fx: float, fy: float, cx: float, cy: float,
+                   lim: wp.vec4, eps2d: float):
+            # project_gaussians' arithmetic for the splat at A X + b (camera space, OpenCV axes) with covariance
+            # A C Aᵀ: EWA with the Jacobian's x/z, y/z clamped to lim = (-x, +x, -y, +y) bounds. Returns
+            # (u, v, a, b, c, z): the 2D mean and the 2D covariance [[a, b], [b, c]] (eps2d added), and z.
+            p = A * X + b
+            z = p[2]
+            rz = 1.0 / z
+            tx = z * wp.clamp(p[0] * rz, -lim[0], lim[1])
+            ty = z * wp.clamp(p[1] * rz, -lim[2], lim[3])
+            r0 = wp.vec3(A[0, 0], A[0, 1], A[0, 2])
+            r1 = wp.vec3(A[1, 0], A[1, 1], A[1, 2])
+            r2 = wp.vec3(A[2, 0], A[2, 1], A[2, 2])
+            m0 = (fx * rz) * r0 - (fx * tx * rz * rz) * r2  # rows of J A: splat frame -> screen
+            m1 = (fy * rz) * r1 - (fy * ty * rz * rz) * r2
+            s0 = C * m0
+            s1 = C * m1
+            sa = wp.dot(m0, s0) + eps2d
+            sb = 0.5 * (wp.dot(m1, s0) + wp.dot(m0, s1))  # a non-symmetric C acts as its symmetric part
+            sc = wp.dot(m1, s1) + eps2d
+            return wp.spatial_vector(fx * p[0] * rz + cx, fy * p[1] * rz + cy, sa, sb, sc, z)
+
+        @wp.kernel(enable_backward=False)
+        def project_fwd(X: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33), opac: wp.array(dtype=float),
+                        Ab: wp.array(dtype=wp.mat33), bb: wp.array(dtype=wp.vec3), fx: float, fy: float, cx: float,
+                        cy: float, W: int, H: int, near: float, far: float, eps2d: float, lim: wp.vec4, big: float,
+                        key: wp.array(dtype=float), uv: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3),
+                        logo: wp.array(dtype=float), lo: wp.array(dtype=wp.vec2i), hi: wp.array(dtype=wp.vec2i)):
+            # One splat, culled as project_gaussians culls: key = its z when drawn, +inf when culled (behind
+            # near, past far, opacity < 1/255, a degenerate or non-finite projection, a box holding no pixel centre).
+            i = wp.tid()
+            key[i] = INF
+            o = opac[i]
+            q = screen(X[i], C[i], Ab[0], bb[0], fx, fy, cx, cy, lim, eps2d)
+            z = q[5]
+            if not (z > near and z < far and o >= ALPHA_MIN_):
+                return
+            u = q[0]
+            v = q[1]
+            a = q[2]
+            b = q[3]
+            c = q[4]
+            det = a * c - b * b
+            if not (det > 0.0 and wp.isfinite(det) and wp.isfinite(a) and wp.isfinite(c) and wp.isfinite(u)
+                    and wp.isfinite(v)):
+                return
+            extent = wp.min(wp.sqrt(2.0 * wp.log(wp.max(o, ALPHA_MIN_) / ALPHA_MIN_)), MAX_EXTENT_)
+            rx = extent * wp.sqrt(wp.max(a, 0.0))
+            ry = extent * wp.sqrt(wp.max(c, 0.0))
+            lu = wp.max(wp.ceil(wp.clamp(u - rx - 0.5 - 1.0e-3, -big, big)), 0.0)
+            hu = wp.min(wp.floor(wp.clamp(u + rx - 0.5 + 1.0e-3, -big, big)), float(W - 1))
+            lv = wp.max(wp.ceil(wp.clamp(v - ry - 0.5 - 1.0e-3, -big, big)), 0.0)
+            hv = wp.min(wp.floor(wp.clamp(v + ry - 0.5 + 1.0e-3, -big, big)), float(H - 1))
+            if lu > hu or lv > hv:
+                return
+            key[i] = z
+            uv[i] = wp.vec2(u, v)
+            inv = 1.0 / det
+            conic[i] = wp.vec3(c * inv, -b * inv, a * inv)
+            logo[i] = wp.log(o)
+            lo[i] = wp.vec2i(int(lu), int(lv))
+            hi[i] = wp.vec2i(int(hu), int(hv))
+
+        @wp.kernel
+        def project_diff(X: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33), idx: wp.array(dtype=wp.int32),
+                         Ab: wp.array(dtype=wp.mat33), bb: wp.array(dtype=wp.vec3), fx: float, fy: float, cx: float,
+                         cy: float, lim: wp.vec4, eps2d: float, uv: wp.array(dtype=wp.vec2),
+                         conic: wp.array(dtype=wp.vec3)):
+            # The drawn splat k's (input idx[k]) 2D mean and conic, as project_fwd computes them. Only its adjoint
+            # (generated by Warp) is launched, for the gradients w.r.t. the shared A and b (summed over the splats).
+            k = wp.tid()
+            i = idx[k]
+            q = screen(X[i], C[i], Ab[0], bb[0], fx, fy, cx, cy, lim, eps2d)
+            inv = 1.0 / (q[2] * q[4] - q[3] * q[3])
+            uv[k] = wp.vec2(q[0], q[1])
+            conic[k] = wp.vec3(q[4] * inv, -q[3] * inv, q[2] * inv)
+
+        _built = (wp, forward, backward, count_tiles, fill_tiles, project_fwd, project_diff)
         return _built
 
 
@@ -451,7 +534,7 @@ def tile_lists_warp(proj: Projected, width: int, height: int) -> tuple[torch.Ten
     start, count), int32, tile t's list being ``glist[start[t]:start[t] + count[t]]``. The same job as
     ``_torch_raster.tile_lists`` (whose lists are a superset: its test is per tile row) without its dozens
     of whole-array passes, float64 arithmetic and sort."""
-    wp, _, _, count_tiles, fill_tiles = _build()
+    wp, _, _, count_tiles, fill_tiles = _build()[:5]
     M = int(proj.uv.shape[0])
     TX, TY = -(-width // TILE), -(-height // TILE)
     with torch.no_grad():
@@ -473,6 +556,92 @@ def tile_lists_warp(proj: Projected, width: int, height: int) -> tuple[torch.Ten
                                                             _wp(wp, cursor, wp.int32), _wp(wp, glist, wp.int32)])
         wp.synchronize_device("cpu")
     return glist, start, count
+
+
+class _Project(torch.autograd.Function):
+    """(A (3, 3), b (3,)) -> the drawn splats' 2D means (K, 2) and conics (K, 3), in ``order``, for splats X
+    (N, 3) with covariances C (N, 3, 3) placed at A X + b with covariance A C Aᵀ. Forward: the values
+    ``project_affine`` computed; backward: the adjoint of ``project_diff``."""
+
+    @staticmethod
+    def forward(ctx, A, b, uv, conic, state):
+        ctx.state = state
+        ctx.save_for_backward(A.detach().to(torch.float32).contiguous(), b.detach().to(torch.float32).contiguous())
+        return uv.clone(), conic.clone()
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_uv, g_conic):
+        built = _build()
+        wp, project_diff = built[0], built[6]
+        A, b = ctx.saved_tensors
+        X, C, idx, consts = ctx.state
+        f32 = torch.float32
+        K = int(idx.numel())
+        g_A = torch.zeros(1, 3, 3, dtype=f32)
+        g_b = torch.zeros(1, 3, dtype=f32)
+        if K:
+            g_uv = (torch.zeros(K, 2, dtype=f32) if g_uv is None else g_uv.to(f32)).contiguous()
+            g_conic = (torch.zeros(K, 3, dtype=f32) if g_conic is None else g_conic.to(f32)).contiguous()
+            ins = [_wp(wp, X, wp.vec3), _wp(wp, C, wp.mat33), _wp(wp, idx, wp.int32), _wp(wp, A.view(1, 3, 3), wp.mat33),
+                   _wp(wp, b.view(1, 3), wp.vec3), *consts]
+            outs = [_wp(wp, torch.empty(K, 2, dtype=f32), wp.vec2), _wp(wp, torch.empty(K, 3, dtype=f32), wp.vec3)]
+            adj_ins = [None, None, None, _wp(wp, g_A, wp.mat33), _wp(wp, g_b, wp.vec3), 0.0, 0.0, 0.0, 0.0,
+                       wp.vec4(), 0.0]
+            adj_outs = [_wp(wp, g_uv, wp.vec2), _wp(wp, g_conic, wp.vec3)]
+            wp.launch(project_diff, dim=K, inputs=ins, outputs=outs, adj_inputs=adj_ins, adj_outputs=adj_outs,
+                      adjoint=True, device="cpu")
+            wp.synchronize_device("cpu")
+        return g_A[0], g_b[0], None, None, None
+
+
+def project_affine(X: torch.Tensor, C: torch.Tensor, opacities: torch.Tensor, A: torch.Tensor, b: torch.Tensor, *,
+                   fx: float, fy: float, cx: float, cy: float, width: int, height: int, near: float, far: float,
+                   eps2d: float) -> Optional[Projected]:
+    """``project_gaussians`` of splats X (N, 3) with covariances C (N, 3, 3) under one affine map into OpenCV
+    camera space, x -> A x + b (covariance A C Aᵀ), with gradients w.r.t. A (3, 3) and b (3,) only (the fit's
+    case: the splats are fixed, the pose and scale are fitted), compiled: one loop culls and projects (the
+    same culling, formulas and front-to-back order as ``project_gaussians``, in float32) and Warp's adjoint
+    of the same formulas sums the gradient over the drawn splats, where the tensor path would place every
+    splat (N 3x3 products) and go through some forty autograd nodes over all of them. None when Warp is
+    not available (the caller then takes the tensor path)."""
+    if not available():
+        return None
+    built = _build()
+    wp, project_fwd = built[0], built[5]
+    f32 = torch.float32
+    N = int(X.shape[0])
+    Xc = X.detach().to(f32).contiguous()
+    Cc = C.detach().to(f32).contiguous()
+    with torch.no_grad():
+        A_ = A.detach().to(f32).contiguous().view(1, 3, 3)
+        b_ = b.detach().to(f32).contiguous().view(1, 3)
+        key = torch.empty(N, dtype=f32)
+        uv = torch.zeros(N, 2, dtype=f32)
+        conic = torch.zeros(N, 3, dtype=f32)
+        logo = torch.zeros(N, dtype=f32)
+        lo = torch.zeros(N, 2, dtype=torch.int32)
+        hi = torch.zeros(N, 2, dtype=torch.int32)
+        tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
+        lim = wp.vec4(cx / fx + 0.3 * tan_x, (width - cx) / fx + 0.3 * tan_x, cy / fy + 0.3 * tan_y,
+                      (height - cy) / fy + 0.3 * tan_y)
+        consts = [float(fx), float(fy), float(cx), float(cy), lim, float(eps2d)]
+        if N:
+            wp.launch(project_fwd, dim=N, device="cpu",
+                      inputs=[_wp(wp, Xc, wp.vec3), _wp(wp, Cc, wp.mat33), _wp(wp, opacities.detach().to(f32).contiguous(), float),
+                              _wp(wp, A_, wp.mat33), _wp(wp, b_, wp.vec3), float(fx), float(fy), float(cx), float(cy),
+                              int(width), int(height), float(near), float(far), float(eps2d), lim,
+                              float(max(width, height) * 4 + 16), _wp(wp, key, float), _wp(wp, uv, wp.vec2),
+                              _wp(wp, conic, wp.vec3), _wp(wp, logo, float), _wp(wp, lo, wp.vec2i),
+                              _wp(wp, hi, wp.vec2i)])
+            wp.synchronize_device("cpu")
+        ok = (key < math.inf).nonzero().squeeze(1)
+        order = ok.index_select(0, torch.argsort(key.index_select(0, ok), stable=True))  # front to back
+        uv_k, conic_k = uv.index_select(0, order), conic.index_select(0, order)
+    if A.requires_grad or b.requires_grad:
+        uv_k, conic_k = _Project.apply(A, b, uv_k, conic_k, (Xc, Cc, order.to(torch.int32), consts))
+    return Projected(index=order, uv=uv_k, conic=conic_k, log_opacity=logo.index_select(0, order),
+                     pix_lo=lo.index_select(0, order).long(), pix_hi=hi.index_select(0, order).long())
 
 
 def usable(*tensors: torch.Tensor) -> bool:
@@ -508,4 +677,4 @@ def composite(proj: Projected, features: torch.Tensor, width: int, height: int, 
     return composite_tiles(proj, features, width, height, cull=cull, **(fallback or {}))
 
 
-__all__ = ["MAX_FEATURES", "TILE", "available", "composite", "usable"]
+__all__ = ["MAX_FEATURES", "TILE", "available", "composite", "project_affine", "usable"]
