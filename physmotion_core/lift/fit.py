@@ -425,10 +425,9 @@ class _Params:
 def _render(prep: _Prep, p: _Params, lv: _Level, cx: float, cy: float, colors: bool = True):
     from ..render.rasterize import rasterize
 
-    if torch.is_grad_enabled() and p.omega.requires_grad:
-        out = _render_grad(prep, p, lv, cx, cy, colors)
-        if out is not None:
-            return out
+    out = _render_compiled(prep, p, lv, cx, cy, colors)
+    if out is not None:
+        return out
     means, cov = p.place(prep, cx, cy)
     f = torch.exp(p.log_f)
     n = means.shape[0]
@@ -461,13 +460,15 @@ def _render(prep: _Prep, p: _Params, lv: _Level, cx: float, cy: float, colors: b
     return rasterize(g, cam, colors=rgb)
 
 
-def _render_grad(prep: _Prep, p: _Params, lv: _Level, cx: float, cy: float, colors: bool = True):
-    """A refinement step's render (colour and alpha, no depth) with gradients w.r.t. the parameters, compiled
-    (render/_warp_grad.py): the object's placement is one affine map of the normalised splats into the
-    camera, x -> A x + b, so the projection takes A and b (12 numbers) and returns their gradient summed over
-    the drawn splats, and the compositing's backward pass is hand-written; the tensor path placed every splat,
-    projected them through some forty autograd nodes and composited in dense tensor blocks. The same image
-    and gradients to float32 round-off (tests/test_fit.py). None where that path is not available."""
+def _render_compiled(prep: _Prep, p: _Params, lv: _Level, cx: float, cy: float, colors: bool = True):
+    """Every render of the fit (colour and alpha, no depth), compiled (render/_warp_grad.py), with gradients
+    w.r.t. the parameters where they are asked: the object's placement is one affine map of the normalised
+    splats into the camera, x -> A x + b, so the projection takes A and b (12 numbers) and returns their
+    gradient summed over the drawn splats, and the compositing's backward pass is hand-written. The tensor
+    path placed every splat (N 3x3 products), projected them through some forty autograd nodes and composited
+    in dense tensor blocks; the renders without gradients (ranking, alignment, the final IoU) went through
+    ``rasterize`` after the same placement. The same images and gradients to float32 round-off
+    (tests/test_fit.py). None where the compiled path is not available (then ``_render`` takes the others)."""
     from ..render import _warp_grad
     from ..render.rasterize import RenderOutput
 
