@@ -1,34 +1,39 @@
-"""Differentiable Gaussian-splat compositing compiled with Warp, for the CPU renders that need gradients (the
-refinement steps of ``lift/fit.py``).
+"""Differentiable Gaussian-splat rendering compiled with Warp, for the CPU renders of the photo fit
+(``lift/fit.py``), which need gradients w.r.t. the object's pose, size and the focal.
 
-``composite_tiles`` (the PyTorch path) evaluates every (splat, pixel) entry of a tile's list in dense blocks
-and, with gradients, goes through about thirty whole-block tensor passes per chunk in its backward pass
-(``_BlendChunk``); on the fit's small, deep renders that backward pass was most of a refinement step. Here two
-compiled loops do the same job one pixel at a time:
+The tensor path (``_torch_raster``) places and projects every splat through some forty autograd nodes and
+composites dense [tiles, splats, pixels] blocks, with about thirty whole-block passes per chunk in its backward
+pass (``_BlendChunk``); on the fit's small, deep renders that was most of a refinement step. Here:
 
-* forward: each pixel walks its tile's depth-ordered list (``_torch_raster.tile_lists``, the same lists as
-  ``composite_tiles``), skips entries below alpha 1/255 before taking an exponential, accumulates
-  Σ w_k f_k and Σ w_k, and stops at the splat that would bring its transmittance to ``T_DONE`` or below
-  (exclusive, the rule of ``composite_tiles``). It keeps, per pixel, the final transmittance and where in the
-  list it stopped;
-* backward: each pixel walks its list from where it stopped back to the front, recovering the transmittance
-  before each splat by division (T_{k-1} = T_k / (1 - alpha_k), the 3DGS backward kernel's way), with the
-  running sum S of the later splats' contributions, so that
+* ``project_affine``: splats X with covariances C under one affine map into the camera, x -> A x + b
+  (covariance A C Aᵀ), which is what the fit's placement is. One compiled loop culls, projects and keys the
+  splats with ``project_gaussians``' arithmetic (``screen``); the gradient w.r.t. A and b (12 numbers) is
+  Warp's generated adjoint of the same formulas (``project_diff``), summed over the drawn splats;
+* ``tile_lists_warp``: each 4x4-px tile's depth-ordered list of the splats whose ellipse at the lowest alpha
+  evaluated reaches one of its pixel centres (an exact ellipse-rectangle test), by a compiled count and a
+  serial fill in depth order (no sort);
+* ``composite``: two C++ loops over a tile (Warp native functions, the tile's pixels the inner loop, which the
+  compiler vectorises). Forward: the tile's list front to back; entries with alpha <= 1/255 skipped; every
+  pixel stops at the splat that would bring its transmittance to ``T_DONE`` or below (exclusive, the rule of
+  ``composite_tiles``), and keeps its final transmittance and how far along the list it counted. Backward:
+  the list from there back to the front, the transmittance before each splat recovered by division
+  (T_{k-1} = T_k / (1 - alpha_k), as 3DGS's backward kernel does), with the running sum S of the later
+  splats' contributions, so that
 
       dL/dalpha_k = T_{k-1} v_k - S_k / (1 - alpha_k),   v_k = f_k · dL/dF + dL/dA,  S_k = Σ_{j>k} w_j v_j,
 
-  chained to the exponent (d alpha / d power = alpha below the 0.99 clamp, 0 at it) and from there to the
-  2D mean, the conic and the log-opacity; dL/df_k = w_k dL/dF. The per-splat gradients are sums over pixels
-  (a serial loop on the CPU, so plain adds).
+  chained to the exponent (d alpha / d power = alpha below the 0.99 clamp, 0 at it) and on to the 2D mean,
+  the conic and the log-opacity; dL/df_k = w_k dL/dF. Each splat's gradients are summed over the tile's
+  pixels, then added to its totals (a serial loop on the CPU, so plain adds).
 
-Image-formation model, culling and termination are those of ``composite_tiles``: alpha = min(0.99,
-o exp(-½ dᵀ conic d)) at the pixel centre (x + 0.5, y + 0.5), entries with alpha <= 1/255 skipped, w_k =
-alpha_k T_{k-1}. Computed in float32 (float64 inputs are rendered by ``composite_tiles``, exactly), so values
-and gradients differ from the float64 tensor path by float32 round-off (and where round-off moves an entry
-across the 1/255 threshold or a pixel across the termination test).
+Image-formation model, culling and termination are those of ``project_gaussians`` and ``composite_tiles``:
+alpha = min(0.99, o exp(-½ dᵀ conic d)) at the pixel centre (x + 0.5, y + 0.5), w_k = alpha_k T_{k-1}.
+Computed in float32 (a polynomial exp within a float32 ulp), so values and gradients differ from the float64
+tensor path by float32 round-off, and where round-off moves an entry across the 1/255 threshold or a pixel
+across the termination test.
 
-When Warp cannot be imported or built (or a launch fails) ``composite`` falls back to ``composite_tiles``
-for the rest of the process, with one warning.
+Inputs that are not CPU float32 take the tensor path; when Warp cannot be imported or built (or a launch
+fails) this module is off for the rest of the process, with one warning, and the tensor path renders.
 """
 
 # No "from __future__ import annotations": Warp reads the kernels' annotations, which name the local `wp`.
@@ -46,8 +51,8 @@ from ._torch_raster import (ALPHA_MAX, ALPHA_MIN, MAX_EXTENT, T_DONE, Projected,
 
 log = logging.getLogger(__name__)
 
-#: Tile side (px) of the lists the pixels walk, compiled into the loops (Warp keys its cache on this file's text,
-#: so change it here, not at run time). Every pixel of a tile walks the tile's whole list: smaller tiles mean
+#: Tile side (px) of the lists the pixels walk, compiled into the loops when they are first built (changing it
+#: later in a process has no effect on them). Every pixel of a tile walks the tile's whole list: smaller tiles mean
 #: shorter walks but more (splat, tile) entries. The fit's splats are a few pixels across; measured on the bread
 #: lift's 12 610 splats at 160x100 (one core, CPU time per launch): 8 px: forward 2.2 ms, backward 7.1 ms;
 #: 4 px: 1.2 ms and 3.1 ms (2.3x fewer (splat, pixel) evaluations for 1.7x more entries).
@@ -657,8 +662,8 @@ def composite(proj: Projected, features: torch.Tensor, width: int, height: int, 
     """``composite_tiles`` with gradients, compiled: (H, W, C + 1), the composited features Σ f w then alpha Σ w,
     of the projected splats ``proj`` (front to back) with features (M, C) in the same order, differentiable
     w.r.t. ``proj.uv``, ``proj.conic``, ``proj.log_opacity`` and ``features``. Inputs that are not CPU float32,
-    more than ``MAX_FEATURES`` features, or no working Warp go to ``composite_tiles`` (with ``fallback`` as its
-    tiling options)."""
+    more than ``MAX_FEATURES`` features, or no working Warp go to ``composite_tiles`` (with ``cull`` and
+    ``fallback`` as its tiling options; the compiled path's lists are always culled to the splats' ellipses)."""
     ins = (proj.uv, proj.conic, proj.log_opacity, features)
     if features.shape[1] <= MAX_FEATURES and usable(*ins):
         try:
