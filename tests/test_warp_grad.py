@@ -151,3 +151,40 @@ def test_tile_lists_hold_every_splat_that_reaches_a_tile_in_depth_order():
         need = hit[:, t].nonzero().squeeze(1)
         assert bool(torch.isin(need, lst).all()), t
     assert int(count.sum()) <= tile_lists(p32, ts, W, H)[3]
+
+
+def test_affine_projection_matches_the_tensor_projection_and_its_gradient():
+    """``project_affine`` (splats X, C under x -> A x + b) against ``project_gaussians`` of the placed splats in
+    float64: the same splats drawn in the same order (some behind the camera, some too faint, some off the
+    image are culled), 2D means and conics to float32 round-off, and the gradients of a loss w.r.t. A and b
+    equal to those that autograd gives through the placement and the tensor projection."""
+    cam = camera(61, 45)
+    g = random_gaussians(400, seed=5, spread=1.6, size=0.07, opacity=(0.001, 0.9), dtype=torch.float64)
+    X, C = g.means, g.covariance()
+    gen = torch.Generator().manual_seed(3)
+    A0 = torch.linalg.qr(torch.randn(3, 3, generator=gen, dtype=torch.float64))[0] * 0.8
+    b0 = torch.tensor([0.1, -0.2, 3.0], dtype=torch.float64)
+    wu = torch.randn(400, 2, generator=gen, dtype=torch.float64)
+    wc = torch.randn(400, 3, generator=gen, dtype=torch.float64)
+    kw = dict(fx=cam.fx, fy=cam.fy, cx=cam.cx, cy=cam.cy, width=61, height=45, near=cam.near, far=cam.far,
+              eps2d=EPS2D)
+    res = []
+    for compiled in (True, False):
+        A, b = A0.clone().requires_grad_(), b0.clone().requires_grad_()
+        if compiled:
+            proj = WG.project_affine(X.float(), C.float(), g.opacities.float(), A, b, **kw)
+        else:
+            proj, _ = project_gaussians(X @ A.T + b, A @ C @ A.T, g.opacities, torch.eye(4, dtype=torch.float64),
+                                        cam.fx, cam.fy, cam.cx, cam.cy, 61, 45, cam.near, cam.far, EPS2D)
+        K = len(proj.index)
+        loss = (proj.uv.double() * wu[:K]).sum() + (proj.conic.double() * wc[:K]).sum()
+        loss.backward()
+        res.append((proj, A.grad.clone(), b.grad.clone()))
+    (p1, gA1, gb1), (p2, gA2, gb2) = res
+    assert torch.equal(p1.index, p2.index) and 50 < len(p2.index) < 380  # some culled, most drawn
+    assert torch.equal(p1.pix_lo, p2.pix_lo) and torch.equal(p1.pix_hi, p2.pix_hi)
+    torch.testing.assert_close(p1.uv.double(), p2.uv, atol=1e-4, rtol=1e-5)
+    torch.testing.assert_close(p1.conic.double(), p2.conic, atol=1e-6, rtol=1e-4)
+    torch.testing.assert_close(p1.log_opacity.double(), p2.log_opacity, atol=1e-6, rtol=1e-6)
+    for a, b in ((gA1, gA2), (gb1, gb2)):
+        assert float((a - b).abs().max()) <= 1e-4 * float(b.abs().max()), (a, b)

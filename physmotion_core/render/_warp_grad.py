@@ -1,34 +1,39 @@
-"""Differentiable Gaussian-splat compositing compiled with Warp, for the CPU renders that need gradients (the
-refinement steps of ``lift/fit.py``).
+"""Differentiable Gaussian-splat rendering compiled with Warp, for the CPU renders of the photo fit
+(``lift/fit.py``), which need gradients w.r.t. the object's pose, size and the focal.
 
-``composite_tiles`` (the PyTorch path) evaluates every (splat, pixel) entry of a tile's list in dense blocks
-and, with gradients, goes through about thirty whole-block tensor passes per chunk in its backward pass
-(``_BlendChunk``); on the fit's small, deep renders that backward pass was most of a refinement step. Here two
-compiled loops do the same job one pixel at a time:
+The tensor path (``_torch_raster``) places and projects every splat through some forty autograd nodes and
+composites dense [tiles, splats, pixels] blocks, with about thirty whole-block passes per chunk in its backward
+pass (``_BlendChunk``); on the fit's small, deep renders that was most of a refinement step. Here:
 
-* forward: each pixel walks its tile's depth-ordered list (``_torch_raster.tile_lists``, the same lists as
-  ``composite_tiles``), skips entries below alpha 1/255 before taking an exponential, accumulates
-  Σ w_k f_k and Σ w_k, and stops at the splat that would bring its transmittance to ``T_DONE`` or below
-  (exclusive, the rule of ``composite_tiles``). It keeps, per pixel, the final transmittance and where in the
-  list it stopped;
-* backward: each pixel walks its list from where it stopped back to the front, recovering the transmittance
-  before each splat by division (T_{k-1} = T_k / (1 - alpha_k), the 3DGS backward kernel's way), with the
-  running sum S of the later splats' contributions, so that
+* ``project_affine``: splats X with covariances C under one affine map into the camera, x -> A x + b
+  (covariance A C Aᵀ), which is what the fit's placement is. One compiled loop culls, projects and keys the
+  splats with ``project_gaussians``' arithmetic (``screen``); the gradient w.r.t. A and b (12 numbers) is
+  Warp's generated adjoint of the same formulas (``project_diff``), summed over the drawn splats;
+* ``tile_lists_warp``: each 4x4-px tile's depth-ordered list of the splats whose ellipse at the lowest alpha
+  evaluated reaches one of its pixel centres (an exact ellipse-rectangle test), by a compiled count and a
+  serial fill in depth order (no sort);
+* ``composite``: two C++ loops over a tile (Warp native functions, the tile's pixels the inner loop, which the
+  compiler vectorises). Forward: the tile's list front to back; entries with alpha <= 1/255 skipped; every
+  pixel stops at the splat that would bring its transmittance to ``T_DONE`` or below (exclusive, the rule of
+  ``composite_tiles``), and keeps its final transmittance and how far along the list it counted. Backward:
+  the list from there back to the front, the transmittance before each splat recovered by division
+  (T_{k-1} = T_k / (1 - alpha_k), as 3DGS's backward kernel does), with the running sum S of the later
+  splats' contributions, so that
 
       dL/dalpha_k = T_{k-1} v_k - S_k / (1 - alpha_k),   v_k = f_k · dL/dF + dL/dA,  S_k = Σ_{j>k} w_j v_j,
 
-  chained to the exponent (d alpha / d power = alpha below the 0.99 clamp, 0 at it) and from there to the
-  2D mean, the conic and the log-opacity; dL/df_k = w_k dL/dF. The per-splat gradients are sums over pixels
-  (a serial loop on the CPU, so plain adds).
+  chained to the exponent (d alpha / d power = alpha below the 0.99 clamp, 0 at it) and on to the 2D mean,
+  the conic and the log-opacity; dL/df_k = w_k dL/dF. Each splat's gradients are summed over the tile's
+  pixels, then added to its totals (a serial loop on the CPU, so plain adds).
 
-Image-formation model, culling and termination are those of ``composite_tiles``: alpha = min(0.99,
-o exp(-½ dᵀ conic d)) at the pixel centre (x + 0.5, y + 0.5), entries with alpha <= 1/255 skipped, w_k =
-alpha_k T_{k-1}. Computed in float32 (float64 inputs are rendered by ``composite_tiles``, exactly), so values
-and gradients differ from the float64 tensor path by float32 round-off (and where round-off moves an entry
-across the 1/255 threshold or a pixel across the termination test).
+Image-formation model, culling and termination are those of ``project_gaussians`` and ``composite_tiles``:
+alpha = min(0.99, o exp(-½ dᵀ conic d)) at the pixel centre (x + 0.5, y + 0.5), w_k = alpha_k T_{k-1}.
+Computed in float32 (a polynomial exp within a float32 ulp), so values and gradients differ from the float64
+tensor path by float32 round-off, and where round-off moves an entry across the 1/255 threshold or a pixel
+across the termination test.
 
-When Warp cannot be imported or built (or a launch fails) ``composite`` falls back to ``composite_tiles``
-for the rest of the process, with one warning.
+Inputs that are not CPU float32 take the tensor path; when Warp cannot be imported or built (or a launch
+fails) this module is off for the rest of the process, with one warning, and the tensor path renders.
 """
 
 # No "from __future__ import annotations": Warp reads the kernels' annotations, which name the local `wp`.
@@ -41,12 +46,13 @@ from typing import Optional
 import torch
 
 from ..errors import InputError
-from ._torch_raster import ALPHA_MAX, ALPHA_MIN, T_DONE, Projected, check_intersections, composite_tiles
+from ._torch_raster import (ALPHA_MAX, ALPHA_MIN, MAX_EXTENT, T_DONE, Projected, check_intersections,
+                            composite_tiles)
 
 log = logging.getLogger(__name__)
 
-#: Tile side (px) of the lists the pixels walk, compiled into the loops (Warp keys its cache on this file's text,
-#: so change it here, not at run time). Every pixel of a tile walks the tile's whole list: smaller tiles mean
+#: Tile side (px) of the lists the pixels walk, compiled into the loops when they are first built (changing it
+#: later in a process has no effect on them). Every pixel of a tile walks the tile's whole list: smaller tiles mean
 #: shorter walks but more (splat, tile) entries. The fit's splats are a few pixels across; measured on the bread
 #: lift's 12 610 splats at 160x100 (one core, CPU time per launch): 8 px: forward 2.2 ms, backward 7.1 ms;
 #: 4 px: 1.2 ms and 3.1 ms (2.3x fewer (splat, pixel) evaluations for 1.7x more entries).
@@ -368,7 +374,89 @@ def _build():
                      gout: wp.array(dtype=float), gtable: wp.array(dtype=float)):
             tile_backward(start, count, glist, table, D, C, TX, W, H, wp.tid(), tfin, last, gout, gtable)
 
-        _built = (wp, forward, backward, count_tiles, fill_tiles)
+        MAX_EXTENT_ = wp.constant(MAX_EXTENT)
+        ALPHA_MIN_ = wp.constant(ALPHA_MIN)
+        INF = wp.constant(math.inf)
+
+        @wp.func
+        def screen(X: wp.vec3, C: wp.mat33, A: wp.mat33, b: wp.vec3, fx: float, fy: float, cx: float, cy: float,
+                   lim: wp.vec4, eps2d: float):
+            # project_gaussians' arithmetic for the splat at A X + b (camera space, OpenCV axes) with covariance
+            # A C Aᵀ: EWA with the Jacobian's x/z, y/z clamped to lim = (-x, +x, -y, +y) bounds. Returns
+            # (u, v, a, b, c, z): the 2D mean and the 2D covariance [[a, b], [b, c]] (eps2d added), and z.
+            p = A * X + b
+            z = p[2]
+            rz = 1.0 / z
+            tx = z * wp.clamp(p[0] * rz, -lim[0], lim[1])
+            ty = z * wp.clamp(p[1] * rz, -lim[2], lim[3])
+            r0 = wp.vec3(A[0, 0], A[0, 1], A[0, 2])
+            r1 = wp.vec3(A[1, 0], A[1, 1], A[1, 2])
+            r2 = wp.vec3(A[2, 0], A[2, 1], A[2, 2])
+            m0 = (fx * rz) * r0 - (fx * tx * rz * rz) * r2  # rows of J A: splat frame -> screen
+            m1 = (fy * rz) * r1 - (fy * ty * rz * rz) * r2
+            s0 = C * m0
+            s1 = C * m1
+            sa = wp.dot(m0, s0) + eps2d
+            sb = 0.5 * (wp.dot(m1, s0) + wp.dot(m0, s1))  # a non-symmetric C acts as its symmetric part
+            sc = wp.dot(m1, s1) + eps2d
+            return wp.spatial_vector(fx * p[0] * rz + cx, fy * p[1] * rz + cy, sa, sb, sc, z)
+
+        @wp.kernel(enable_backward=False)
+        def project_fwd(X: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33), opac: wp.array(dtype=float),
+                        Ab: wp.array(dtype=wp.mat33), bb: wp.array(dtype=wp.vec3), fx: float, fy: float, cx: float,
+                        cy: float, W: int, H: int, near: float, far: float, eps2d: float, lim: wp.vec4, big: float,
+                        key: wp.array(dtype=float), uv: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3),
+                        logo: wp.array(dtype=float), lo: wp.array(dtype=wp.vec2i), hi: wp.array(dtype=wp.vec2i)):
+            # One splat, culled as project_gaussians culls: key = its z when drawn, +inf when culled (behind
+            # near, past far, opacity < 1/255, a degenerate or non-finite projection, a box holding no pixel centre).
+            i = wp.tid()
+            key[i] = INF
+            o = opac[i]
+            q = screen(X[i], C[i], Ab[0], bb[0], fx, fy, cx, cy, lim, eps2d)
+            z = q[5]
+            if not (z > near and z < far and o >= ALPHA_MIN_):
+                return
+            u = q[0]
+            v = q[1]
+            a = q[2]
+            b = q[3]
+            c = q[4]
+            det = a * c - b * b
+            if not (det > 0.0 and wp.isfinite(det) and wp.isfinite(a) and wp.isfinite(c) and wp.isfinite(u)
+                    and wp.isfinite(v)):
+                return
+            extent = wp.min(wp.sqrt(2.0 * wp.log(wp.max(o, ALPHA_MIN_) / ALPHA_MIN_)), MAX_EXTENT_)
+            rx = extent * wp.sqrt(wp.max(a, 0.0))
+            ry = extent * wp.sqrt(wp.max(c, 0.0))
+            lu = wp.max(wp.ceil(wp.clamp(u - rx - 0.5 - 1.0e-3, -big, big)), 0.0)
+            hu = wp.min(wp.floor(wp.clamp(u + rx - 0.5 + 1.0e-3, -big, big)), float(W - 1))
+            lv = wp.max(wp.ceil(wp.clamp(v - ry - 0.5 - 1.0e-3, -big, big)), 0.0)
+            hv = wp.min(wp.floor(wp.clamp(v + ry - 0.5 + 1.0e-3, -big, big)), float(H - 1))
+            if lu > hu or lv > hv:
+                return
+            key[i] = z
+            uv[i] = wp.vec2(u, v)
+            inv = 1.0 / det
+            conic[i] = wp.vec3(c * inv, -b * inv, a * inv)
+            logo[i] = wp.log(o)
+            lo[i] = wp.vec2i(int(lu), int(lv))
+            hi[i] = wp.vec2i(int(hu), int(hv))
+
+        @wp.kernel
+        def project_diff(X: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33), idx: wp.array(dtype=wp.int32),
+                         Ab: wp.array(dtype=wp.mat33), bb: wp.array(dtype=wp.vec3), fx: float, fy: float, cx: float,
+                         cy: float, lim: wp.vec4, eps2d: float, uv: wp.array(dtype=wp.vec2),
+                         conic: wp.array(dtype=wp.vec3)):
+            # The drawn splat k's (input idx[k]) 2D mean and conic, as project_fwd computes them. Only its adjoint
+            # (generated by Warp) is launched, for the gradients w.r.t. the shared A and b (summed over the splats).
+            k = wp.tid()
+            i = idx[k]
+            q = screen(X[i], C[i], Ab[0], bb[0], fx, fy, cx, cy, lim, eps2d)
+            inv = 1.0 / (q[2] * q[4] - q[3] * q[3])
+            uv[k] = wp.vec2(q[0], q[1])
+            conic[k] = wp.vec3(q[4] * inv, -q[3] * inv, q[2] * inv)
+
+        _built = (wp, forward, backward, count_tiles, fill_tiles, project_fwd, project_diff)
         return _built
 
 
@@ -451,7 +539,7 @@ def tile_lists_warp(proj: Projected, width: int, height: int) -> tuple[torch.Ten
     start, count), int32, tile t's list being ``glist[start[t]:start[t] + count[t]]``. The same job as
     ``_torch_raster.tile_lists`` (whose lists are a superset: its test is per tile row) without its dozens
     of whole-array passes, float64 arithmetic and sort."""
-    wp, _, _, count_tiles, fill_tiles = _build()
+    wp, _, _, count_tiles, fill_tiles = _build()[:5]
     M = int(proj.uv.shape[0])
     TX, TY = -(-width // TILE), -(-height // TILE)
     with torch.no_grad():
@@ -475,6 +563,92 @@ def tile_lists_warp(proj: Projected, width: int, height: int) -> tuple[torch.Ten
     return glist, start, count
 
 
+class _Project(torch.autograd.Function):
+    """(A (3, 3), b (3,)) -> the drawn splats' 2D means (K, 2) and conics (K, 3), in ``order``, for splats X
+    (N, 3) with covariances C (N, 3, 3) placed at A X + b with covariance A C Aᵀ. Forward: the values
+    ``project_affine`` computed; backward: the adjoint of ``project_diff``."""
+
+    @staticmethod
+    def forward(ctx, A, b, uv, conic, state):
+        ctx.state = state
+        ctx.save_for_backward(A.detach().to(torch.float32).contiguous(), b.detach().to(torch.float32).contiguous())
+        return uv.clone(), conic.clone()
+
+    @staticmethod
+    @torch.autograd.function.once_differentiable
+    def backward(ctx, g_uv, g_conic):
+        built = _build()
+        wp, project_diff = built[0], built[6]
+        A, b = ctx.saved_tensors
+        X, C, idx, consts = ctx.state
+        f32 = torch.float32
+        K = int(idx.numel())
+        g_A = torch.zeros(1, 3, 3, dtype=f32)
+        g_b = torch.zeros(1, 3, dtype=f32)
+        if K:
+            g_uv = (torch.zeros(K, 2, dtype=f32) if g_uv is None else g_uv.to(f32)).contiguous()
+            g_conic = (torch.zeros(K, 3, dtype=f32) if g_conic is None else g_conic.to(f32)).contiguous()
+            ins = [_wp(wp, X, wp.vec3), _wp(wp, C, wp.mat33), _wp(wp, idx, wp.int32), _wp(wp, A.view(1, 3, 3), wp.mat33),
+                   _wp(wp, b.view(1, 3), wp.vec3), *consts]
+            outs = [_wp(wp, torch.empty(K, 2, dtype=f32), wp.vec2), _wp(wp, torch.empty(K, 3, dtype=f32), wp.vec3)]
+            adj_ins = [None, None, None, _wp(wp, g_A, wp.mat33), _wp(wp, g_b, wp.vec3), 0.0, 0.0, 0.0, 0.0,
+                       wp.vec4(), 0.0]
+            adj_outs = [_wp(wp, g_uv, wp.vec2), _wp(wp, g_conic, wp.vec3)]
+            wp.launch(project_diff, dim=K, inputs=ins, outputs=outs, adj_inputs=adj_ins, adj_outputs=adj_outs,
+                      adjoint=True, device="cpu")
+            wp.synchronize_device("cpu")
+        return g_A[0], g_b[0], None, None, None
+
+
+def project_affine(X: torch.Tensor, C: torch.Tensor, opacities: torch.Tensor, A: torch.Tensor, b: torch.Tensor, *,
+                   fx: float, fy: float, cx: float, cy: float, width: int, height: int, near: float, far: float,
+                   eps2d: float) -> Optional[Projected]:
+    """``project_gaussians`` of splats X (N, 3) with covariances C (N, 3, 3) under one affine map into OpenCV
+    camera space, x -> A x + b (covariance A C Aᵀ), with gradients w.r.t. A (3, 3) and b (3,) only (the fit's
+    case: the splats are fixed, the pose and scale are fitted), compiled: one loop culls and projects (the
+    same culling, formulas and front-to-back order as ``project_gaussians``, in float32) and Warp's adjoint
+    of the same formulas sums the gradient over the drawn splats, where the tensor path would place every
+    splat (N 3x3 products) and go through some forty autograd nodes over all of them. None when Warp is
+    not available (the caller then takes the tensor path)."""
+    if not available():
+        return None
+    built = _build()
+    wp, project_fwd = built[0], built[5]
+    f32 = torch.float32
+    N = int(X.shape[0])
+    Xc = X.detach().to(f32).contiguous()
+    Cc = C.detach().to(f32).contiguous()
+    with torch.no_grad():
+        A_ = A.detach().to(f32).contiguous().view(1, 3, 3)
+        b_ = b.detach().to(f32).contiguous().view(1, 3)
+        key = torch.empty(N, dtype=f32)
+        uv = torch.zeros(N, 2, dtype=f32)
+        conic = torch.zeros(N, 3, dtype=f32)
+        logo = torch.zeros(N, dtype=f32)
+        lo = torch.zeros(N, 2, dtype=torch.int32)
+        hi = torch.zeros(N, 2, dtype=torch.int32)
+        tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
+        lim = wp.vec4(cx / fx + 0.3 * tan_x, (width - cx) / fx + 0.3 * tan_x, cy / fy + 0.3 * tan_y,
+                      (height - cy) / fy + 0.3 * tan_y)
+        consts = [float(fx), float(fy), float(cx), float(cy), lim, float(eps2d)]
+        if N:
+            wp.launch(project_fwd, dim=N, device="cpu",
+                      inputs=[_wp(wp, Xc, wp.vec3), _wp(wp, Cc, wp.mat33), _wp(wp, opacities.detach().to(f32).contiguous(), float),
+                              _wp(wp, A_, wp.mat33), _wp(wp, b_, wp.vec3), float(fx), float(fy), float(cx), float(cy),
+                              int(width), int(height), float(near), float(far), float(eps2d), lim,
+                              float(max(width, height) * 4 + 16), _wp(wp, key, float), _wp(wp, uv, wp.vec2),
+                              _wp(wp, conic, wp.vec3), _wp(wp, logo, float), _wp(wp, lo, wp.vec2i),
+                              _wp(wp, hi, wp.vec2i)])
+            wp.synchronize_device("cpu")
+        ok = (key < math.inf).nonzero().squeeze(1)
+        order = ok.index_select(0, torch.argsort(key.index_select(0, ok), stable=True))  # front to back
+        uv_k, conic_k = uv.index_select(0, order), conic.index_select(0, order)
+    if A.requires_grad or b.requires_grad:
+        uv_k, conic_k = _Project.apply(A, b, uv_k, conic_k, (Xc, Cc, order.to(torch.int32), consts))
+    return Projected(index=order, uv=uv_k, conic=conic_k, log_opacity=logo.index_select(0, order),
+                     pix_lo=lo.index_select(0, order).long(), pix_hi=hi.index_select(0, order).long())
+
+
 def usable(*tensors: torch.Tensor) -> bool:
     """Whether this path takes these inputs: CPU float32 tensors and Warp available (float64 keeps the exact
     tensor path)."""
@@ -488,8 +662,8 @@ def composite(proj: Projected, features: torch.Tensor, width: int, height: int, 
     """``composite_tiles`` with gradients, compiled: (H, W, C + 1), the composited features Σ f w then alpha Σ w,
     of the projected splats ``proj`` (front to back) with features (M, C) in the same order, differentiable
     w.r.t. ``proj.uv``, ``proj.conic``, ``proj.log_opacity`` and ``features``. Inputs that are not CPU float32,
-    more than ``MAX_FEATURES`` features, or no working Warp go to ``composite_tiles`` (with ``fallback`` as its
-    tiling options)."""
+    more than ``MAX_FEATURES`` features, or no working Warp go to ``composite_tiles`` (with ``cull`` and
+    ``fallback`` as its tiling options; the compiled path's lists are always culled to the splats' ellipses)."""
     ins = (proj.uv, proj.conic, proj.log_opacity, features)
     if features.shape[1] <= MAX_FEATURES and usable(*ins):
         try:
@@ -508,4 +682,4 @@ def composite(proj: Projected, features: torch.Tensor, width: int, height: int, 
     return composite_tiles(proj, features, width, height, cull=cull, **(fallback or {}))
 
 
-__all__ = ["MAX_FEATURES", "TILE", "available", "composite", "usable"]
+__all__ = ["MAX_FEATURES", "TILE", "available", "composite", "project_affine", "usable"]
