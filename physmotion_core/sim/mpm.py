@@ -397,6 +397,12 @@ class MPMSolver:
         self.flags = wp.array(flags, dtype=int)
         self.anchor_v = wp.zeros(n, dtype=wp.vec3)
         self.field = wp.array(self.field_np, dtype=int)
+        # Each field's rest density (its material's mass over volume), inverted: update_node_fields'
+        # fill check turns a field's nodal mass into the volume of material it stands for.
+        vol = np.asarray(volume, np.float64)
+        fmass = np.bincount(self.field_np, weights=mass.astype(np.float64), minlength=self.fields)
+        fvol = np.bincount(self.field_np, weights=vol, minlength=self.fields)
+        self.field_inv_rho = wp.array((fvol / np.maximum(fmass, 1e-30)).astype(np.float32), dtype=float)
         self.f_static = wp.zeros(n, dtype=wp.vec3)
         self.f_total = wp.zeros(n, dtype=wp.vec3)
         self.material_table = wp.array([kernel_params(m) for m in materials], dtype=K.MaterialParams)
@@ -844,7 +850,7 @@ class MPMSolver:
         prog.append((K.grid_update, [self._cmd(K.grid_update, slab_dims, [
             self.grid_m, self.grid_mv, self.grid_v, self.grid_fix, self.grid_fix_v, self.ground_m, slab_lo, self.grid,
             self.bc, self._gravity_w, self.dt_arr, self.layer_box, self._layer_lo_w, run, k_end, int(anchors), alo, ahi,
-            self.fields, self.grid_g])
+            self.fields, self.grid_g, self.field_inv_rho])
             for slab_dims, slab_lo, run in slabs], True))
         if self.ground is not None and span_lo[1] <= self.domain.ground_node:
             step(K.ground_contact, (dims[0], dims[2]), [self.grid_v, self.ground_m, self.grid_mv, lo, self.bc,
