@@ -8,8 +8,10 @@ and 2.1 M particles, in interleaved rounds, with a per-kernel split.
 
 Scene (the jelly drop of the issue): a cube of n³ particles on a lattice, 2 per cell per axis, in a
 unit box of g³ cells (n = 38, g = 64: 54,872 particles; n = 128, g = 128: 2,097,152 particles),
-falling under gravity, fixed-corotated, E = 2e5 Pa, ν = 0.3, ρ = 1000 kg/m³, dt = 1e-4 s fixed. Both
-engines start from the same lattice, with the same dt.
+falling under gravity, fixed-corotated, E = 2e5 Pa, ν = 0.3, ρ = 1000 kg/m³, dt = 1e-4 s fixed. Two
+motions: "tumble" (thrown down at 1 m/s, spinning at 8.8 rad/s and squeezed at 2/s, so every F turns
+and strains from the first substep) and "rest" (released at rest: the velocity field is uniform to
+round-off, C ~ 1e-15 1/s). Both engines start from the same lattice, velocities and dt.
 
 The minimal kernel (``MinimalMPM`` below) is what a short MLS-MPM program in Warp does: one thread
 per particle with atomics (plain adds on the CPU, where Warp runs a kernel on one thread), the whole
@@ -48,13 +50,30 @@ E, NU, RHO, DT = 2.0e5, 0.3, 1000.0, 1.0e-4
 SIZES = {38: 64, 128: 128}  # particles per axis -> grid cells across the unit box
 
 
-def scene(n_side: int, grid_cells: int):
-    """Lattice positions (2 per cell per axis, the cube's corner at 0.25 m) and particle volume."""
+# The tumbling jelly's initial motion: falling at 1 m/s, spinning at 8 rad/s about a tilted axis and
+# squeezed along y (rates in 1/s), so every particle's F rotates and strains from the first substep (the
+# material update's rotation tracking does real work). "rest": released at rest (only gravity).
+SPIN = np.array([3.0, 8.0, 2.0])
+SQUEEZE = np.diag([1.0, -2.0, 1.0])
+MOTIONS = ("tumble", "rest")
+
+
+def scene(n_side: int, grid_cells: int, motion: str = "tumble"):
+    """Lattice positions (2 per cell per axis, the cube's corner at 0.25 m), particle volume, and the
+    initial velocities and affine velocities C (APIC) of ``motion``."""
     dx = 1.0 / grid_cells
     h = 0.5 * dx
     ax = 0.25 + h * (np.arange(n_side) + 0.5)
     x = np.stack(np.meshgrid(ax, ax, ax, indexing="ij"), -1).reshape(-1, 3).astype(np.float32)
-    return x, h ** 3
+    v0 = np.zeros_like(x)
+    C0 = np.zeros((len(x), 3, 3), np.float32)
+    if motion == "tumble":
+        W = np.array([[0.0, -SPIN[2], SPIN[1]], [SPIN[2], 0.0, -SPIN[0]], [-SPIN[1], SPIN[0], 0.0]])
+        grad = W + SQUEEZE
+        r = x - x.mean(0)
+        v0 = (r @ grad.T + np.array([0.0, -1.0, 0.0])).astype(np.float32)
+        C0[:] = grad
+    return x, h ** 3, v0, C0
 
 
 # ----------------------------------------------------------------------------------------------
@@ -181,7 +200,8 @@ def m_g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dt
 class MinimalMPM:
     """A minimal MLS-MPM (fixed-corotated, APIC) over the whole g³ grid, for comparison."""
 
-    def __init__(self, x: np.ndarray, vol: float, grid_cells: int, device: str, flush_denormals: bool = False):
+    def __init__(self, x: np.ndarray, vol: float, v0: np.ndarray, C0: np.ndarray, grid_cells: int, device: str,
+                 flush_denormals: bool = False):
         n = len(x)
         self.flushed = FlushedDenormals(device) if flush_denormals else contextlib.nullcontext()
         self.device, self.n, self.g = device, n, grid_cells + 1
@@ -190,8 +210,8 @@ class MinimalMPM:
         self.inv_dx = float(grid_cells)
         with wp.ScopedDevice(device):
             self.x = wp.array(x, dtype=wp.vec3)
-            self.v = wp.zeros(n, dtype=wp.vec3)
-            self.C = wp.zeros(n, dtype=wp.mat33)
+            self.v = wp.array(v0, dtype=wp.vec3)
+            self.C = wp.array(C0, dtype=wp.mat33)
             self.F = wp.array(np.tile(np.eye(3, dtype=np.float32), (n, 1, 1)), dtype=wp.mat33)
             self.tau = wp.zeros(n, dtype=wp.mat33)
             self.gm = wp.zeros((self.g,) * 3, dtype=float)
@@ -236,12 +256,13 @@ def material_only(ps: K.Particles, materials: wp.array(dtype=K.MaterialParams), 
                               ps.plastic, Fout, tau)
 
 
-def project_solver(x: np.ndarray, vol: float, grid_cells: int, device: str, threads: int) -> MPMSolver:
+def project_solver(x: np.ndarray, vol: float, v0: np.ndarray, C0: np.ndarray, grid_cells: int, device: str,
+                   threads: int) -> MPMSolver:
     jelly = Material(name="jelly", model="fixed_corotated", E=E, nu=NU, density=RHO)
     dx = 1.0 / grid_cells
     dom = Domain(origin=np.zeros(3), dx=dx, dims=(grid_cells + 1,) * 3)
     return MPMSolver(x, np.full(len(x), vol), np.zeros(len(x), np.int64), [jelly], dom, device=device,
-                     threads=threads)
+                     threads=threads, v0=v0, C0=C0)
 
 
 def time_material(s: MPMSolver, reps: int = 3) -> float:
@@ -278,14 +299,14 @@ def run_steps(engine, steps: int) -> float:
     return (time.perf_counter() - t0) / steps
 
 
-def measure_size(n_side: int, device: str, rounds: int, steps: int, thread_counts: list) -> dict:
+def measure_size(n_side: int, device: str, rounds: int, steps: int, thread_counts: list, motion: str) -> dict:
     grid_cells = SIZES.get(n_side, 2 * n_side)
-    x, vol = scene(n_side, grid_cells)
-    engines = {"minimal": MinimalMPM(x, vol, grid_cells, device)}
+    x, vol, v0, C0 = scene(n_side, grid_cells, motion)
+    engines = {"minimal": MinimalMPM(x, vol, v0, C0, grid_cells, device)}
     if device == "cpu":
-        engines["minimal + FTZ"] = MinimalMPM(x, vol, grid_cells, device, flush_denormals=True)
+        engines["minimal + FTZ"] = MinimalMPM(x, vol, v0, C0, grid_cells, device, flush_denormals=True)
     for t in thread_counts:
-        engines[f"project {t}t"] = project_solver(x, vol, grid_cells, device, t)
+        engines[f"project {t}t"] = project_solver(x, vol, v0, C0, grid_cells, device, t)
     names = list(engines)
     for e in engines.values():  # compile, warm caches
         run_steps(e, 2)
@@ -297,7 +318,7 @@ def measure_size(n_side: int, device: str, rounds: int, steps: int, thread_count
         print(f"  {len(x):,} particles round {r}: " + ", ".join(f"{k} {1e3 * times[k][-1]:.1f} ms" for k in names),
               flush=True)
     mins = np.asarray(times["minimal"])
-    out = {"n": len(x), "grid": grid_cells, "ms": {k: 1e3 * float(np.median(v)) for k, v in times.items()},
+    out = {"n": len(x), "grid": grid_cells, "motion": motion, "ms": {k: 1e3 * float(np.median(v)) for k, v in times.items()},
            "ratio": {k: float(np.median(np.asarray(times[k]) / mins)) for k in names if k != "minimal"},
            "ratio_range": {k: (float(np.min(np.asarray(times[k]) / mins)), float(np.max(np.asarray(times[k]) / mins)))
                            for k in names if k != "minimal"},
@@ -324,25 +345,27 @@ def write_section(results: list, device: str, rounds: int, steps: int, load: str
              f"Warp device `{device}`, load average before the run {load}. Re-run: "
              "`python -m benchmarks.bench_sim_scale`.", "",
              "Scene: the jelly drop (fixed-corotated, E = 2e5 Pa, dt = 1e-4 s), a lattice cube at 8 particles per "
-             "cell in a unit box, the same lattice and dt for both engines. The minimal kernel is a plain MLS-MPM "
+             "cell in a unit box, the same lattice, initial velocities and dt for both engines; “tumble”: thrown "
+             "down at 1 m/s spinning at 8.8 rad/s and squeezed at 2/s (every F turns and strains), “rest”: "
+             "released at rest (C ~ 1e-15 1/s: round-off). The minimal kernel is a plain MLS-MPM "
              "program in Warp written in the benchmark (one thread, atomics, whole grid cleared each substep, "
              "SVD stress); the project runs its full substep. "
              "“minimal + FTZ” is the same minimal kernel with denormals flushed to zero, as the project's "
              "substeps now run (physmotion_core/sim/fpmode.py). "
              f"Interleaved rounds ({rounds} rounds of {steps} substeps per engine); ratio = median over rounds "
              "of project / minimal time in the same round (min-max in brackets).", "",
-             "| particles | grid | engine | ms / substep | ns / particle-substep | / minimal | / minimal + FTZ |",
-             "|---:|---:|---|---:|---:|---:|---:|"]
+             "| scene | particles | grid | engine | ms / substep | ns / particle-substep | / minimal | / minimal + FTZ |",
+             "|---|---:|---:|---|---:|---:|---:|---:|"]
     for r in results:
         for k, ms in r["ms"].items():
             ratio = "1" if k == "minimal" else (f"{r['ratio'][k]:.2f} ({r['ratio_range'][k][0]:.2f}-"
                                                  f"{r['ratio_range'][k][1]:.2f})")
             ftz = f"{r['ratio_ftz'][k]:.2f}" if k in r["ratio_ftz"] else ("1" if k == "minimal + FTZ" else "")
-            lines.append(f"| {r['n']:,} | {r['grid']}³ | {k} | {ms:.1f} | {1e6 * ms / r['n']:.0f} | {ratio} | {ftz} |")
+            lines.append(f"| {r['motion']} | {r['n']:,} | {r['grid']}³ | {k} | {ms:.1f} | {1e6 * ms / r['n']:.0f} | {ratio} | {ftz} |")
     lines += ["", "**Per kernel** (ns per particle and substep, each launch synchronised; the project's "
               "g2p includes its material update, which is also timed alone over the same particles):", ""]
     for r in results:
-        lines += [f"{r['n']:,} particles ({r['chunks']} chunks, {r['layers']} accumulator layer(s)):", "",
+        lines += [f"{r['motion']}, {r['n']:,} particles ({r['chunks']} chunks, {r['layers']} accumulator layer(s)):", "",
                   "| engine | " + " | ".join(["kernel", "ns / particle", "ms / substep"]) + " |",
                   "|---|---|---:|---:|"]
         for k, kt in r["split"].items():
@@ -362,14 +385,16 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--steps", type=int, default=6)
     ap.add_argument("--threads", type=int, nargs="+", default=[1, 2])
+    ap.add_argument("--motion", nargs="+", default=list(MOTIONS), choices=MOTIONS)
     ap.add_argument("--no-write", action="store_true")
     args = ap.parse_args()
     load = ", ".join(f"{v:.2f}" for v in os.getloadavg())
     threads = [1] if args.device != "cpu" else args.threads
     results = []
-    for n in args.sizes:
-        results.append(measure_size(n, args.device, args.rounds, args.steps, threads))
-        print(results[-1], flush=True)
+    for motion in args.motion:
+        for n in args.sizes:
+            results.append(measure_size(n, args.device, args.rounds, args.steps, threads, motion))
+            print(results[-1], flush=True)
     if not args.no_write and set(args.sizes) == set(SIZES):
         write_section(results, args.device, args.rounds, args.steps, load)
 

@@ -189,7 +189,7 @@ def corotated_stress(F: wp.mat33, R: wp.mat33, mu: float, lam: float) -> wp.mat3
 
 
 @wp.func
-def barrier_corotated_stress(F: wp.mat33, R: wp.mat33, mu: float, lam: float) -> wp.mat33:
+def barrier_corotated_stress(F: wp.mat33, R: wp.mat33, J: float, mu: float, lam: float) -> wp.mat33:
     """Fixed-corotated stress with a volumetric term that resists collapse (MODEL_FIXED_COROTATED).
 
     The plain energy μ Σ(σᵢ − 1)² + λ/2 (J − 1)² stays finite as J → 0 and its Kirchhoff stress
@@ -198,9 +198,8 @@ def barrier_corotated_stress(F: wp.mat33, R: wp.mat33, mu: float, lam: float) ->
     λ/2 (log J)², whose Kirchhoff pressure λ log J grows without bound as J → 0 (it matches the
     former term to second order at J = 1: same small-strain stiffness, C² join). Below J = 0.05
     the pressure stops growing (as for neo-Hookean) so the step stays bounded; an inverted F
-    (J ≤ 0) gets that full pressure and is pushed back.
+    (J ≤ 0) gets that full pressure and is pushed back. ``J`` is det F (the caller has it).
     """
-    J = wp.determinant(F)
     T = 2.0 * mu * (F - R) * wp.transpose(F)
     p = lam * (J - 1.0) * J
     if J < 1.0:
@@ -299,14 +298,17 @@ def barrier_corotated(mat: MaterialParams, F: wp.mat33, Cp: wp.mat33, q_in: wp.q
         # and the barrier's pressure pushes it back out (docs/materials.md).
         Fe = wp.pow(MIN_J, 1.0 / 3.0) * R
         Fout[p] = Fe
-        tau[p] = barrier_corotated_stress(Fe, R, mat.mu, mat.lam)
+        tau[p] = barrier_corotated_stress(Fe, R, wp.determinant(Fe), mat.mu, mat.lam)
         return wave_speed_sq(mat.mu, mat.lam, mat.density, MIN_J) * wp.max(1.0, 1.0 / MIN_J)
     # Two returns rather than a clamped J: with J clamped by a branch, the CPU compiler folds the
     # NaN of a corrupted F into the wave speed, where the single-function form never did (a NaN F
     # must be reported the substep its velocities turn NaN, tests/test_sim.py).
     Fout[p] = F
-    tau[p] = barrier_corotated_stress(F, R, mat.mu, mat.lam)
-    return wave_speed_sq(mat.mu, mat.lam, mat.density, J) * wp.max(1.0, 1.0 / J)
+    tau[p] = barrier_corotated_stress(F, R, J, mat.mu, mat.lam)
+    # wave_speed_sq(..., J) * max(1, 1/J) with J ≥ MIN_J here: one division for both factors (and a NaN J
+    # still gives a NaN wave speed: max(1, NaN) is NaN).
+    stiff = wp.max(1.0, 1.0 / J)
+    return (mat.lam + 2.0 * mat.mu) / mat.density * stiff * stiff
 
 
 @wp.func
