@@ -270,3 +270,49 @@ def test_a_face_the_photo_saw_edge_on_keeps_its_own_colour_when_turned_to_the_ca
     assert int(face.sum()) > 200
     out = composite(fr.rgb, fr.alpha, torch.zeros(H, W, 3))[1]
     assert float((out[face] - green).abs().max()) < 0.05
+
+
+@pytest.mark.parametrize("one_map", [True, False])
+def test_compiled_shading_matches_the_tensor_path(one_map, monkeypatch):
+    """The photo texture's per-pixel passes compiled (``_warp_shade``) against their tensor twin, on a slab the
+    photo saw turned 70° away, turned to face the camera (the photo stretched by about 2.9 across it: partly faded,
+    PHOTO_STRETCH) and moved by a fraction of a pixel: both photo-coordinate paths (one rigid map; each splat's
+    displacement), the stretch fade, bicubic sampling between pixels and the coverage floor."""
+    from physmotion_core.render import _warp_shade
+    from physmotion_core.render.photo_texture import TexturedPoser, shade
+    from physmotion_core.render.rasterize import rasterize
+
+    assert _warp_shade.available()
+    cam = slab_camera()
+    photo = texture_image()
+    flat = slab(cam, photo, half=(0.2, 0.2), spacing=0.005)
+    ang = math.radians(70.0)
+    rot = torch.tensor([[math.cos(ang), 0.0, math.sin(ang)], [0.0, 1.0, 0.0], [-math.sin(ang), 0.0, math.cos(ang)]])
+    quat = torch.tensor([math.cos(ang / 2), 0.0, math.sin(ang / 2), 0.0]).expand(flat.means.shape[0], 4)
+    g = Gaussians.from_rgb(flat.means @ rot.T, flat.rgb, flat.scales, flat.opacities, quats=quat.contiguous())
+    turned = flat.means + torch.tensor([0.3 / cam.fx, 0.45 / cam.fy, 0.0])
+    sim = sim_from_positions(g, [g.means, turned])
+    sim.F[1] = rot.T
+    if not one_map:  # a slight per-particle spread in F: no single map, each splat's displacement channel
+        gen = torch.Generator().manual_seed(0)
+        sim.F[1] = sim.F[1] * (1.0 + 0.01 * torch.rand(sim.F.shape[1], 1, 1, generator=gen))
+    rest = render_frames(sim, cam)
+    tex = make_photo_texture(photo, rest.alpha[0].clamp(0, 1), cam, background=torch.full((H, W, 3), 0.3))
+    poser = TexturedPoser(sim, cam, tex)
+    feats, one = poser.features(1, sim.gaussians_at(1))
+    assert (one is not None) == one_map
+    out = rasterize(sim.gaussians_at(1), cam, extra_features=feats)
+    a_rgb, a_a = shade(tex, cam, out.rgb, out.alpha, out.depth, out.extra, one, compiled=True)
+    b_rgb, b_a = shade(tex, cam, out.rgb, out.alpha, out.depth, out.extra, one, compiled=False)
+    assert float((a_rgb - b_rgb).abs().max()) < 1e-5
+    assert float((a_a - b_a).abs().max()) < 1e-5
+    # The photo is really sampled in this frame (the test can tell the paths from the splat render), and the
+    # stretch fade is partial over the face (the magnification 1 / cos 70° = 2.9 lies within PHOTO_STRETCH).
+    photo_share = (a_rgb - out.rgb).abs().sum(-1) > 1e-3
+    assert int(photo_share.sum()) > 1000
+    from physmotion_core.render import photo_texture as P
+
+    monkeypatch.setattr(P, "PHOTO_STRETCH", (1e6, 2e6))  # no stretch fade
+    c_rgb, _ = shade(tex, cam, out.rgb, out.alpha, out.depth, out.extra, one, compiled=False)
+    faded = (c_rgb - b_rgb).abs().sum(-1) > 0.02
+    assert int(faded.sum()) > 500
