@@ -262,7 +262,8 @@ def _f32(x: float) -> str:
 def _source(code: str) -> str:
     # Below POWER_MIN alpha is under 1/255 for any rounding of the exponential (a margin of 1e-4 on ln(1/255)).
     for name, value in (("ALPHA_MAX", _f32(ALPHA_MAX)), ("ALPHA_MIN", _f32(ALPHA_MIN)), ("T_DONE", _f32(T_DONE)),
-                        ("POWER_MIN", _f32(math.log(ALPHA_MIN) - 1e-4)), ("MAX_FEATURES", str(MAX_FEATURES)), ("TILE_SIDE", str(TILE))):
+                        ("POWER_MIN", _f32(math.log(ALPHA_MIN) - 1e-4)), ("MAX_FEATURES", str(MAX_FEATURES)),
+                        ("TILE_SIDE", str(TILE))):
         code = code.replace(name, value)
     return code
 
@@ -588,8 +589,8 @@ class _Project(torch.autograd.Function):
         if K:
             g_uv = (torch.zeros(K, 2, dtype=f32) if g_uv is None else g_uv.to(f32)).contiguous()
             g_conic = (torch.zeros(K, 3, dtype=f32) if g_conic is None else g_conic.to(f32)).contiguous()
-            ins = [_wp(wp, X, wp.vec3), _wp(wp, C, wp.mat33), _wp(wp, idx, wp.int32), _wp(wp, A.view(1, 3, 3), wp.mat33),
-                   _wp(wp, b.view(1, 3), wp.vec3), *consts]
+            ins = [_wp(wp, X, wp.vec3), _wp(wp, C, wp.mat33), _wp(wp, idx, wp.int32),
+                   _wp(wp, A.view(1, 3, 3), wp.mat33), _wp(wp, b.view(1, 3), wp.vec3), *consts]
             outs = [_wp(wp, torch.empty(K, 2, dtype=f32), wp.vec2), _wp(wp, torch.empty(K, 3, dtype=f32), wp.vec3)]
             adj_ins = [None, None, None, _wp(wp, g_A, wp.mat33), _wp(wp, g_b, wp.vec3), 0.0, 0.0, 0.0, 0.0,
                        wp.vec4(), 0.0]
@@ -633,7 +634,8 @@ def project_affine(X: torch.Tensor, C: torch.Tensor, opacities: torch.Tensor, A:
         consts = [float(fx), float(fy), float(cx), float(cy), lim, float(eps2d)]
         if N:
             wp.launch(project_fwd, dim=N, device="cpu",
-                      inputs=[_wp(wp, Xc, wp.vec3), _wp(wp, Cc, wp.mat33), _wp(wp, opacities.detach().to(f32).contiguous(), float),
+                      inputs=[_wp(wp, Xc, wp.vec3), _wp(wp, Cc, wp.mat33),
+                              _wp(wp, opacities.detach().to(f32).contiguous(), float),
                               _wp(wp, A_, wp.mat33), _wp(wp, b_, wp.vec3), float(fx), float(fy), float(cx), float(cy),
                               int(width), int(height), float(near), float(far), float(eps2d), lim,
                               float(max(width, height) * 4 + 16), _wp(wp, key, float), _wp(wp, uv, wp.vec2),
