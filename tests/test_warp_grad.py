@@ -69,7 +69,7 @@ def test_values_and_gradients_match_the_float64_tensor_path(opacity):
         scale = float(b.abs().max())
         assert scale > 0, name
         err = float((a - b).abs().max())
-        assert err <= 2e-4 * scale, (name, err, scale)
+        assert err <= 2e-5 * scale, (name, err, scale)  # measured: 0.8e-6 to 1.6e-6
 
 
 def test_directional_derivative_matches_finite_differences():
