@@ -69,7 +69,7 @@ def test_values_and_gradients_match_the_float64_tensor_path(opacity):
         scale = float(b.abs().max())
         assert scale > 0, name
         err = float((a - b).abs().max())
-        assert err <= 2e-4 * scale, (name, err, scale)
+        assert err <= 2e-5 * scale, (name, err, scale)  # measured: 0.8e-6 to 1.6e-6
 
 
 def test_directional_derivative_matches_finite_differences():
@@ -188,3 +188,34 @@ def test_affine_projection_matches_the_tensor_projection_and_its_gradient():
     torch.testing.assert_close(p1.log_opacity.double(), p2.log_opacity, atol=1e-6, rtol=1e-6)
     for a, b in ((gA1, gA2), (gb1, gb2)):
         assert float((a - b).abs().max()) <= 1e-4 * float(b.abs().max()), (a, b)
+
+
+def test_fit_falls_back_when_a_compiled_launch_fails(monkeypatch):
+    """A compiled launch that fails (here: the projection raises) turns the compiled path off with one warning
+    and the fit's render comes from the tensor path, the same image to round-off."""
+    import math
+
+    from physmotion_core.lift import fit as F
+    from physmotion_core.types.gaussians import Gaussians
+
+    g = random_gaussians(300, seed=6, spread=0.5, size=0.08)
+    prep = F._prep(Gaussians(**{k: v for k, v in g.__dict__.items()}), torch.zeros(3, dtype=torch.float64), 1.0)
+    mask = torch.zeros(40, 48)
+    mask[10:30, 12:36] = 1.0
+    lv = F._level(torch.rand(40, 48, 3), mask, 48, 24.0)
+    p = F._Params(torch.eye(3), math.log(30.0), (24.0, 20.0), math.log(60.0), 48.0)
+    with torch.no_grad():
+        ref = F._render(prep, p, lv, 24.0, 20.0).alpha
+
+    def broken(*a, **k):
+        raise RuntimeError("launch failed")
+
+    monkeypatch.setattr(WG, "project_affine", broken)
+    monkeypatch.setattr(WG, "_failed", False)
+    out = F._render(prep, p, lv, 24.0, 20.0)
+    assert WG._failed and not WG.available()
+    assert float(ref.sum()) > 10
+    assert float((out.alpha.detach() - ref).abs().max()) < 1e-4
+    loss, _, _ = F._losses(out, lv, 0.5)
+    loss.backward()
+    assert p.omega.grad is not None and torch.isfinite(p.omega.grad).all()

@@ -485,13 +485,19 @@ def _render_compiled(prep: _Prep, p: _Params, lv: _Level, cx: float, cy: float, 
     A = (s * R) * flip[:, None]
     b = torch.stack([(u - cx) / f, -(v - cy) / f, -torch.ones((), dtype=f.dtype)]) * flip
     fl = float(f.detach())
-    proj = _warp_grad.project_affine(prep.means, prep.cov, prep.opacities, A, b, fx=fl * lv.kx, fy=fl * lv.ky,
-                                     cx=cx * lv.kx, cy=cy * lv.ky, width=lv.width, height=lv.height, near=1e-3,
-                                     far=1e3, eps2d=0.3)
-    if proj is None:
-        return None
     rgb = prep.rgb if colors else torch.zeros_like(prep.rgb)
-    img = _warp_grad.composite(proj, rgb.index_select(0, proj.index), lv.width, lv.height)
+    try:
+        proj = _warp_grad.project_affine(prep.means, prep.cov, prep.opacities, A, b, fx=fl * lv.kx, fy=fl * lv.ky,
+                                         cx=cx * lv.kx, cy=cy * lv.ky, width=lv.width, height=lv.height, near=1e-3,
+                                         far=1e3, eps2d=0.3)
+        if proj is None:
+            return None
+        img = _warp_grad.composite(proj, rgb.index_select(0, proj.index), lv.width, lv.height)
+    except InputError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a failed compiled launch: the other paths for the rest of the process
+        _warp_grad.mark_failed(exc)
+        return None
     alpha = img[..., 3]
     if not alpha.requires_grad:  # nothing drawn: keep the (zero) image attached so backward() still works
         img = img + 0.0 * (A.sum() + b.sum())

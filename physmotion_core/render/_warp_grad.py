@@ -262,7 +262,8 @@ def _f32(x: float) -> str:
 def _source(code: str) -> str:
     # Below POWER_MIN alpha is under 1/255 for any rounding of the exponential (a margin of 1e-4 on ln(1/255)).
     for name, value in (("ALPHA_MAX", _f32(ALPHA_MAX)), ("ALPHA_MIN", _f32(ALPHA_MIN)), ("T_DONE", _f32(T_DONE)),
-                        ("POWER_MIN", _f32(math.log(ALPHA_MIN) - 1e-4)), ("MAX_FEATURES", str(MAX_FEATURES)), ("TILE_SIDE", str(TILE))):
+                        ("POWER_MIN", _f32(math.log(ALPHA_MIN) - 1e-4)), ("MAX_FEATURES", str(MAX_FEATURES)),
+                        ("TILE_SIDE", str(TILE))):
         code = code.replace(name, value)
     return code
 
@@ -282,69 +283,65 @@ def _build():
         R2_LOG255 = wp.constant(math.log(255.0) + 1e-4)
 
         @wp.func
-        def reaches(u: float, v: float, cn: wp.vec3, lo: float, x0: float, x1: float, y0: float, y1: float):
-            # Whether the splat's ellipse at the lowest alpha evaluated holds a point of the rectangle
-            # [x0, x1] x [y0, y1] (a tile's pixel centres): the minimum of the convex form
-            # q = a dx² + 2 b dx dy + c dy² over the rectangle, 0 when the centre is inside, else on an edge
-            # (along an edge q is a parabola: its minimiser clamped to the edge).
-            r2 = 2.0 * (lo + R2_LOG255)
-            r2 = r2 * 1.001 + 1.0e-3
-            if r2 <= 0.0:
-                return False
-            a = cn[0]
-            b = cn[1]
-            c = cn[2]
-            X0 = x0 - u
-            X1 = x1 - u
-            Y0 = y0 - v
-            Y1 = y1 - v
+        def reaches(a: float, b: float, c: float, ia: float, ic: float, r2: float, X0: float, X1: float, Y0: float,
+                    Y1: float):
+            # Whether the ellipse q = a dx² + 2 b dx dy + c dy² <= r2 holds a point of the rectangle
+            # [X0, X1] x [Y0, Y1] (a tile's pixel centres, relative to the splat's centre): the minimum of the
+            # convex q over the rectangle is 0 when the centre is inside, else on an edge, where q is a parabola
+            # whose minimiser is clamped to the edge. ia, ic: 1 / a, 1 / c.
             if X0 <= 0.0 and X1 >= 0.0 and Y0 <= 0.0 and Y1 >= 0.0:
                 return True
             best = float(1.0e30)
             for e in range(2):
                 Y = Y0
-                if e == 1:
-                    Y = Y1
-                dx = wp.clamp(-b * Y / a, X0, X1)
-                best = wp.min(best, a * dx * dx + 2.0 * b * dx * Y + c * Y * Y)
                 X = X0
                 if e == 1:
+                    Y = Y1
                     X = X1
-                dy = wp.clamp(-b * X / c, Y0, Y1)
+                dx = wp.clamp(-b * Y * ia, X0, X1)
+                best = wp.min(best, a * dx * dx + 2.0 * b * dx * Y + c * Y * Y)
+                dy = wp.clamp(-b * X * ic, Y0, Y1)
                 best = wp.min(best, a * X * X + 2.0 * b * X * dy + c * dy * dy)
             return best <= r2
 
-        @wp.func
-        def tile_hit(uv: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3), logo: wp.array(dtype=float),
-                     m: int, tx: int, ty: int, W: int, H: int):
-            x0 = float(tx * TILE_) + 0.5
-            y0 = float(ty * TILE_) + 0.5
-            x1 = float(wp.min(tx * TILE_ + TILE_, W) - 1) + 0.5
-            y1 = float(wp.min(ty * TILE_ + TILE_, H) - 1) + 0.5
-            return reaches(uv[m][0], uv[m][1], conic[m], logo[m], x0, x1, y0, y1)
-
         @wp.kernel(enable_backward=False)
-        def count_tiles(uv: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3), logo: wp.array(dtype=float),
-                        lo: wp.array(dtype=wp.vec2i), hi: wp.array(dtype=wp.vec2i), TX: int, W: int, H: int,
-                        per_tile: wp.array(dtype=wp.int32)):
+        def tile_hits(uv: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3), logo: wp.array(dtype=float),
+                      lo: wp.array(dtype=wp.vec2i), hi: wp.array(dtype=wp.vec2i), offset: wp.array(dtype=wp.int32),
+                      TX: int, W: int, H: int, per_tile: wp.array(dtype=wp.int32), hits: wp.array(dtype=wp.int32)):
+            # Splat m's box tiles, in order from offset[m]: the tile's index when the splat's ellipse at the lowest
+            # alpha the loops evaluate (exponent ln(1/255) - 1e-4, plus a relative margin far above float32
+            # round-off) reaches one of its pixel centres, else -1; per_tile counts them.
             m = wp.tid()
+            u = uv[m][0]
+            v = uv[m][1]
+            cn = conic[m]
+            r2 = 2.0 * (logo[m] + R2_LOG255) * 1.001 + 1.0e-3
+            ia = 1.0 / cn[0]
+            ic = 1.0 / cn[2]
+            k = offset[m]
             for ty in range(lo[m][1] / TILE_, hi[m][1] / TILE_ + 1):
+                Y0 = float(ty * TILE_) + 0.5 - v
+                Y1 = float(wp.min(ty * TILE_ + TILE_, H) - 1) + 0.5 - v
                 for tx in range(lo[m][0] / TILE_, hi[m][0] / TILE_ + 1):
-                    if tile_hit(uv, conic, logo, m, tx, ty, W, H):
-                        wp.atomic_add(per_tile, ty * TX + tx, 1)
+                    X0 = float(tx * TILE_) + 0.5 - u
+                    X1 = float(wp.min(tx * TILE_ + TILE_, W) - 1) + 0.5 - u
+                    t = int(-1)
+                    if r2 > 0.0 and reaches(cn[0], cn[1], cn[2], ia, ic, r2, X0, X1, Y0, Y1):
+                        t = ty * TX + tx
+                        wp.atomic_add(per_tile, t, 1)
+                    hits[k] = t
+                    k += 1
 
         @wp.kernel(enable_backward=False)
-        def fill_tiles(uv: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3), logo: wp.array(dtype=float),
-                       lo: wp.array(dtype=wp.vec2i), hi: wp.array(dtype=wp.vec2i), TX: int, W: int, H: int, M: int,
+        def fill_tiles(offset: wp.array(dtype=wp.int32), hits: wp.array(dtype=wp.int32), M: int,
                        cursor: wp.array(dtype=wp.int32), glist: wp.array(dtype=wp.int32)):
             # One thread, the splats in depth order: each tile's list comes out front to back.
             for m in range(M):
-                for ty in range(lo[m][1] / TILE_, hi[m][1] / TILE_ + 1):
-                    for tx in range(lo[m][0] / TILE_, hi[m][0] / TILE_ + 1):
-                        if tile_hit(uv, conic, logo, m, tx, ty, W, H):
-                            t = ty * TX + tx
-                            glist[cursor[t]] = m
-                            cursor[t] = cursor[t] + 1
+                for k in range(offset[m], offset[m + 1]):
+                    t = hits[k]
+                    if t >= 0:
+                        glist[cursor[t]] = m
+                        cursor[t] = cursor[t] + 1
 
         @wp.func_native(_source(_FORWARD))
         def tile_forward(start: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
@@ -456,7 +453,7 @@ def _build():
             uv[k] = wp.vec2(q[0], q[1])
             conic[k] = wp.vec3(q[4] * inv, -q[3] * inv, q[2] * inv)
 
-        _built = (wp, forward, backward, count_tiles, fill_tiles, project_fwd, project_diff)
+        _built = (wp, forward, backward, tile_hits, fill_tiles, project_fwd, project_diff)
         return _built
 
 
@@ -535,11 +532,12 @@ class _Composite(torch.autograd.Function):
 
 def tile_lists_warp(proj: Projected, width: int, height: int) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Each ``TILE`` px tile's depth-ordered list of the splats whose ellipse at the lowest alpha the loops
-    evaluate (exponent ln(1/255) - 1e-4, plus a margin) reaches one of its pixel centres, compiled: (glist,
-    start, count), int32, tile t's list being ``glist[start[t]:start[t] + count[t]]``. The same job as
+    evaluate (exponent ln(1/255) - 1e-4, plus a margin) reaches one of its pixel centres, compiled (one test per
+    box tile, then a serial fill in depth order): (glist, start, count), int32, tile t's list being
+    ``glist[start[t]:start[t] + count[t]]``. The same job as
     ``_torch_raster.tile_lists`` (whose lists are a superset: its test is per tile row) without its dozens
     of whole-array passes, float64 arithmetic and sort."""
-    wp, _, _, count_tiles, fill_tiles = _build()[:5]
+    wp, _, _, tile_hits, fill_tiles = _build()[:5]
     M = int(proj.uv.shape[0])
     TX, TY = -(-width // TILE), -(-height // TILE)
     with torch.no_grad():
@@ -550,14 +548,18 @@ def tile_lists_warp(proj: Projected, width: int, height: int) -> tuple[torch.Ten
         logo = _wp(wp, proj.log_opacity.detach().to(f32).contiguous(), float)
         lo_t = proj.pix_lo.to(torch.int32).contiguous()
         hi_t = proj.pix_hi.to(torch.int32).contiguous()
-        lo, hi = _wp(wp, lo_t, wp.vec2i), _wp(wp, hi_t, wp.vec2i)
+        box = (torch.div(hi_t, TILE, rounding_mode="floor") - torch.div(lo_t, TILE, rounding_mode="floor") + 1).prod(1)
+        offset = torch.zeros(M + 1, dtype=torch.int32)
+        torch.cumsum(box, 0, dtype=torch.int32, out=offset[1:])
+        hits = torch.empty(max(int(offset[-1]), 1), dtype=torch.int32)
         count = torch.zeros(TX * TY, dtype=torch.int32)
-        wp.launch(count_tiles, dim=M, device="cpu", inputs=[uv, conic, logo, lo, hi, TX, width, height,
-                                                             _wp(wp, count, wp.int32)])
+        wp.launch(tile_hits, dim=M, device="cpu",
+                  inputs=[uv, conic, logo, _wp(wp, lo_t, wp.vec2i), _wp(wp, hi_t, wp.vec2i), _wp(wp, offset, wp.int32),
+                          TX, width, height, _wp(wp, count, wp.int32), _wp(wp, hits, wp.int32)])
         start = (torch.cumsum(count, 0, dtype=torch.int32) - count).contiguous()
         glist = torch.empty(max(int(count.sum()), 1), dtype=torch.int32)
         cursor = start.clone()
-        wp.launch(fill_tiles, dim=1, device="cpu", inputs=[uv, conic, logo, lo, hi, TX, width, height, M,
+        wp.launch(fill_tiles, dim=1, device="cpu", inputs=[_wp(wp, offset, wp.int32), _wp(wp, hits, wp.int32), M,
                                                             _wp(wp, cursor, wp.int32), _wp(wp, glist, wp.int32)])
         wp.synchronize_device("cpu")
     return glist, start, count
@@ -588,8 +590,8 @@ class _Project(torch.autograd.Function):
         if K:
             g_uv = (torch.zeros(K, 2, dtype=f32) if g_uv is None else g_uv.to(f32)).contiguous()
             g_conic = (torch.zeros(K, 3, dtype=f32) if g_conic is None else g_conic.to(f32)).contiguous()
-            ins = [_wp(wp, X, wp.vec3), _wp(wp, C, wp.mat33), _wp(wp, idx, wp.int32), _wp(wp, A.view(1, 3, 3), wp.mat33),
-                   _wp(wp, b.view(1, 3), wp.vec3), *consts]
+            ins = [_wp(wp, X, wp.vec3), _wp(wp, C, wp.mat33), _wp(wp, idx, wp.int32),
+                   _wp(wp, A.view(1, 3, 3), wp.mat33), _wp(wp, b.view(1, 3), wp.vec3), *consts]
             outs = [_wp(wp, torch.empty(K, 2, dtype=f32), wp.vec2), _wp(wp, torch.empty(K, 3, dtype=f32), wp.vec3)]
             adj_ins = [None, None, None, _wp(wp, g_A, wp.mat33), _wp(wp, g_b, wp.vec3), 0.0, 0.0, 0.0, 0.0,
                        wp.vec4(), 0.0]
@@ -633,7 +635,8 @@ def project_affine(X: torch.Tensor, C: torch.Tensor, opacities: torch.Tensor, A:
         consts = [float(fx), float(fy), float(cx), float(cy), lim, float(eps2d)]
         if N:
             wp.launch(project_fwd, dim=N, device="cpu",
-                      inputs=[_wp(wp, Xc, wp.vec3), _wp(wp, Cc, wp.mat33), _wp(wp, opacities.detach().to(f32).contiguous(), float),
+                      inputs=[_wp(wp, Xc, wp.vec3), _wp(wp, Cc, wp.mat33),
+                              _wp(wp, opacities.detach().to(f32).contiguous(), float),
                               _wp(wp, A_, wp.mat33), _wp(wp, b_, wp.vec3), float(fx), float(fy), float(cx), float(cy),
                               int(width), int(height), float(near), float(far), float(eps2d), lim,
                               float(max(width, height) * 4 + 16), _wp(wp, key, float), _wp(wp, uv, wp.vec2),
