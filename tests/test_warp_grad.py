@@ -219,3 +219,24 @@ def test_fit_falls_back_when_a_compiled_launch_fails(monkeypatch):
     loss, _, _ = F._losses(out, lv, 0.5)
     loss.backward()
     assert p.omega.grad is not None and torch.isfinite(p.omega.grad).all()
+
+
+def test_fit_render_with_nothing_on_screen_still_backpropagates():
+    """The object placed entirely off the image: the compiled render is empty and a loss on it still goes
+    through backward() (zero gradients), as the tensor path's does."""
+    import math
+
+    from physmotion_core.lift import fit as F
+    from physmotion_core.types.gaussians import Gaussians
+
+    g = random_gaussians(200, seed=8, spread=0.5, size=0.05)
+    prep = F._prep(Gaussians(**{k: v for k, v in g.__dict__.items()}), torch.zeros(3, dtype=torch.float64), 1.0)
+    mask = torch.zeros(40, 48)
+    mask[10:30, 12:36] = 1.0
+    lv = F._level(torch.rand(40, 48, 3), mask, 48, 24.0)
+    p = F._Params(torch.eye(3), math.log(10.0), (500.0, 20.0), math.log(60.0), 48.0)  # far right of the photo
+    out = F._render(prep, p, lv, 24.0, 20.0)
+    assert out.backend == "warp" and float(out.alpha.detach().abs().sum()) == 0.0
+    loss, _, _ = F._losses(out, lv, 0.5)
+    loss.backward()
+    assert float(p.omega.grad.abs().sum()) == 0.0 and float(p.uv.grad.abs().sum()) == 0.0

@@ -499,7 +499,8 @@ def _render_compiled(prep: _Prep, p: _Params, lv: _Level, cx: float, cy: float, 
         _warp_grad.mark_failed(exc)
         return None
     alpha = img[..., 3]
-    if not alpha.requires_grad:  # nothing drawn: keep the (zero) image attached so backward() still works
+    if (A.requires_grad or b.requires_grad) and not alpha.requires_grad:
+        # Nothing drawn: keep the (zero) image attached so backward() still works.
         img = img + 0.0 * (A.sum() + b.sum())
         alpha = img[..., 3]
     return RenderOutput(rgb=img[..., :3], alpha=alpha, depth=torch.zeros_like(alpha.detach()), backend="warp")

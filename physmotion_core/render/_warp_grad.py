@@ -10,8 +10,8 @@ pass (``_BlendChunk``); on the fit's small, deep renders that was most of a refi
   splats with ``project_gaussians``' arithmetic (``screen``); the gradient w.r.t. A and b (12 numbers) is
   Warp's generated adjoint of the same formulas (``project_diff``), summed over the drawn splats;
 * ``tile_lists_warp``: each 4x4-px tile's depth-ordered list of the splats whose ellipse at the lowest alpha
-  evaluated reaches one of its pixel centres (an exact ellipse-rectangle test), by a compiled count and a
-  serial fill in depth order (no sort);
+  evaluated reaches one of its pixel centres (an exact ellipse-rectangle test, once per box tile, compiled),
+  then a serial fill in depth order (no sort);
 * ``composite``: two C++ loops over a tile (Warp native functions, the tile's pixels the inner loop, which the
   compiler vectorises). Forward: the tile's list front to back; entries with alpha <= 1/255 skipped; every
   pixel stops at the splat that would bring its transmittance to ``T_DONE`` or below (exclusive, the rule of
@@ -67,7 +67,7 @@ _built = None
 _failed = False
 
 # Shared by the two C++ loops below (Warp native functions, compiled by Warp's clang with -O2 -march=native). A
-# tile's 64 pixels are the inner loop, written without branches (selects) and with an inlined polynomial exp so
+# tile's pixels are the inner loop, written without branches (selects) and with an inlined polynomial exp so
 # that the compiler vectorises it; sums over the pixels are kept in LANES partial sums (a float reduction is not
 # vectorised without reassociation, which the compiler may not do on its own). exp: Cephes' single-precision
 # range reduction and degree-7 polynomial (within a float32 ulp over the range used, [ln(1/255), 0]); the
