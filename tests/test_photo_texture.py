@@ -316,3 +316,47 @@ def test_compiled_shading_matches_the_tensor_path(one_map, monkeypatch):
     c_rgb, _ = shade(tex, cam, out.rgb, out.alpha, out.depth, out.extra, one, compiled=False)
     faded = (c_rgb - b_rgb).abs().sum(-1) > 0.02
     assert int(faded.sum()) > 500
+
+
+def test_unseen_splats_show_their_colours_low_passed():
+    """The splats the photo never saw show their colours averaged over a box of cells: a colour ramp along x
+    (linear) is kept inside the grid (a box filter is exact on linear functions), a per-splat checkerboard (the
+    streaks of a lift's colour drawn out along depth) averages to its mean; the seen splats keep their colours."""
+    from physmotion_core.render.photo_texture import TexturedPoser, smoothed_colours
+
+    sp = 0.01
+    xs = torch.arange(0.0, 0.2 + 1e-9, sp)
+    g = torch.stack(torch.meshgrid(xs, xs, xs, indexing="ij"), -1).reshape(-1, 3)
+    ramp = torch.stack([g[:, 0] * 4.0, torch.full_like(g[:, 0], 0.5), 1.0 - g[:, 0]], 1)
+    out = smoothed_colours(g, ramp, sp, 1)
+    inner = ((g > 1.5 * sp) & (g < 0.2 - 1.5 * sp)).all(1)
+    assert float((out[inner] - ramp[inner]).abs().max()) < 1e-5
+    ijk = torch.round(g / sp).long()
+    checker = ((ijk.sum(1) % 2).float())[:, None].expand(-1, 3)
+    out = smoothed_colours(g, checker, sp, 1)
+    assert float((out[inner] - 0.5).abs().max()) < 0.05  # 13 of 27 or 14 of 27 ones
+    # Through the texture: the torn slab's inside (unseen, green) striped with red per splat column.
+    cam = slab_camera()
+    photo = texture_image()
+    front = slab(cam, photo)
+    inside = slab(cam, photo, half=(0.45, 0.33), z=-0.05, rgb=(0.0, 1.0, 0.0))
+    stripes = (torch.round(inside.means[:, 0] / 0.006).long() % 2 == 0)
+    rgb = inside.rgb.clone()
+    rgb[stripes] = torch.tensor([1.0, 0.0, 0.0])
+    inside = Gaussians.from_rgb(inside.means, rgb, inside.scales, inside.opacities)
+    gs = Gaussians.cat([front, inside])
+    sim = sim_from_positions(gs, [gs.means])
+    sim.stats["particle_spacing"] = 0.006
+    tex = make_photo_texture(photo, (render_frames(sim, cam).alpha[0] > 0.5).float(), cam)
+    poser = TexturedPoser(sim, cam, tex)
+    nf = front.means.shape[0]
+    seen = poser.seen
+    sure = seen >= 1.0
+    assert int(sure.sum()) > 1000 and torch.equal(poser.colors[sure], gs.rgb[sure].float())
+    hidden = torch.zeros(gs.means.shape[0], dtype=torch.bool)
+    hidden[nf:] = (inside.means[:, :2].abs() < 0.3).all(1) & (seen[nf:] < 0.01)
+    assert int(hidden.sum()) > 1000
+    c = poser.colors[hidden]
+    # Stripes one cell wide through a 3-cell box: 1/3 or 2/3 red instead of 0 or 1 (the std down by 3).
+    assert float(c[:, 0].std()) < 0.4 * float(gs.rgb[hidden][:, 0].std())
+    assert abs(float(c[:, 0].mean()) - float(gs.rgb[hidden][:, 0].mean())) < 0.05

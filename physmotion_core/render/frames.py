@@ -194,7 +194,8 @@ def render_frames(sim: SimResult, camera: Camera, *, device: Optional[torch.devi
                     alpha[k] = out.alpha.cpu()
                 else:
                     feats, one = poser.features(k, g)
-                    out = rasterize(g.to(dev), camera, extra_features=feats.to(dev), backend=backend)
+                    colors = None if poser.colors is None else poser.colors.to(dev, g.means.dtype)
+                    out = rasterize(g.to(dev), camera, colors=colors, extra_features=feats.to(dev), backend=backend)
                     poser.shade(out, one, into=(rgb[k], alpha[k]))
                 depth[k] = out.depth.cpu()
                 done(k)

@@ -17,8 +17,16 @@ shows it, and reads the photo there:
   centre, a fraction of a pixel). Two channels instead of the nine an exact 3D map needs
   (``controls._flow_features``), so the compiled compositor keeps its vectorised path: the texture costs
   little more than the splat render.
-* The photo is sampled there bicubically (exact at frame 0: the maps are the identity and the coordinate is
-  the pixel's own centre; a surface moved by a fraction of a pixel keeps its detail).
+* The photo is sampled there bicubically (Keys' cubic, a = -0.75, at the exact coordinate; exact at frame 0: the
+  maps are the identity and the coordinate is the pixel's own centre; a surface moved by a fraction of a pixel
+  keeps its detail).
+* Where the frame magnifies the photo (a surface the photo saw at a grazing angle, turned toward the camera: a few
+  photo pixels would be stretched over many, the streaks of a spinning body's side), the photo's share fades to
+  the splats' own colours: by the smallest singular value of the photo coordinates' Jacobian with respect to the
+  pixel position (``PHOTO_STRETCH``), spread over a few pixels (``STRETCH_SPREAD``).
+* The per-pixel passes (photo coordinates, stretch, sampling, blending) run compiled on the CPU
+  (``_warp_shade``: Warp, the blend and stretch loops in C++), with their tensor twin in ``shade(compiled=False)``
+  as the fallback; the two agree to float32 round-off.
 * Which splats the photo saw ("seen", per Gaussian, in [0, 1]) comes from a depth test in the input view at
   rest (``seen_weights``): a splat whose centre lies on the rendered front surface was photographed, one
   behind it (the back, a hidden side, the inside a tear opens) was not. It is composited as a channel too
@@ -57,6 +65,12 @@ PHOTO_STRETCH = (1.5, 3.0)
 #: at a grazing angle comes out as splat-sized plateaus of nearly one photo coordinate (the streaks) with steps
 #: between them; the fade catches the plateaus, and spread, the steps too.
 STRETCH_SPREAD = 3
+
+#: The splats the photo did not see show their own colours low-passed in 3D: averaged over a box of (2
+#: UNSEEN_BLUR_CELLS + 1)³ cells of one particle spacing. A lift colours those splats from the photo pixel they
+#: project to (the silhouette lift's whole depth column takes that pixel's colour), so a side or back turned into view
+#: shows the photo's detail drawn out along the old viewing direction: the streaky seam of a spinning body.
+UNSEEN_BLUR_CELLS = 1
 
 #: The splats' coverage is a floor from INTERIOR_PX[1] px inside their silhouette (none within INTERIOR_PX[0]).
 INTERIOR_PX = (1.5, 3.5)
@@ -169,6 +183,40 @@ def seen_weights(gaussians: Gaussians, camera: Camera, *, backend: str = "auto")
         s = (1.0 - (z - d_front - tol) / tol.clamp_min(1e-9)).clamp(0.0, 1.0)
         s = torch.where(inside & covered & (d_front > 0), s, torch.zeros_like(s))
     return s.float()
+
+
+def smoothed_colours(means: torch.Tensor, rgb: torch.Tensor, cell: float, half: int = 1) -> torch.Tensor:
+    """(N,3): the splats' colours low-passed in 3D: averaged over the (2 ``half`` + 1)³ cells of side ``cell`` about
+    each cell (a box filter on a grid of the positions ``means``; at most 2²² cells, coarser when the grid would
+    exceed that), read at each splat's position by trilinear interpolation between the cell centres (so the
+    colours vary smoothly, without the cells' blocks)."""
+    x = means.double()
+    lo = x.min(0).values
+    ext = (x.max(0).values - lo).clamp_min(1e-12)
+    cell = max(float(cell), float(ext.max()) / 256.0, 1e-9)
+    while float(torch.prod(torch.floor(ext / cell) + 2 + 2 * half)) > 2 ** 22:
+        cell *= 1.25
+    f = (x - lo) / cell + half  # cell k's centre at k (cells centred on lo + (k - half) cell)
+    idx = torch.floor(f + 0.5).long()
+    dims = [int(d) for d in (idx.max(0).values + 2 + half).tolist()]
+    flat = (idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2]
+    grid = torch.zeros(dims[0] * dims[1] * dims[2], 4, dtype=torch.float32)
+    grid.index_add_(0, flat, torch.cat([rgb.float(), torch.ones(rgb.shape[0], 1)], 1))
+    vol = grid.view(dims[0], dims[1], dims[2], 4).permute(3, 0, 1, 2)[None]
+    k = 2 * half + 1
+    box = torch.nn.functional.avg_pool3d(vol, k, stride=1, padding=half)[0]  # the same scale for sums and counts
+    box = box.permute(1, 2, 3, 0).reshape(-1, 4)
+    base = torch.floor(f).long()
+    t = (f - base).float()
+    acc = torch.zeros(x.shape[0], 4)
+    for c in range(8):
+        o = [(c >> 2) & 1, (c >> 1) & 1, c & 1]
+        wgt = torch.ones(x.shape[0])
+        for ax in range(3):
+            wgt = wgt * (t[:, ax] if o[ax] else 1.0 - t[:, ax])
+        ci = ((base[:, 0] + o[0]) * dims[1] + base[:, 1] + o[1]) * dims[2] + base[:, 2] + o[2]
+        acc += wgt[:, None] * box[ci]
+    return acc[:, :3] / acc[:, 3:].clamp_min(1e-12)
 
 
 def texture_features(seen: torch.Tensor, shift: Optional[torch.Tensor]) -> torch.Tensor:
@@ -421,6 +469,18 @@ class TexturedPoser:
         z = mc[:, 2].clamp_min(1e-9)
         pc = texture.camera
         self.uv0 = torch.stack([pc.fx * mc[:, 0] / z + pc.cx, pc.fy * mc[:, 1] / z + pc.cy], 1)
+        # The splats' colours for the render: their own where the photo saw them, low-passed where it did not
+        # (UNSEEN_BLUR_CELLS).
+        rgb = g0.rgb.float()
+        self.colors = rgb
+        if UNSEEN_BLUR_CELLS > 0 and bool((self.seen < 1.0).any()):
+            spacing = (sim.stats or {}).get("particle_spacing") if hasattr(sim, "stats") else None
+            if not spacing:
+                spacing = 4.0 * float(g0.scales.max(1).values.median()) if g0.scales.numel() else 0.0
+            if spacing and spacing > 0:
+                blur = smoothed_colours(g0.means, rgb, float(spacing), UNSEEN_BLUR_CELLS)
+                s = self.seen.float().clamp(0.0, 1.0)[:, None]
+                self.colors = s * rgb + (1.0 - s) * blur
 
     def features(self, frame: int, g: Gaussians):
         """(extra_features for ``rasterize``, one_map or None) of frame ``frame`` posed as ``g``."""
