@@ -28,10 +28,14 @@ from physmotion_core.sim.mpm import Domain, MPMSolver
 from physmotion_core.types.material import Material
 
 
+PRESET = None  # --material: a preset instead of the jelly
+
+
 def make(pkg, x, vol, v0, C0, g, threads):
     mpm = importlib.import_module(pkg + ".sim.mpm")
     mat = importlib.import_module(pkg + ".types.material")
-    jelly = mat.Material(name="jelly", model="fixed_corotated", E=E, nu=NU, density=RHO)
+    jelly = mat.Material(name="jelly", model="fixed_corotated", E=E, nu=NU, density=RHO) if PRESET is None \
+        else mat.material_preset(PRESET)
     dom = mpm.Domain(origin=np.zeros(3), dx=1.0 / g, dims=(g + 1,) * 3)
     return mpm.MPMSolver(x, np.full(len(x), vol), np.zeros(len(x), np.int64), [jelly], dom, device="cpu",
                          threads=threads, v0=v0, C0=C0)
@@ -80,13 +84,16 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=6)
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--motion", default="tumble", choices=("tumble", "rest"))
+    ap.add_argument("--material", default=None, help="a material preset instead of the jelly (E 2e5)")
     args = ap.parse_args()
+    global PRESET
+    PRESET = args.material
     sys.path.insert(0, args.old)
     oldK = importlib.import_module("physmotion_old.sim.kernels")
     old_mat = old_material_kernel(oldK)
     print("load average before:", os.getloadavg(), "motion", args.motion)
     for n_side in args.sizes:
-        g = SIZES[n_side]
+        g = SIZES.get(n_side, 2 * n_side)
         x, vol, v0, C0 = scene(n_side, g, args.motion)
         old = make("physmotion_old", x, vol, v0, C0, g, args.threads)
         new = make("physmotion_core", x, vol, v0, C0, g, args.threads)
