@@ -270,3 +270,93 @@ def test_a_face_the_photo_saw_edge_on_keeps_its_own_colour_when_turned_to_the_ca
     assert int(face.sum()) > 200
     out = composite(fr.rgb, fr.alpha, torch.zeros(H, W, 3))[1]
     assert float((out[face] - green).abs().max()) < 0.05
+
+
+@pytest.mark.parametrize("one_map", [True, False])
+def test_compiled_shading_matches_the_tensor_path(one_map, monkeypatch):
+    """The photo texture's per-pixel passes compiled (``_warp_shade``) against their tensor twin, on a slab the
+    photo saw turned 70° away, turned to face the camera (the photo stretched by about 2.9 across it: partly faded,
+    PHOTO_STRETCH) and moved by a fraction of a pixel: both photo-coordinate paths (one rigid map; each splat's
+    displacement), the stretch fade, bicubic sampling between pixels and the coverage floor."""
+    from physmotion_core.render import _warp_shade
+    from physmotion_core.render.photo_texture import TexturedPoser, shade
+    from physmotion_core.render.rasterize import rasterize
+
+    assert _warp_shade.available()
+    cam = slab_camera()
+    photo = texture_image()
+    flat = slab(cam, photo, half=(0.2, 0.2), spacing=0.005)
+    ang = math.radians(70.0)
+    rot = torch.tensor([[math.cos(ang), 0.0, math.sin(ang)], [0.0, 1.0, 0.0], [-math.sin(ang), 0.0, math.cos(ang)]])
+    quat = torch.tensor([math.cos(ang / 2), 0.0, math.sin(ang / 2), 0.0]).expand(flat.means.shape[0], 4)
+    g = Gaussians.from_rgb(flat.means @ rot.T, flat.rgb, flat.scales, flat.opacities, quats=quat.contiguous())
+    turned = flat.means + torch.tensor([0.3 / cam.fx, 0.45 / cam.fy, 0.0])
+    sim = sim_from_positions(g, [g.means, turned])
+    sim.F[1] = rot.T
+    if not one_map:  # a slight per-particle spread in F: no single map, each splat's displacement channel
+        gen = torch.Generator().manual_seed(0)
+        sim.F[1] = sim.F[1] * (1.0 + 0.01 * torch.rand(sim.F.shape[1], 1, 1, generator=gen))
+    rest = render_frames(sim, cam)
+    tex = make_photo_texture(photo, rest.alpha[0].clamp(0, 1), cam, background=torch.full((H, W, 3), 0.3))
+    poser = TexturedPoser(sim, cam, tex)
+    feats, one = poser.features(1, sim.gaussians_at(1))
+    assert (one is not None) == one_map
+    out = rasterize(sim.gaussians_at(1), cam, extra_features=feats)
+    a_rgb, a_a = shade(tex, cam, out.rgb, out.alpha, out.depth, out.extra, one, compiled=True)
+    b_rgb, b_a = shade(tex, cam, out.rgb, out.alpha, out.depth, out.extra, one, compiled=False)
+    assert float((a_rgb - b_rgb).abs().max()) < 1e-5
+    assert float((a_a - b_a).abs().max()) < 1e-5
+    # The photo is really sampled in this frame (the test can tell the paths from the splat render), and the
+    # stretch fade is partial over the face (the magnification 1 / cos 70° = 2.9 lies within PHOTO_STRETCH).
+    photo_share = (a_rgb - out.rgb).abs().sum(-1) > 1e-3
+    assert int(photo_share.sum()) > 1000
+    from physmotion_core.render import photo_texture as P
+
+    monkeypatch.setattr(P, "PHOTO_STRETCH", (1e6, 2e6))  # no stretch fade
+    c_rgb, _ = shade(tex, cam, out.rgb, out.alpha, out.depth, out.extra, one, compiled=False)
+    faded = (c_rgb - b_rgb).abs().sum(-1) > 0.02
+    assert int(faded.sum()) > 500
+
+
+def test_unseen_splats_show_their_colours_low_passed():
+    """The splats the photo never saw show their colours averaged over a box of cells: a colour ramp along x
+    (linear) is kept inside the grid (a box filter is exact on linear functions), a per-splat checkerboard (the
+    streaks of a lift's colour drawn out along depth) averages to its mean; the seen splats keep their colours."""
+    from physmotion_core.render.photo_texture import TexturedPoser, smoothed_colours
+
+    sp = 0.01
+    xs = torch.arange(0.0, 0.2 + 1e-9, sp)
+    g = torch.stack(torch.meshgrid(xs, xs, xs, indexing="ij"), -1).reshape(-1, 3)
+    ramp = torch.stack([g[:, 0] * 4.0, torch.full_like(g[:, 0], 0.5), 1.0 - g[:, 0]], 1)
+    out = smoothed_colours(g, ramp, sp, 1)
+    inner = ((g > 1.5 * sp) & (g < 0.2 - 1.5 * sp)).all(1)
+    assert float((out[inner] - ramp[inner]).abs().max()) < 1e-5
+    ijk = torch.round(g / sp).long()
+    checker = ((ijk.sum(1) % 2).float())[:, None].expand(-1, 3)
+    out = smoothed_colours(g, checker, sp, 1)
+    assert float((out[inner] - 0.5).abs().max()) < 0.05  # 13 of 27 or 14 of 27 ones
+    # Through the texture: the torn slab's inside (unseen, green) striped with red per splat column.
+    cam = slab_camera()
+    photo = texture_image()
+    front = slab(cam, photo)
+    inside = slab(cam, photo, half=(0.45, 0.33), z=-0.05, rgb=(0.0, 1.0, 0.0))
+    stripes = (torch.round(inside.means[:, 0] / 0.006).long() % 2 == 0)
+    rgb = inside.rgb.clone()
+    rgb[stripes] = torch.tensor([1.0, 0.0, 0.0])
+    inside = Gaussians.from_rgb(inside.means, rgb, inside.scales, inside.opacities)
+    gs = Gaussians.cat([front, inside])
+    sim = sim_from_positions(gs, [gs.means])
+    sim.stats["particle_spacing"] = 0.006
+    tex = make_photo_texture(photo, (render_frames(sim, cam).alpha[0] > 0.5).float(), cam)
+    poser = TexturedPoser(sim, cam, tex)
+    nf = front.means.shape[0]
+    seen = poser.seen
+    sure = seen >= 1.0
+    assert int(sure.sum()) > 1000 and torch.equal(poser.colors[sure], gs.rgb[sure].float())
+    hidden = torch.zeros(gs.means.shape[0], dtype=torch.bool)
+    hidden[nf:] = (inside.means[:, :2].abs() < 0.3).all(1) & (seen[nf:] < 0.01)
+    assert int(hidden.sum()) > 1000
+    c = poser.colors[hidden]
+    # Stripes one cell wide through a 3-cell box: 1/3 or 2/3 red instead of 0 or 1 (the std down by 3).
+    assert float(c[:, 0].std()) < 0.4 * float(gs.rgb[hidden][:, 0].std())
+    assert abs(float(c[:, 0].mean()) - float(gs.rgb[hidden][:, 0].mean())) < 0.05

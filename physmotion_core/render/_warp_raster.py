@@ -73,10 +73,10 @@ def _f32(x: float) -> str:
 #: lower values are rejected by the threshold, higher ones clamped to 0.99 either way) within 7.7e-8 of the exact
 #: value relative, under one float32 ulp (2M points against float64), where expf itself is within 1.9e-7.
 _ROW = r"""
-const float* f = feats.data + (size_t)m * 4 * Q;
+const float* f = feats.data + (size_t)m * K;
 float* Tr = T.data + base;
 float* ar = aout.data + base;
-float* o = out.data + (size_t)base * 4 * Q;
+float* o = out.data + (size_t)base * K;
 const float A = 0.5f * ca, B = cb, q0 = lm - 0.5f * cc * dy * dy;
 auto weight = [&](int x, float t, int& died) -> float {
     float dx = u - ((float)x + 0.5f);
@@ -105,32 +105,23 @@ auto weight = [&](int x, float t, int& died) -> float {
     return done ? 0.0f : al * t;
 };
 int died = 0;
-if (Q == 1) {
-    const float f0 = f[0], f1 = f[1], f2 = f[2], f3 = f[3];
-    for (int x = x0; x <= x1; ++x) {
-        float w = weight(x, Tr[x], died);
-        o[4 * x] += w * f0;
-        o[4 * x + 1] += w * f1;
-        o[4 * x + 2] += w * f2;
-        o[4 * x + 3] += w * f3;
-        ar[x] += w;
+// K floats per pixel in `out` and per splat in `feats`: fixed-count loops for the splat render's colour + depth
+// (4) and with the photo texture's one or three channels (5, 7), which the compiler vectorises across the row.
+#define PM_ROW_FIXED(N)                                                     \
+    {                                                                       \
+        float fk[N];                                                        \
+        for (int k = 0; k < N; ++k) fk[k] = f[k];                           \
+        for (int x = x0; x <= x1; ++x) {                                    \
+            float w = weight(x, Tr[x], died);                               \
+            for (int k = 0; k < N; ++k) o[N * x + k] += w * fk[k];          \
+            ar[x] += w;                                                     \
+        }                                                                   \
     }
-} else if (Q == 2) {  // colour + depth + up to 4 more channels (the photo texture's): vectorised as Q == 1
-    const float f0 = f[0], f1 = f[1], f2 = f[2], f3 = f[3], f4 = f[4], f5 = f[5], f6 = f[6], f7 = f[7];
-    for (int x = x0; x <= x1; ++x) {
-        float w = weight(x, Tr[x], died);
-        o[8 * x] += w * f0;
-        o[8 * x + 1] += w * f1;
-        o[8 * x + 2] += w * f2;
-        o[8 * x + 3] += w * f3;
-        o[8 * x + 4] += w * f4;
-        o[8 * x + 5] += w * f5;
-        o[8 * x + 6] += w * f6;
-        o[8 * x + 7] += w * f7;
-        ar[x] += w;
-    }
-} else {
-    const int K = 4 * Q;
+if (K == 4) PM_ROW_FIXED(4)
+else if (K == 5) PM_ROW_FIXED(5)
+else if (K == 7) PM_ROW_FIXED(7)
+else if (K == 8) PM_ROW_FIXED(8)
+else {
     for (int x = x0; x <= x1; ++x) {
         float w = weight(x, Tr[x], died);
         if (w != 0.0f) {
@@ -140,6 +131,7 @@ if (Q == 1) {
         }
     }
 }
+#undef PM_ROW_FIXED
 return died;
 """.replace("ALPHA_MAX", _f32(ALPHA_MAX)).replace("ALPHA_MIN", _f32(ALPHA_MIN)).replace(
     "T_DONE", _f32(T_DONE)).replace("LN_255", _f32(math.log(255.0)))
@@ -281,7 +273,7 @@ def _build():
 
         @wp.func_native(_ROW)
         def row(T: wp.array(dtype=float), out: wp.array(dtype=float), aout: wp.array(dtype=float),
-                feats: wp.array(dtype=float), Q: int, m: int, base: int, x0: int, x1: int, u: float, dy: float,
+                feats: wp.array(dtype=float), K: int, m: int, base: int, x0: int, x1: int, u: float, dy: float,
                 ca: float, cb: float, cc: float, lm: float) -> int:
             ...
 
@@ -289,12 +281,12 @@ def _build():
         def composite(start: wp.array(dtype=int), stop: wp.array(dtype=int), lists: wp.array(dtype=int),
                       uv: wp.array(dtype=wp.vec2),
                       conic: wp.array(dtype=wp.vec3), logo: wp.array(dtype=float), lo: wp.array(dtype=wp.vec2i),
-                      hi: wp.array(dtype=wp.vec2i), feats: wp.array(dtype=float), Q: int, ts: int, TX: int, W: int,
+                      hi: wp.array(dtype=wp.vec2i), feats: wp.array(dtype=float), K: int, ts: int, TX: int, W: int,
                       H: int, asked: wp.array(dtype=wp.uint8), T: wp.array(dtype=float),
                       out: wp.array(dtype=float), alpha_out: wp.array(dtype=float)):
             # One tile: its splats front to back, each over the pixels of the tile its ellipse at alpha = 1/255 (plus
             # the margin) holds, row by row (``row``); a pixel keeps its transmittance in T (0 once saturated, or not
-            # asked). ``feats`` and ``out`` hold Q groups of four floats per splat / pixel.
+            # asked). ``feats`` and ``out`` hold K floats per splat / pixel.
             tile = wp.tid()
             s0 = start[tile]
             s1 = stop[tile]
@@ -327,7 +319,7 @@ def _build():
                 for y in range(wp.max(lo[m][1], by0), wp.min(hi[m][1], by1) + 1):
                     sp = span(cn[0], cn[1], cn[2], r2, u, v, y, x0, x1)
                     if sp[0] <= sp[1]:
-                        alive -= row(T, out, alpha_out, feats, Q, m, y * W, sp[0], sp[1], u, v - (float(y) + 0.5),
+                        alive -= row(T, out, alpha_out, feats, K, m, y * W, sp[0], sp[1], u, v - (float(y) + 0.5),
                                      cn[0], cn[1], cn[2], lm)
 
         MAX_EXTENT_ = wp.constant(MAX_EXTENT)
@@ -418,8 +410,9 @@ def composite_warp(proj: Projected, features: torch.Tensor, width: int, height: 
     """``composite_tiles`` without gradients, on the CPU: (H, W, C + 1), the composited features Σ f w then
     alpha Σ w, of the projected splats ``proj`` (front to back) with features (M, C) in the same order.
     ``pixels`` (H, W) bool: only these pixels (the others stay 0). Computed in float32. ``split``: return the two
-    buffers the kernel writes instead, (H, W, 4 ceil(C / 4)) features (the first C channels; the rest 0) and (H, W)
-    alpha, without the copy that joins them (a whole frame's worth of memory traffic)."""
+    buffers the kernel writes instead, (H, W, K) features (K = C for 5 or 7 channels, else 4 ceil(C / 4): the first
+    C channels, the rest 0) and (H, W) alpha, without the copy that joins them (a whole frame's worth of memory
+    traffic)."""
     wp, count, fill, composite, _ = _build()
     f32 = torch.float32
     M, C = features.shape
@@ -459,22 +452,26 @@ def composite_warp(proj: Projected, features: torch.Tensor, width: int, height: 
         cursor = start[:-1].clone()
         wp.launch(fill, dim=1, device="cpu", inputs=[uv, conic, logo, lo, hi, ts, TX, M, holds, view(cursor, int),
                                                      view(lists, int)])
-        # Features in groups of four, zero-padded.
-        Q = -(-C // 4)
-        fq = torch.zeros(M, 4 * Q, dtype=f32)
-        fq[:, :C] = features
-        out = torch.zeros(height * width, 4 * Q, dtype=f32)
+        # K floats per splat and pixel: the channels as they are for 5-7 of them (the photo texture's), else in
+        # groups of four, zero-padded.
+        K = C if C in (5, 7) else 4 * -(-C // 4)
+        if K == C:
+            fq = features.to(f32).contiguous()
+        else:
+            fq = torch.zeros(M, K, dtype=f32)
+            fq[:, :C] = features
+        out = torch.zeros(height * width, K, dtype=f32)
         alpha = torch.zeros(height * width, dtype=f32)
         trans = torch.empty(height * width, dtype=f32)
         first, last = start[:-1], start[1:]
         wp.launch(composite, dim=TX * TY, device="cpu",
                   inputs=[view(first, int), view(last, int), view(lists, int), uv, conic, logo, lo, hi,
-                          view(fq.view(-1), float), Q, ts, TX, width, height, view(asked, wp.uint8),
+                          view(fq.view(-1), float), K, ts, TX, width, height, view(asked, wp.uint8),
                           view(trans, float), view(out.view(-1), float), view(alpha, float)])
         wp.synchronize_device("cpu")
         if split:
-            return out.view(height, width, 4 * Q), alpha.view(height, width)
-        img = torch.cat([out[:, :C], alpha[:, None]], 1) if 4 * Q != C else torch.cat([out, alpha[:, None]], 1)
+            return out.view(height, width, K), alpha.view(height, width)
+        img = torch.cat([out[:, :C], alpha[:, None]], 1) if K != C else torch.cat([out, alpha[:, None]], 1)
     return img.view(height, width, C + 1)
 
 

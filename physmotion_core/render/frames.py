@@ -163,11 +163,22 @@ def render_frames(sim: SimResult, camera: Camera, *, device: Optional[torch.devi
 
     repeated = repeated_frames(sim)
     poser = None
+    threads = frame_threads(total, dev)
     if photo is not None:
         from .photo_texture import TexturedPoser
 
-        with torch.no_grad():
-            poser = TexturedPoser(sim, camera, photo, backend=backend)
+        # The texture's set-up (the seen test's rest render, the rest pose's maps) on one torch thread when frames
+        # render on several: its operations are small, and their intra-op threads' synchronisation is most of their
+        # cost on a busy machine (the seen test of block_sliding_friction: 10 ms on one thread, 240 ms on two with
+        # the load at 5 on the 2-core VM).
+        before = torch.get_num_threads()
+        if threads > 1:
+            torch.set_num_threads(1)
+        try:
+            with torch.no_grad():
+                poser = TexturedPoser(sim, camera, photo, backend=backend)
+        finally:
+            torch.set_num_threads(before)
 
     def work(a: int, b: int, done) -> None:
         with torch.no_grad():
@@ -183,12 +194,13 @@ def render_frames(sim: SimResult, camera: Camera, *, device: Optional[torch.devi
                     alpha[k] = out.alpha.cpu()
                 else:
                     feats, one = poser.features(k, g)
-                    out = rasterize(g.to(dev), camera, extra_features=feats.to(dev), backend=backend)
+                    colors = None if poser.colors is None else poser.colors.to(dev, g.means.dtype)
+                    out = rasterize(g.to(dev), camera, colors=colors, extra_features=feats.to(dev), backend=backend)
                     poser.shade(out, one, into=(rgb[k], alpha[k]))
                 depth[k] = out.depth.cpu()
                 done(k)
 
-    run_frame_blocks(total, frame_threads(total, dev), work, progress, cost=[0 if r else 1 for r in repeated])
+    run_frame_blocks(total, threads, work, progress, cost=[0 if r else 1 for r in repeated])
     fps = 1.0 / float(sim.times[1] - sim.times[0]) if total > 1 else 24.0
     return FrameSet(rgb=rgb, alpha=alpha, depth=depth, fps=fps)
 

@@ -17,8 +17,16 @@ shows it, and reads the photo there:
   centre, a fraction of a pixel). Two channels instead of the nine an exact 3D map needs
   (``controls._flow_features``), so the compiled compositor keeps its vectorised path: the texture costs
   little more than the splat render.
-* The photo is sampled there bicubically (exact at frame 0: the maps are the identity and the coordinate is
-  the pixel's own centre; a surface moved by a fraction of a pixel keeps its detail).
+* The photo is sampled there bicubically (Keys' cubic, a = -0.75, at the exact coordinate; exact at frame 0: the
+  maps are the identity and the coordinate is the pixel's own centre; a surface moved by a fraction of a pixel
+  keeps its detail).
+* Where the frame magnifies the photo (a surface the photo saw at a grazing angle, turned toward the camera: a few
+  photo pixels would be stretched over many, the streaks of a spinning body's side), the photo's share fades to
+  the splats' own colours: by the smallest singular value of the photo coordinates' Jacobian with respect to the
+  pixel position (``PHOTO_STRETCH``), spread over a few pixels (``STRETCH_SPREAD``).
+* The per-pixel passes (photo coordinates, stretch, sampling, blending) run compiled on the CPU
+  (``_warp_shade``: Warp, the blend and stretch loops in C++), with their tensor twin in ``shade(compiled=False)``
+  as the fallback; the two agree to float32 round-off.
 * Which splats the photo saw ("seen", per Gaussian, in [0, 1]) comes from a depth test in the input view at
   rest (``seen_weights``): a splat whose centre lies on the rendered front surface was photographed, one
   behind it (the back, a hidden side, the inside a tear opens) was not. It is composited as a channel too
@@ -46,10 +54,23 @@ from ..types.gaussians import Gaussians
 #: weight ramps in linearly up to it.
 MIN_COVERAGE = 0.02
 
-#: A splat whose footprint grows past STRETCH_FADE[0] times its footprint in the photo (a rim or a side the photo
-#: saw edge-on, turned toward the camera) fades from the photo to its own colour, wholly at STRETCH_FADE[1]:
-#: the photo has too few pixels of it. Frame 0 is never affected (ratio 1).
-STRETCH_FADE = (1.5, 3.0)
+#: Where the frame magnifies the photo (its photo coordinates' Jacobian with respect to the pixel position has a
+#: smallest singular value under 1 / PHOTO_STRETCH[0]: a surface the photo saw at a grazing angle, turned toward the
+#: camera, which the photo holds in a few pixels stretched over many), the photo's share fades to the splats' own
+#: colours, wholly at PHOTO_STRETCH[1]: stretched further, the photo's pixels would streak across the surface.
+PHOTO_STRETCH = (1.5, 3.0)
+
+#: The stretch fade is spread over this many pixels (the least weight about each pixel): with one rigid map the
+#: photo coordinate follows the splats' blended depth, constant over each splat's core, so a surface the photo saw
+#: at a grazing angle comes out as splat-sized plateaus of nearly one photo coordinate (the streaks) with steps
+#: between them; the fade catches the plateaus, and spread, the steps too.
+STRETCH_SPREAD = 3
+
+#: The splats the photo did not see show their own colours low-passed in 3D: averaged over a box of (2
+#: UNSEEN_BLUR_CELLS + 1)³ cells of one particle spacing. A lift colours those splats from the photo pixel they
+#: project to (the silhouette lift's whole depth column takes that pixel's colour), so a side or back turned into view
+#: shows the photo's detail drawn out along the old viewing direction: the streaky seam of a spinning body.
+UNSEEN_BLUR_CELLS = 1
 
 #: The splats' coverage is a floor from INTERIOR_PX[1] px inside their silhouette (none within INTERIOR_PX[0]).
 INTERIOR_PX = (1.5, 3.5)
@@ -164,26 +185,38 @@ def seen_weights(gaussians: Gaussians, camera: Camera, *, backend: str = "auto")
     return s.float()
 
 
-def projected_area(g: Gaussians, camera: Camera, eps2d: float = 0.0) -> torch.Tensor:
-    """(N,) each splat's footprint in ``camera``'s image, px² (√det of its EWA 2D covariance, plus ``eps2d`` px²
-    of dilation: none by default, so a splat seen edge-on has the sliver of a footprint it really has, not the
-    rasterizer's 0.3 px² floor); 0 behind the camera."""
-    w2c = camera.w2c_opencv().to(torch.float32)
-    R = w2c[:3, :3]
-    mc = g.means.float() @ R.T + w2c[:3, 3]
-    z = mc[:, 2]
-    rz = 1.0 / z.clamp_min(1e-6)
-    # The Jacobian's rows in world axes: t0 = fx/z (R0 - x/z R2), t1 = fy/z (R1 - y/z R2).
-    t0 = (camera.fx * rz)[:, None] * (R[0] - (mc[:, 0] * rz)[:, None] * R[2])
-    t1 = (camera.fy * rz)[:, None] * (R[1] - (mc[:, 1] * rz)[:, None] * R[2])
-    cov = g.covariance().float()
-    s0 = (cov * t0[:, None, :]).sum(-1)  # Σ t0
-    s1 = (cov * t1[:, None, :]).sum(-1)
-    a = (t0 * s0).sum(1) + eps2d
-    c = (t1 * s1).sum(1) + eps2d
-    b = (t0 * s1).sum(1)
-    det = a * c - b * b
-    return torch.where(z > camera.near, det.clamp_min(0.0).sqrt(), torch.zeros_like(det))
+def smoothed_colours(means: torch.Tensor, rgb: torch.Tensor, cell: float, half: int = 1) -> torch.Tensor:
+    """(N,3): the splats' colours low-passed in 3D: averaged over the (2 ``half`` + 1)³ cells of side ``cell`` about
+    each cell (a box filter on a grid of the positions ``means``; at most 2²² cells, coarser when the grid would
+    exceed that), read at each splat's position by trilinear interpolation between the cell centres (so the
+    colours vary smoothly, without the cells' blocks)."""
+    x = means.double()
+    lo = x.min(0).values
+    ext = (x.max(0).values - lo).clamp_min(1e-12)
+    cell = max(float(cell), float(ext.max()) / 256.0, 1e-9)
+    while float(torch.prod(torch.floor(ext / cell) + 2 + 2 * half)) > 2 ** 22:
+        cell *= 1.25
+    f = (x - lo) / cell + half  # cell k's centre at k (cells centred on lo + (k - half) cell)
+    idx = torch.floor(f + 0.5).long()
+    dims = [int(d) for d in (idx.max(0).values + 2 + half).tolist()]
+    flat = (idx[:, 0] * dims[1] + idx[:, 1]) * dims[2] + idx[:, 2]
+    grid = torch.zeros(dims[0] * dims[1] * dims[2], 4, dtype=torch.float32)
+    grid.index_add_(0, flat, torch.cat([rgb.float(), torch.ones(rgb.shape[0], 1)], 1))
+    vol = grid.view(dims[0], dims[1], dims[2], 4).permute(3, 0, 1, 2)[None]
+    k = 2 * half + 1
+    box = torch.nn.functional.avg_pool3d(vol, k, stride=1, padding=half)[0]  # the same scale for sums and counts
+    box = box.permute(1, 2, 3, 0).reshape(-1, 4)
+    base = torch.floor(f).long()
+    t = (f - base).float()
+    acc = torch.zeros(x.shape[0], 4)
+    for c in range(8):
+        o = [(c >> 2) & 1, (c >> 1) & 1, c & 1]
+        wgt = torch.ones(x.shape[0])
+        for ax in range(3):
+            wgt = wgt * (t[:, ax] if o[ax] else 1.0 - t[:, ax])
+        ci = ((base[:, 0] + o[0]) * dims[1] + base[:, 1] + o[1]) * dims[2] + base[:, 2] + o[2]
+        acc += wgt[:, None] * box[ci]
+    return acc[:, :3] / acc[:, 3:].clamp_min(1e-12)
 
 
 def texture_features(seen: torch.Tensor, shift: Optional[torch.Tensor]) -> torch.Tensor:
@@ -208,7 +241,7 @@ def _render_to_photo_px(camera: Camera, photo_camera: Camera, r: torch.Tensor):
 
 
 def _texture_planes(texture: PhotoTexture) -> np.ndarray:
-    """(H,W,4) float32: premultiplied colour and matte as one image for ``cv2.remap`` (made once per texture)."""
+    """(H,W,4) float32: premultiplied colour and matte as one image (made once per texture)."""
     planes = texture.__dict__.get("_planes")
     if planes is None:
         planes = torch.cat([texture.premult, texture.matte[..., None]], -1).contiguous().numpy()
@@ -216,30 +249,125 @@ def _texture_planes(texture: PhotoTexture) -> np.ndarray:
     return planes
 
 
-def _rays(camera: Camera) -> torch.Tensor:
-    """(H,W,2) float32: each pixel centre's ray (x/z, y/z) for ``camera``, made once per camera size."""
-    key = (camera.width, camera.height, camera.fx, camera.fy, camera.cx, camera.cy)
-    hit = _RAYS.get(key)
-    if hit is None:
-        ys = (torch.arange(camera.height, dtype=torch.float64) + 0.5 - camera.cy) / camera.fy
-        xs = (torch.arange(camera.width, dtype=torch.float64) + 0.5 - camera.cx) / camera.fx
-        hit = torch.stack(torch.meshgrid(xs, ys, indexing="xy"), -1).float()
-        if len(_RAYS) > 8:
-            _RAYS.clear()
-        _RAYS[key] = hit
-    return hit
+def _keys_weights(t: torch.Tensor) -> list:
+    """Keys' cubic convolution weights (a = -0.75, OpenCV's bicubic) of the taps at -1, 0, 1, 2 for fractions
+    ``t`` in [0, 1) (float32, in ``_warp_shade.keys``' order of operations)."""
+    a = -0.75
+    s = t + 1.0
+    w0 = ((a * s - 5.0 * a) * s + 8.0 * a) * s - 4.0 * a
+    w1 = ((a + 2.0) * t - (a + 3.0)) * t * t + 1.0
+    r = 1.0 - t
+    w2 = ((a + 2.0) * r - (a + 3.0)) * r * r + 1.0
+    return [w0, w1, w2, 1.0 - w0 - w1 - w2]
 
 
-_RAYS: dict = {}
+def _bicubic(planes: torch.Tensor, u: torch.Tensor, v: torch.Tensor) -> torch.Tensor:
+    """(…,4): ``planes`` (H,W,4) sampled at photo coordinates (u, v) (pixel centres at +0.5, float64) with Keys'
+    cubic; taps outside the photo read 0."""
+    PH, PW = planes.shape[:2]
+    mx, my = u - 0.5, v - 0.5
+    fx, fy = torch.floor(mx), torch.floor(my)
+    inside = (fx > -3.0) & (fx < PW + 1) & (fy > -3.0) & (fy < PH + 1)
+    wx = _keys_weights((mx - fx).float())
+    wy = _keys_weights((my - fy).float())
+    ix = fx.clamp(-3.0, PW + 1).long()
+    iy = fy.clamp(-3.0, PH + 1).long()
+    flat = planes.reshape(-1, 4)
+    out = torch.zeros(u.shape + (4,), dtype=torch.float32)
+    for j in range(4):
+        yy = iy - 1 + j
+        oky = (yy >= 0) & (yy < PH) & inside
+        row = torch.zeros_like(out)
+        for k in range(4):
+            xx = ix - 1 + k
+            ok = oky & (xx >= 0) & (xx < PW)
+            tap = flat[(yy.clamp(0, PH - 1) * PW + xx.clamp(0, PW - 1)).reshape(-1)].reshape(out.shape)
+            row = row + torch.where(ok[..., None], wx[k][..., None] * tap, torch.zeros_like(tap))
+        out = out + wy[j][..., None] * row
+    return out
+
+
+def _derivative(c: torch.Tensor, ok: torch.Tensor, dim: int) -> torch.Tensor:
+    """d c / d (pixel) along ``dim`` (0: rows, 1: columns) of a box of photo coordinates ``c`` (float64): central
+    where both neighbours have coordinates (``ok``), one-sided where one has, nan where none (``_warp_shade``)."""
+    n = c.shape[dim]
+    pad = [(0, 0), (0, 0)]
+    pad[dim] = (1, 1)
+    flat_pad = [p for pr in reversed(pad) for p in pr]
+    cp = torch.nn.functional.pad(c[None], flat_pad, mode="replicate")[0]
+    okp = torch.nn.functional.pad(ok[None].float(), flat_pad)[0] > 0
+    lo_c, hi_c = cp.narrow(dim, 0, n), cp.narrow(dim, 2, n)
+    lo, hi = okp.narrow(dim, 0, n), okp.narrow(dim, 2, n)
+    nan = torch.full_like(c, float("nan"))
+    return torch.where(lo & hi, (hi_c - lo_c) * 0.5, torch.where(hi, hi_c - c, torch.where(lo, c - lo_c, nan)))
+
+
+def _stretch_fade(u: torch.Tensor, v: torch.Tensor, ok: torch.Tensor) -> torch.Tensor:
+    """(bh,bw) float32: the photo's weight left where the frame magnifies the photo coordinates (``PHOTO_STRETCH``):
+    1 up to PHOTO_STRETCH[0], 0 from PHOTO_STRETCH[1], linear in the magnification between; 1 where a pixel has no
+    coordinate (tensor twin of ``_warp_shade.stretch_fade``)."""
+    ux, vx = _derivative(u, ok, 1), _derivative(v, ok, 1)
+    uy, vy = _derivative(u, ok, 0), _derivative(v, ok, 0)
+    nx, ny = torch.isnan(ux), torch.isnan(uy)
+    ux, vx = torch.where(nx, 1.0, ux), torch.where(nx, 0.0, vx)
+    uy, vy = torch.where(ny, 0.0, uy), torch.where(ny, 1.0, vy)
+    E = ux * ux + vx * vx + uy * uy + vy * vy
+    D = (ux * vy - uy * vx).abs()
+    smin2 = 0.5 * (E - (E * E - 4.0 * D * D).clamp_min(0.0).sqrt())
+    st0, st1 = PHOTO_STRETCH
+    fade = ((st1 - 1.0 / smin2.sqrt()) / (st1 - st0)).clamp(max=1.0)
+    fade = torch.where(smin2 * st0 * st0 < 1.0, fade, torch.ones_like(fade))
+    fade = torch.where(smin2 * st1 * st1 < 1.0, torch.zeros_like(fade), fade)
+    return torch.where(ok, fade, torch.ones_like(fade)).float()
+
+
+def _spread_fade(fade: torch.Tensor) -> torch.Tensor:
+    """The stretch fade spread over STRETCH_SPREAD px (its minimum over the square about each pixel)."""
+    if STRETCH_SPREAD <= 0:
+        return fade
+    import cv2
+
+    k = np.ones((2 * STRETCH_SPREAD + 1, 2 * STRETCH_SPREAD + 1), np.uint8)
+    return torch.from_numpy(cv2.erode(fade.numpy(), k, borderType=cv2.BORDER_REPLICATE))
+
+
+def _photo_coords(extra: torch.Tensor, depth: torch.Tensor, box: tuple, camera: Camera, pc: Camera, one_map):
+    """Tensor twin of ``_warp_shade.photo_coords``: (u, v) float64 and ok (bh,bw) of the box's pixels."""
+    y0, y1, x0, x1 = box
+    S = extra[y0:y1, x0:x1, -1]
+    ok = S > 1e-6
+    rx = ((torch.arange(x0, x1, dtype=torch.float64) + 0.5 - camera.cx) / camera.fx)[None, :]
+    ry = ((torch.arange(y0, y1, dtype=torch.float64) + 0.5 - camera.cy) / camera.fy)[:, None]
+    if one_map is not None:
+        A, b = one_map
+        d = depth[y0:y1, x0:x1].double()
+        X = d * (A[0, 0] * rx + A[0, 1] * ry + A[0, 2]) + b[0]
+        Y = d * (A[1, 0] * rx + A[1, 1] * ry + A[1, 2]) + b[1]
+        Z = d * (A[2, 0] * rx + A[2, 1] * ry + A[2, 2]) + b[2]
+        front = Z > 1e-9
+        ok = ok & front
+        Zs = torch.where(front, Z, torch.ones_like(Z))
+        u = torch.where(ok, pc.fx * X / Zs + pc.cx, torch.zeros_like(Z))
+        v = torch.where(ok, pc.fy * Y / Zs + pc.cy, torch.zeros_like(Z))
+    else:
+        Sd = torch.where(ok, S, torch.ones_like(S)).double()
+        u = torch.where(ok, pc.fx * rx + pc.cx + extra[y0:y1, x0:x1, 0].double() / Sd, 0.0)
+        v = torch.where(ok, pc.fy * ry + pc.cy + extra[y0:y1, x0:x1, 1].double() / Sd, 0.0)
+    return u, v, ok
 
 
 def shade(texture: PhotoTexture, camera: Camera, rgb: torch.Tensor, alpha: torch.Tensor, depth: torch.Tensor,
-          extra: torch.Tensor, one_map=None, into: Optional[tuple] = None) -> tuple[torch.Tensor, torch.Tensor]:
+          extra: torch.Tensor, one_map=None, into: Optional[tuple] = None,
+          compiled: Optional[bool] = None) -> tuple[torch.Tensor, torch.Tensor]:
     """A frame's premultiplied colour and alpha with the photo texture: ``rgb``, ``alpha``, ``depth`` the splat
     render (H,W[,3]), ``extra`` its composited ``texture_features`` (H,W,1 or 3), ``one_map`` (A, b) when every
     splat goes back to rest by that one map (then ``extra`` holds s only). Written into ``into`` (colour, alpha
-    tensors of the frame's shape) when given, else into new tensors; returned (CPU, float32)."""
-    rgb, alpha, extra = rgb.float().cpu(), alpha.float().cpu(), extra.float().cpu()
+    tensors of the frame's shape, contiguous) when given, else into new tensors; returned (CPU, float32).
+
+    ``compiled``: the per-pixel passes compiled (``_warp_shade``; None: when Warp is available) or as tensor
+    operations (False); the two agree to float32 round-off."""
+    rgb, alpha = rgb.float().cpu().contiguous(), alpha.float().cpu().contiguous()
+    extra, depth = extra.float().cpu().contiguous(), depth.float().cpu().contiguous()
     if into is None:
         out_rgb, out_a = rgb.clone(), alpha.clone()
     else:
@@ -251,55 +379,70 @@ def shade(texture: PhotoTexture, camera: Camera, rgb: torch.Tensor, alpha: torch
     rows, cols = has.any(1).nonzero(), has.any(0).nonzero()
     if rows.numel() == 0:
         return out_rgb, out_a
-    y0, y1, x0, x1 = int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1
-    a = alpha[y0:y1, x0:x1]
-    Sb = S[y0:y1, x0:x1]
-    r = _rays(camera)[y0:y1, x0:x1]
+    box = (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
+    y0, y1, x0, x1 = box
     pc = texture.camera
-    front = None
-    if one_map is not None:  # exact: the rendered surface point taken back to rest by the one map, projected
+    photo_map = None
+    if one_map is not None:  # the render camera's surface point -> rest -> the photo camera's coordinates
         A0, b0 = one_map
         M, c = _to_photo_camera(camera, pc)
-        A = (M @ A0.double()).float()
-        d = depth[y0:y1, x0:x1].float().cpu()
-        X = d[..., None] * (r[..., 0:1] * A[:, 0] + r[..., 1:2] * A[:, 1] + A[:, 2]) + (M @ b0.double() + c).float()
-        zp = X[..., 2]
-        front = zp > 1e-9
-        zs = torch.where(front, zp, torch.ones_like(zp))
-        u = pc.fx * X[..., 0] / zs + pc.cx
-        v = pc.fy * X[..., 1] / zs + pc.cy
-    else:  # the seen splats' blended displacement from where they are now to where the photo shows them
-        shift = extra[y0:y1, x0:x1, :2] / Sb.clamp_min(1e-12)[..., None]
-        u = pc.fx * r[..., 0] + pc.cx + shift[..., 0]
-        v = pc.fy * r[..., 1] + pc.cy + shift[..., 1]
-    # Bicubic: a surface moved by a fraction of a pixel keeps its detail (bilinear sampling halves the high-pass
-    # energy at half-pixel offsets: 0.60 of the photo's over a jelly's clip against 0.90, docs/quality.md); its
-    # overshoot is clamped (coverage to 0..1, premultiplied colour to 0..coverage). OpenCV's remap (pixel centres
-    # at integers; zeros outside the photo), several times faster than grid_sample's bicubic.
+        photo_map = (M @ A0.double(), M @ b0.double() + c)
+    if compiled is None:
+        from . import _warp_shade
+
+        compiled = _warp_shade.available()
     import cv2
 
-    mx = (u - 0.5).numpy()
-    my = (v - 0.5).numpy()
-    smp = torch.from_numpy(cv2.remap(_texture_planes(texture), mx, my, cv2.INTER_CUBIC,
-                                     borderMode=cv2.BORDER_CONSTANT, borderValue=(0.0, 0.0, 0.0, 0.0)))
-    m_s = smp[..., 3].clamp_(0.0, 1.0)
-    col = torch.minimum(smp[..., :3].clamp_(min=0.0), m_s[..., None])
-    # The photo's share of the pixel: the seen splats' share of its coverage, ramped in over faint tails.
-    w = (Sb / a.clamp_min(1e-12)).clamp_(0.0, 1.0).mul_((a * (1.0 / MIN_COVERAGE)).clamp(0.0, 1.0))
-    w = w.masked_fill_(~has[y0:y1, x0:x1] if front is None else ~(has[y0:y1, x0:x1] & front), 0.0)
+    a = alpha[y0:y1, x0:x1]
+    # The splats' interior: distance (px) inside their silhouette, for the coverage floor (INTERIOR_PX).
+    dist = torch.from_numpy(cv2.distanceTransform((a > 0.5).numpy().astype(np.uint8), cv2.DIST_L2, 3))
+    if compiled:
+        from . import _warp_shade
+
+        u, v, ok = _warp_shade.photo_coords(extra, depth, box, camera, pc, photo_map)
+        fade = _spread_fade(_warp_shade.stretch_fade(u, v, ok, box, PHOTO_STRETCH[0], PHOTO_STRETCH[1]))
+        planes = _texture_planes(texture)
+        pw = texture.__dict__.get("_planes_wp")
+        if pw is None:
+            pw = texture.__dict__["_planes_wp"] = _warp_shade.planes_array(planes)
+        if out_rgb.is_contiguous() and out_a.is_contiguous():
+            _warp_shade.blend(u, v, ok, fade, extra, rgb, alpha, dist, box, planes, pw,
+                              (MIN_COVERAGE, INTERIOR_PX[0], INTERIOR_PX[1]), out_rgb, out_a)
+            return out_rgb, out_a
+        tmp_rgb, tmp_a = rgb.clone(), alpha.clone()
+        _warp_shade.blend(u, v, ok, fade, extra, rgb, alpha, dist, box, planes, pw,
+                          (MIN_COVERAGE, INTERIOR_PX[0], INTERIOR_PX[1]), tmp_rgb, tmp_a)
+        out_rgb.copy_(tmp_rgb)
+        out_a.copy_(tmp_a)
+        return out_rgb, out_a
+    u, v, ok = _photo_coords(extra, depth, box, camera, pc, photo_map)
+    ok_box = ok.reshape(y1 - y0, x1 - x0)
+    u, v = u.reshape(ok_box.shape), v.reshape(ok_box.shape)
+    Sb = S[y0:y1, x0:x1]
+    # The photo's share of the pixel: the seen splats' share of its coverage, ramped in over faint tails, faded
+    # out where the photo is stretched past what it resolved.
+    w = (Sb / a.clamp_min(1e-12)).clamp(0.0, 1.0) * (a * (1.0 / MIN_COVERAGE)).clamp(0.0, 1.0)
+    w = w * _spread_fade(_stretch_fade(u, v, ok_box))
+    w = torch.where(ok_box, w, torch.zeros_like(w))
+    # Bicubic (Keys): a surface moved by a fraction of a pixel keeps its detail (bilinear sampling halves the
+    # high-pass energy at half-pixel offsets: 0.60 of the photo's over a jelly's clip against 0.90,
+    # docs/quality.md); its overshoot is clamped (coverage to 0..1, premultiplied colour to 0..coverage).
+    smp = _bicubic(torch.from_numpy(_texture_planes(texture)), u, v)
+    smp = torch.where(ok_box[..., None], smp, torch.zeros_like(smp))
+    m_s = smp[..., 3].clamp(0.0, 1.0)
+    col = torch.minimum(smp[..., :3].clamp(min=0.0), m_s[..., None])
     keep = 1.0 - w
     alpha_m = w * m_s + keep * a
     # Coverage follows the photo's matte (so frame 0 is the photo, soft edge included, and edges stay crisp in
     # motion), but never opens a hole well inside the splats' own silhouette (a photo coordinate at the matte's
     # edge there, e.g. a rim turned toward the camera): from INTERIOR_PX px inside it the splats' coverage is a
     # floor, the difference filled with their colour.
-    inside = cv2.distanceTransform((a > 0.5).numpy().astype(np.uint8), cv2.DIST_L2, 3)
-    floor = a * torch.from_numpy(inside).sub_(INTERIOR_PX[0]).div_(INTERIOR_PX[1] - INTERIOR_PX[0]).clamp_(0.0, 1.0)
-    extra = (floor - alpha_m).clamp_(min=0.0)
+    floor = a * ((dist - INTERIOR_PX[0]) / (INTERIOR_PX[1] - INTERIOR_PX[0])).clamp(0.0, 1.0)
+    ex = (floor - alpha_m).clamp(min=0.0)
     rgb_b = rgb[y0:y1, x0:x1]
-    out_a[y0:y1, x0:x1] = alpha_m + extra
-    out_rgb[y0:y1, x0:x1] = (w[..., None] * col + keep[..., None] * rgb_b
-                             + (extra / a.clamp_min(1e-6))[..., None] * rgb_b)
+    out_a[y0:y1, x0:x1] = alpha_m + ex
+    g = ex / a.clamp_min(1e-6)
+    out_rgb[y0:y1, x0:x1] = w[..., None] * col + keep[..., None] * rgb_b + g[..., None] * rgb_b
     return out_rgb, out_a
 
 
@@ -326,8 +469,18 @@ class TexturedPoser:
         z = mc[:, 2].clamp_min(1e-9)
         pc = texture.camera
         self.uv0 = torch.stack([pc.fx * mc[:, 0] / z + pc.cx, pc.fy * mc[:, 1] / z + pc.cy], 1)
-        # Footprints in the photo, in render pixels² (a resized render camera scales them).
-        self.area0 = projected_area(g0, pc) * (camera.fx * camera.fy) / (pc.fx * pc.fy)
+        # The splats' colours for the render: their own where the photo saw them, low-passed where it did not
+        # (UNSEEN_BLUR_CELLS).
+        rgb = g0.rgb.float()
+        self.colors = rgb
+        if UNSEEN_BLUR_CELLS > 0 and bool((self.seen < 1.0).any()):
+            spacing = (sim.stats or {}).get("particle_spacing") if hasattr(sim, "stats") else None
+            if not spacing:
+                spacing = 4.0 * float(g0.scales.max(1).values.median()) if g0.scales.numel() else 0.0
+            if spacing and spacing > 0:
+                blur = smoothed_colours(g0.means, rgb, float(spacing), UNSEEN_BLUR_CELLS)
+                s = self.seen.float().clamp(0.0, 1.0)[:, None]
+                self.colors = s * rgb + (1.0 - s) * blur
 
     def features(self, frame: int, g: Gaussians):
         """(extra_features for ``rasterize``, one_map or None) of frame ``frame`` posed as ``g``."""
@@ -344,15 +497,7 @@ class TexturedPoser:
             r = torch.stack([ms[:, 0] / z, ms[:, 1] / z, torch.ones_like(z)], 1)
             px, py = _render_to_photo_px(self.camera, self.texture.camera, r)
             shift = self.uv0 - torch.stack([px, py], 1)
-        seen = self.seen
-        # Stretched past what the photo resolved: the splat's own colour (see STRETCH_FADE). Not at frame 0, nor
-        # for a frame that only translates the body (footprints change by perspective alone, a few %).
-        translated = one is not None and float((one[0] - torch.eye(3, dtype=one[0].dtype)).abs().max()) < 0.01
-        if frame != 0 and not translated:
-            ratio = projected_area(g, self.camera) / self.area0.clamp_min(1e-4)
-            lo, hi = STRETCH_FADE
-            seen = seen * ((hi - ratio) / (hi - lo)).clamp(0.0, 1.0)
-        return texture_features(seen.to(torch.float64), shift).to(g.means.dtype).to(g.means.device), one
+        return texture_features(self.seen.to(torch.float64), shift).to(g.means.dtype).to(g.means.device), one
 
     def _clearly_deformed(self, frame: int) -> bool:
         """Whether the particles' deformation gradients at ``frame`` differ from one another by more than 0.1 %

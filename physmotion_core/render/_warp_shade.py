@@ -1,0 +1,316 @@
+"""The photo texture's per-pixel passes compiled with Warp (CPU): photo coordinates, stretch, bicubic sampling
+and blending, in three loops over the textured pixels instead of some forty whole-image tensor operations.
+
+``photo_texture.shade`` holds the model and a tensor implementation of it (``compiled=False``, the fallback when
+Warp is unavailable); this module computes the same values, with the arithmetic in the same precision (photo
+coordinates and the stretch in float64, colours in float32), so the two agree to float32 round-off
+(tests/test_photo_texture.py compares them to 1e-5).
+
+* ``coords``: one loop over the box of pixels the seen splats reach: the pixel's photo coordinate (the one rigid
+  map applied to its surface point, or its ray plus the composited displacement) and whether it has one.
+* ``stretch``: per pixel, the photo's weight left by the stretch of the photo coordinates (the inverse of the
+  smallest singular value of their Jacobian with respect to the pixel position, from the neighbours' coordinates).
+* ``blend``: per pixel, the photo's share of the pixel (times that weight, spread by a minimum filter in between),
+  the photo sampled bicubically (Keys' cubic, a = -0.75, zero outside the photo) and the frame's colour and
+  coverage. The splats' interior floor needs a distance transform; OpenCV computes it and the minimum filter.
+
+``stretch`` and ``blend`` loop over a row in C++ (Warp native functions, as ``_warp_raster._ROW``): plain pointer
+arithmetic that the compiler optimises as a whole; the same loop in Warp's kernel language ran 3-4x slower
+(16 against 4.4 ms on push_a_jelly's 146k-pixel box, one thread).
+"""
+
+# No "from __future__ import annotations": Warp reads the kernels' annotations, which name the local `wp`.
+
+import threading
+
+import numpy as np
+import torch
+
+_lock = threading.Lock()
+_built = None
+
+#: ``stretch``'s loop over one row of the box (C++).
+_STRETCH_ROW = r"""
+const double* U = u.data + (size_t)by * bw;
+const double* V = v.data + (size_t)by * bw;
+const unsigned char* OK = ok.data + (size_t)by * bw;
+float* F = fade.data + (size_t)by * bw;
+// d c / d (pixel) at i from its neighbours (`stride` apart in memory): central where both have coordinates,
+// one-sided where one has; false where none.
+auto deriv = [&](const double* c, int i, bool lo_in, bool hi_in, long stride, double& d) -> bool {
+    bool lo = lo_in && OK[i - stride] != 0, hi = hi_in && OK[i + stride] != 0;
+    if (lo && hi) { d = (c[i + stride] - c[i - stride]) * 0.5; return true; }
+    if (hi) { d = c[i + stride] - c[i]; return true; }
+    if (lo) { d = c[i] - c[i - stride]; return true; }
+    return false;
+};
+for (int bx = 0; bx < bw; ++bx) {
+    double f = 1.0;
+    if (OK[bx]) {
+        double ux, vx, uy, vy;
+        if (deriv(U, bx, bx > 0, bx < bw - 1, 1, ux)) {
+            deriv(V, bx, bx > 0, bx < bw - 1, 1, vx);
+        } else { ux = 1.0; vx = 0.0; }
+        if (deriv(U, bx, by > 0, by < bh - 1, bw, uy)) {
+            deriv(V, bx, by > 0, by < bh - 1, bw, vy);
+        } else { uy = 0.0; vy = 1.0; }
+        const double E = ux * ux + vx * vx + uy * uy + vy * vy;
+        const double D = __builtin_fabs(ux * vy - uy * vx);
+        const double q = E * E - 4.0 * D * D;
+        const double smin2 = 0.5 * (E - __builtin_sqrt(q > 0.0 ? q : 0.0));
+        if (smin2 * st1 * st1 < 1.0) f = 0.0;
+        else if (smin2 * st0 * st0 < 1.0) f = (st1 - 1.0 / __builtin_sqrt(smin2)) / (st1 - st0);
+    }
+    F[bx] = (float)f;
+}
+return 0;
+"""
+
+#: ``blend``'s loop over one row of the box (C++).
+_BLEND_ROW = r"""
+const double* U = u.data + (size_t)by * bw;
+const double* V = v.data + (size_t)by * bw;
+const unsigned char* OK = ok.data + (size_t)by * bw;
+const float* F = fade.data + (size_t)by * bw;
+const float* P = planes.data;
+const float* dr = dist.data + (size_t)by * bw;
+const int y = y0 + by;
+auto keys = [](float t, float* w) {
+    const float a = -0.75f;
+    float s = t + 1.0f;
+    w[0] = ((a * s - 5.0f * a) * s + 8.0f * a) * s - 4.0f * a;
+    w[1] = ((a + 2.0f) * t - (a + 3.0f)) * t * t + 1.0f;
+    float r = 1.0f - t;
+    w[2] = ((a + 2.0f) * r - (a + 3.0f)) * r * r + 1.0f;
+    w[3] = 1.0f - w[0] - w[1] - w[2];
+};
+for (int bx = 0; bx < bw; ++bx) {
+    const long p = (long)y * W + x0 + bx;
+    const float a = alpha.data[p];
+    const float c0 = rgb.data[3 * p], c1 = rgb.data[3 * p + 1], c2 = rgb.data[3 * p + 2];
+    float w = 0.0f;
+    float smp[4] = {0.0f, 0.0f, 0.0f, 0.0f};
+    if (OK[bx]) {
+        const float S = ext.data[p * C + C - 1];
+        float sh = S / (a > 1e-12f ? a : 1e-12f);
+        sh = sh < 0.0f ? 0.0f : (sh > 1.0f ? 1.0f : sh);
+        float ramp = a * (1.0f / min_cov);
+        ramp = ramp < 0.0f ? 0.0f : (ramp > 1.0f ? 1.0f : ramp);
+        w = sh * ramp;
+        w = w * F[bx];
+        const double mx = U[bx] - 0.5, my = V[bx] - 0.5;
+        const double fx = __builtin_floor(mx), fy = __builtin_floor(my);
+        if (fx > -3.0 && fx < (double)(PW + 1) && fy > -3.0 && fy < (double)(PH + 1)) {
+            const int ix = (int)fx, iy = (int)fy;
+            float wx[4], wy[4];
+            keys((float)(mx - fx), wx);
+            keys((float)(my - fy), wy);
+            for (int j = 0; j < 4; ++j) {
+                const int yy = iy - 1 + j;
+                if (yy < 0 || yy >= PH) continue;
+                float row[4] = {0.0f, 0.0f, 0.0f, 0.0f};
+                for (int k = 0; k < 4; ++k) {
+                    const int xx = ix - 1 + k;
+                    if (xx < 0 || xx >= PW) continue;
+                    const float* t = P + 4 * ((long)yy * PW + xx);
+                    row[0] += wx[k] * t[0]; row[1] += wx[k] * t[1]; row[2] += wx[k] * t[2]; row[3] += wx[k] * t[3];
+                }
+                smp[0] += wy[j] * row[0]; smp[1] += wy[j] * row[1]; smp[2] += wy[j] * row[2]; smp[3] += wy[j] * row[3];
+            }
+        }
+    }
+    float m_s = smp[3] < 0.0f ? 0.0f : (smp[3] > 1.0f ? 1.0f : smp[3]);
+    const float keep = 1.0f - w;
+    const float am = w * m_s + keep * a;
+    float ramp_in = (dr[bx] - in0) / (in1 - in0);
+    ramp_in = ramp_in < 0.0f ? 0.0f : (ramp_in > 1.0f ? 1.0f : ramp_in);
+    const float fl = a * ramp_in;
+    const float ex = fl - am > 0.0f ? fl - am : 0.0f;
+    out_a.data[p] = am + ex;
+    const float g = ex / (a > 1e-6f ? a : 1e-6f);
+    for (int k = 0; k < 3; ++k) {
+        float cs = smp[k] > 0.0f ? smp[k] : 0.0f;
+        cs = cs < m_s ? cs : m_s;
+        const float ck = rgb.data[3 * p + k];
+        out_rgb.data[3 * p + k] = w * cs + keep * ck + g * ck;
+    }
+}
+return 0;
+"""
+
+
+
+def _build():
+    global _built
+    with _lock:
+        if _built is not None:
+            return _built
+        import warp as wp
+
+        wp.config.quiet = True
+        wp.init()
+        f64 = wp.float64
+
+        @wp.kernel(enable_backward=False)
+        def coords(ext: wp.array(dtype=float), C: int, depth: wp.array(dtype=float), W: int, x0: int, y0: int,
+                   bw: int, one: int, A: wp.mat33d, b: wp.vec3d, rfx: f64, rfy: f64, rcx: f64, rcy: f64,
+                   pfx: f64, pfy: f64, pcx: f64, pcy: f64, u_out: wp.array(dtype=f64),
+                   v_out: wp.array(dtype=f64), ok: wp.array(dtype=wp.uint8)):
+            # One pixel of the box: its photo coordinate (pixel units, centres at +0.5) and whether it has one
+            # (seen splats reach it, and under the one map its surface point lies in front of the photo's camera).
+            i = wp.tid()
+            x = x0 + i % bw
+            y = y0 + i / bw
+            p = y * W + x
+            S = ext[p * C + C - 1]
+            u = f64(0.0)
+            v = f64(0.0)
+            good = S > 1.0e-6
+            rx = (f64(x) + f64(0.5) - rcx) / rfx
+            ry = (f64(y) + f64(0.5) - rcy) / rfy
+            if good:
+                if one != 0:
+                    d = f64(depth[p])
+                    X = A[0, 0] * rx + A[0, 1] * ry + A[0, 2]
+                    Y = A[1, 0] * rx + A[1, 1] * ry + A[1, 2]
+                    Z = A[2, 0] * rx + A[2, 1] * ry + A[2, 2]
+                    X = d * X + b[0]
+                    Y = d * Y + b[1]
+                    Z = d * Z + b[2]
+                    if Z > f64(1.0e-9):
+                        u = pfx * X / Z + pcx
+                        v = pfy * Y / Z + pcy
+                    else:
+                        good = False
+                else:
+                    s = f64(S)
+                    u = pfx * rx + pcx + f64(ext[p * C]) / s
+                    v = pfy * ry + pcy + f64(ext[p * C + 1]) / s
+            u_out[i] = u
+            v_out[i] = v
+            if good:
+                ok[i] = wp.uint8(1)
+            else:
+                ok[i] = wp.uint8(0)
+
+        @wp.func_native(_STRETCH_ROW)
+        def stretch_row(u: wp.array(dtype=f64), v: wp.array(dtype=f64), ok: wp.array(dtype=wp.uint8), bw: int,
+                        bh: int, by: int, st0: f64, st1: f64, fade: wp.array(dtype=float)) -> int:
+            ...
+
+        @wp.kernel(enable_backward=False)
+        def stretch(u: wp.array(dtype=f64), v: wp.array(dtype=f64), ok: wp.array(dtype=wp.uint8), bw: int, bh: int,
+                    st0: f64, st1: f64, fade: wp.array(dtype=float)):
+            # One row of the box: the photo's weight left by the stretch of its coordinates (``_STRETCH_ROW``).
+            stretch_row(u, v, ok, bw, bh, wp.tid(), st0, st1, fade)
+
+        @wp.func_native(_BLEND_ROW)
+        def blend_row(u: wp.array(dtype=f64), v: wp.array(dtype=f64), ok: wp.array(dtype=wp.uint8),
+                      ext: wp.array(dtype=float), C: int, rgb: wp.array(dtype=float), alpha: wp.array(dtype=float),
+                      dist: wp.array(dtype=float), W: int, x0: int, y0: int, bw: int, bh: int, by: int,
+                      planes: wp.array(dtype=float), PW: int, PH: int, min_cov: float, in0: float, in1: float,
+                      fade: wp.array(dtype=float), out_rgb: wp.array(dtype=float),
+                      out_a: wp.array(dtype=float)) -> int:
+            ...
+
+        @wp.kernel(enable_backward=False)
+        def blend(u: wp.array(dtype=f64), v: wp.array(dtype=f64), ok: wp.array(dtype=wp.uint8),
+                  ext: wp.array(dtype=float), C: int, rgb: wp.array(dtype=float), alpha: wp.array(dtype=float),
+                  dist: wp.array(dtype=float), W: int, x0: int, y0: int, bw: int, bh: int,
+                  planes: wp.array(dtype=float), PW: int, PH: int, min_cov: float, in0: float, in1: float,
+                  fade: wp.array(dtype=float), out_rgb: wp.array(dtype=float), out_a: wp.array(dtype=float)):
+            # One row of the box: per pixel the photo's share (times ``fade``), the bicubic sample of (premultiplied
+            # colour, matte) and the frame's colour and coverage (``_BLEND_ROW``).
+            by = wp.tid()
+            blend_row(u, v, ok, ext, C, rgb, alpha, dist, W, x0, y0, bw, bh, by, planes, PW, PH, min_cov, in0, in1,
+                      fade, out_rgb, out_a)
+
+        _built = (wp, coords, stretch, blend)
+        return _built
+
+
+def available() -> bool:
+    """Whether the compiled passes can run (the compiled compositor's Warp, built once)."""
+    from . import _warp_raster
+
+    if not _warp_raster.available():
+        return False
+    try:
+        _build()
+        return True
+    except Exception as exc:  # noqa: BLE001 - a failed build turns the compiled passes off, with a warning
+        _warp_raster.mark_failed(exc)
+        return False
+
+
+def _arr(wp, t: torch.Tensor, dtype, keep: list):
+    t = t.detach().contiguous()
+    keep.append(t)
+    return wp.array(t.numpy().reshape(-1) if dtype in (float, wp.float64, wp.uint8) else t.numpy(), dtype=dtype,
+                    device="cpu", copy=False)
+
+
+def planes_array(planes: np.ndarray):
+    """The texture's (H,W,4) float32 planes as a flat Warp array (no copy)."""
+    wp = _build()[0]
+    return wp.array(planes.reshape(-1), dtype=float, device="cpu", copy=False)
+
+
+def photo_coords(ext: torch.Tensor, depth: torch.Tensor, box: tuple, camera, photo_camera, one_map=None):
+    """(u, v) float64 (bh*bw) and ok uint8 (bh*bw): the photo coordinates of the box's pixels (``coords``)."""
+    wp, coords, _, _ = _build()
+    y0, y1, x0, x1 = box
+    bh, bw = y1 - y0, x1 - x0
+    H, W, C = ext.shape
+    keep: list = []
+    u = torch.empty(bh * bw, dtype=torch.float64)
+    v = torch.empty(bh * bw, dtype=torch.float64)
+    ok = torch.empty(bh * bw, dtype=torch.uint8)
+    if one_map is not None:
+        A, b = one_map
+        Aw = wp.mat33d(*[float(x) for x in A.reshape(-1).tolist()])
+        bv = wp.vec3d(*[float(x) for x in b.tolist()])
+    else:
+        Aw, bv = wp.mat33d(), wp.vec3d()
+    pc = photo_camera
+    wp.launch(coords, dim=bh * bw, device="cpu",
+              inputs=[_arr(wp, ext, float, keep), C, _arr(wp, depth, float, keep), W, x0, y0, bw,
+                      int(one_map is not None), Aw, bv, float(camera.fx), float(camera.fy), float(camera.cx),
+                      float(camera.cy), float(pc.fx), float(pc.fy), float(pc.cx), float(pc.cy),
+                      _arr(wp, u, wp.float64, keep), _arr(wp, v, wp.float64, keep), _arr(wp, ok, wp.uint8, keep)])
+    wp.synchronize_device("cpu")
+    return u, v, ok
+
+
+def stretch_fade(u, v, ok, box, lo: float, hi: float) -> torch.Tensor:
+    """(bh, bw) float32: the photo's weight left by the stretch of the box's photo coordinates (``_STRETCH_ROW``:
+    1 up to a magnification of ``lo``, 0 from ``hi``, linear in it between; 1 where a pixel has no coordinate)."""
+    wp, _, kernel, _ = _build()
+    y0, y1, x0, x1 = box
+    bh, bw = y1 - y0, x1 - x0
+    keep: list = []
+    fade = torch.empty(bh, bw, dtype=torch.float32)
+    wp.launch(kernel, dim=bh, device="cpu",
+              inputs=[_arr(wp, u, wp.float64, keep), _arr(wp, v, wp.float64, keep), _arr(wp, ok, wp.uint8, keep), bw,
+                      bh, float(lo), float(hi), _arr(wp, fade, float, keep)])
+    wp.synchronize_device("cpu")
+    return fade
+
+
+def blend(u, v, ok, fade, ext, rgb, alpha, dist, box, planes, planes_wp, consts, out_rgb, out_a) -> None:
+    """The ``blend`` loop over the box, writing ``out_rgb`` (H,W,3) and ``out_a`` (H,W) there (contiguous)."""
+    wp, _, _, kernel = _build()
+    y0, y1, x0, x1 = box
+    bh, bw = y1 - y0, x1 - x0
+    H, W, C = ext.shape
+    keep: list = []
+    PH, PW = planes.shape[:2]
+    min_cov, in0, in1 = consts
+    wp.launch(kernel, dim=bh, device="cpu",
+              inputs=[_arr(wp, u, wp.float64, keep), _arr(wp, v, wp.float64, keep), _arr(wp, ok, wp.uint8, keep),
+                      _arr(wp, ext, float, keep), C, _arr(wp, rgb, float, keep), _arr(wp, alpha, float, keep),
+                      _arr(wp, dist, float, keep), W, x0, y0, bw, bh, planes_wp, PW, PH, float(min_cov), float(in0),
+                      float(in1), _arr(wp, fade, float, keep)],
+              outputs=[wp.array(out_rgb.numpy().reshape(-1), dtype=float, device="cpu", copy=False),
+                       wp.array(out_a.numpy().reshape(-1), dtype=float, device="cpu", copy=False)])
+    wp.synchronize_device("cpu")
