@@ -40,14 +40,14 @@ fails) this module is off for the rest of the process, with one warning, and the
 
 import logging
 import math
-import threading
 from typing import Optional
 
 import torch
 
 from ..errors import InputError
-from ._torch_raster import (ALPHA_MAX, ALPHA_MIN, MAX_EXTENT, T_DONE, Projected, check_intersections,
-                            composite_tiles)
+from ..warp_build import built_once
+from ._torch_raster import ALPHA_MAX, ALPHA_MIN, T_DONE, Projected, check_intersections, composite_tiles
+from ._warp_raster import store_drawn
 
 log = logging.getLogger(__name__)
 
@@ -62,8 +62,6 @@ TILE = 4
 #: ``composite_tiles``.
 MAX_FEATURES = 8
 
-_lock = threading.Lock()
-_built = None
 _failed = False
 
 # Shared by the two C++ loops below (Warp native functions, compiled by Warp's clang with -O2 -march=native). A
@@ -268,193 +266,161 @@ def _source(code: str) -> str:
     return code
 
 
-def _build():
-    global _built
-    with _lock:
-        if _built is not None:
-            return _built
-        import warp as wp
+@built_once
+def _build(wp):
+    TILE_ = wp.constant(TILE)
 
-        wp.config.quiet = True
-        wp.init()
-        TILE_ = wp.constant(TILE)
+    # Below this exponent no pixel is evaluated (POWER_MIN), plus a relative margin far above float32 round-off.
+    R2_LOG255 = wp.constant(math.log(255.0) + 1e-4)
 
-        # Below this exponent no pixel is evaluated (POWER_MIN), plus a relative margin far above float32 round-off.
-        R2_LOG255 = wp.constant(math.log(255.0) + 1e-4)
+    @wp.func
+    def reaches(a: float, b: float, c: float, ia: float, ic: float, r2: float, X0: float, X1: float, Y0: float,
+                Y1: float):
+        # Whether the ellipse q = a dx² + 2 b dx dy + c dy² <= r2 holds a point of the rectangle
+        # [X0, X1] x [Y0, Y1] (a tile's pixel centres, relative to the splat's centre): the minimum of the
+        # convex q over the rectangle is 0 when the centre is inside, else on an edge, where q is a parabola
+        # whose minimiser is clamped to the edge. ia, ic: 1 / a, 1 / c.
+        if X0 <= 0.0 and X1 >= 0.0 and Y0 <= 0.0 and Y1 >= 0.0:
+            return True
+        best = float(1.0e30)
+        for e in range(2):
+            Y = Y0
+            X = X0
+            if e == 1:
+                Y = Y1
+                X = X1
+            dx = wp.clamp(-b * Y * ia, X0, X1)
+            best = wp.min(best, a * dx * dx + 2.0 * b * dx * Y + c * Y * Y)
+            dy = wp.clamp(-b * X * ic, Y0, Y1)
+            best = wp.min(best, a * X * X + 2.0 * b * X * dy + c * dy * dy)
+        return best <= r2
 
-        @wp.func
-        def reaches(a: float, b: float, c: float, ia: float, ic: float, r2: float, X0: float, X1: float, Y0: float,
-                    Y1: float):
-            # Whether the ellipse q = a dx² + 2 b dx dy + c dy² <= r2 holds a point of the rectangle
-            # [X0, X1] x [Y0, Y1] (a tile's pixel centres, relative to the splat's centre): the minimum of the
-            # convex q over the rectangle is 0 when the centre is inside, else on an edge, where q is a parabola
-            # whose minimiser is clamped to the edge. ia, ic: 1 / a, 1 / c.
-            if X0 <= 0.0 and X1 >= 0.0 and Y0 <= 0.0 and Y1 >= 0.0:
-                return True
-            best = float(1.0e30)
-            for e in range(2):
-                Y = Y0
-                X = X0
-                if e == 1:
-                    Y = Y1
-                    X = X1
-                dx = wp.clamp(-b * Y * ia, X0, X1)
-                best = wp.min(best, a * dx * dx + 2.0 * b * dx * Y + c * Y * Y)
-                dy = wp.clamp(-b * X * ic, Y0, Y1)
-                best = wp.min(best, a * X * X + 2.0 * b * X * dy + c * dy * dy)
-            return best <= r2
+    @wp.kernel(enable_backward=False)
+    def tile_hits(uv: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3), logo: wp.array(dtype=float),
+                  lo: wp.array(dtype=wp.vec2i), hi: wp.array(dtype=wp.vec2i), offset: wp.array(dtype=wp.int32),
+                  TX: int, W: int, H: int, per_tile: wp.array(dtype=wp.int32), hits: wp.array(dtype=wp.int32)):
+        # Splat m's box tiles, in order from offset[m]: the tile's index when the splat's ellipse at the lowest
+        # alpha the loops evaluate (exponent ln(1/255) - 1e-4, plus a relative margin far above float32
+        # round-off) reaches one of its pixel centres, else -1; per_tile counts them.
+        m = wp.tid()
+        u = uv[m][0]
+        v = uv[m][1]
+        cn = conic[m]
+        r2 = 2.0 * (logo[m] + R2_LOG255) * 1.001 + 1.0e-3
+        ia = 1.0 / cn[0]
+        ic = 1.0 / cn[2]
+        k = offset[m]
+        for ty in range(lo[m][1] / TILE_, hi[m][1] / TILE_ + 1):
+            Y0 = float(ty * TILE_) + 0.5 - v
+            Y1 = float(wp.min(ty * TILE_ + TILE_, H) - 1) + 0.5 - v
+            for tx in range(lo[m][0] / TILE_, hi[m][0] / TILE_ + 1):
+                X0 = float(tx * TILE_) + 0.5 - u
+                X1 = float(wp.min(tx * TILE_ + TILE_, W) - 1) + 0.5 - u
+                t = int(-1)
+                if r2 > 0.0 and reaches(cn[0], cn[1], cn[2], ia, ic, r2, X0, X1, Y0, Y1):
+                    t = ty * TX + tx
+                    wp.atomic_add(per_tile, t, 1)
+                hits[k] = t
+                k += 1
 
-        @wp.kernel(enable_backward=False)
-        def tile_hits(uv: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3), logo: wp.array(dtype=float),
-                      lo: wp.array(dtype=wp.vec2i), hi: wp.array(dtype=wp.vec2i), offset: wp.array(dtype=wp.int32),
-                      TX: int, W: int, H: int, per_tile: wp.array(dtype=wp.int32), hits: wp.array(dtype=wp.int32)):
-            # Splat m's box tiles, in order from offset[m]: the tile's index when the splat's ellipse at the lowest
-            # alpha the loops evaluate (exponent ln(1/255) - 1e-4, plus a relative margin far above float32
-            # round-off) reaches one of its pixel centres, else -1; per_tile counts them.
-            m = wp.tid()
-            u = uv[m][0]
-            v = uv[m][1]
-            cn = conic[m]
-            r2 = 2.0 * (logo[m] + R2_LOG255) * 1.001 + 1.0e-3
-            ia = 1.0 / cn[0]
-            ic = 1.0 / cn[2]
-            k = offset[m]
-            for ty in range(lo[m][1] / TILE_, hi[m][1] / TILE_ + 1):
-                Y0 = float(ty * TILE_) + 0.5 - v
-                Y1 = float(wp.min(ty * TILE_ + TILE_, H) - 1) + 0.5 - v
-                for tx in range(lo[m][0] / TILE_, hi[m][0] / TILE_ + 1):
-                    X0 = float(tx * TILE_) + 0.5 - u
-                    X1 = float(wp.min(tx * TILE_ + TILE_, W) - 1) + 0.5 - u
-                    t = int(-1)
-                    if r2 > 0.0 and reaches(cn[0], cn[1], cn[2], ia, ic, r2, X0, X1, Y0, Y1):
-                        t = ty * TX + tx
-                        wp.atomic_add(per_tile, t, 1)
-                    hits[k] = t
-                    k += 1
+    @wp.kernel(enable_backward=False)
+    def fill_tiles(offset: wp.array(dtype=wp.int32), hits: wp.array(dtype=wp.int32), M: int,
+                   cursor: wp.array(dtype=wp.int32), glist: wp.array(dtype=wp.int32)):
+        # One thread, the splats in depth order: each tile's list comes out front to back.
+        for m in range(M):
+            for k in range(offset[m], offset[m + 1]):
+                t = hits[k]
+                if t >= 0:
+                    glist[cursor[t]] = m
+                    cursor[t] = cursor[t] + 1
 
-        @wp.kernel(enable_backward=False)
-        def fill_tiles(offset: wp.array(dtype=wp.int32), hits: wp.array(dtype=wp.int32), M: int,
-                       cursor: wp.array(dtype=wp.int32), glist: wp.array(dtype=wp.int32)):
-            # One thread, the splats in depth order: each tile's list comes out front to back.
-            for m in range(M):
-                for k in range(offset[m], offset[m + 1]):
-                    t = hits[k]
-                    if t >= 0:
-                        glist[cursor[t]] = m
-                        cursor[t] = cursor[t] + 1
-
-        @wp.func_native(_source(_FORWARD))
-        def tile_forward(start: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
-                         glist: wp.array(dtype=wp.int32), table: wp.array(dtype=float), D: int, C: int, TX: int,
-                         W: int, H: int, tile: int, out: wp.array(dtype=float), tfin: wp.array(dtype=float),
-                         last: wp.array(dtype=wp.int32)) -> int:
-            ...
-
-        @wp.func_native(_source(_BACKWARD))
-        def tile_backward(start: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
-                          glist: wp.array(dtype=wp.int32), table: wp.array(dtype=float), D: int, C: int, TX: int,
-                          W: int, H: int, tile: int, tfin: wp.array(dtype=float), last: wp.array(dtype=wp.int32),
-                          gout: wp.array(dtype=float), gtable: wp.array(dtype=float)) -> int:
-            ...
-
-        @wp.kernel(enable_backward=False)
-        def forward(start: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
-                    glist: wp.array(dtype=wp.int32), table: wp.array(dtype=float), D: int, C: int, TX: int, W: int,
-                    H: int, out: wp.array(dtype=float), tfin: wp.array(dtype=float),
-                    last: wp.array(dtype=wp.int32)):
-            tile_forward(start, count, glist, table, D, C, TX, W, H, wp.tid(), out, tfin, last)
-
-        @wp.kernel(enable_backward=False)
-        def backward(start: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
+    @wp.func_native(_source(_FORWARD))
+    def tile_forward(start: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
                      glist: wp.array(dtype=wp.int32), table: wp.array(dtype=float), D: int, C: int, TX: int,
-                     W: int, H: int, tfin: wp.array(dtype=float), last: wp.array(dtype=wp.int32),
-                     gout: wp.array(dtype=float), gtable: wp.array(dtype=float)):
-            tile_backward(start, count, glist, table, D, C, TX, W, H, wp.tid(), tfin, last, gout, gtable)
+                     W: int, H: int, tile: int, out: wp.array(dtype=float), tfin: wp.array(dtype=float),
+                     last: wp.array(dtype=wp.int32)) -> int:
+        ...
 
-        MAX_EXTENT_ = wp.constant(MAX_EXTENT)
-        ALPHA_MIN_ = wp.constant(ALPHA_MIN)
-        INF = wp.constant(math.inf)
+    @wp.func_native(_source(_BACKWARD))
+    def tile_backward(start: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
+                      glist: wp.array(dtype=wp.int32), table: wp.array(dtype=float), D: int, C: int, TX: int,
+                      W: int, H: int, tile: int, tfin: wp.array(dtype=float), last: wp.array(dtype=wp.int32),
+                      gout: wp.array(dtype=float), gtable: wp.array(dtype=float)) -> int:
+        ...
 
-        @wp.func
-        def screen(X: wp.vec3, C: wp.mat33, A: wp.mat33, b: wp.vec3, fx: float, fy: float, cx: float, cy: float,
-                   lim: wp.vec4, eps2d: float):
-            # project_gaussians' arithmetic for the splat at A X + b (camera space, OpenCV axes) with covariance
-            # A C Aᵀ: EWA with the Jacobian's x/z, y/z clamped to lim = (-x, +x, -y, +y) bounds. Returns
-            # (u, v, a, b, c, z): the 2D mean and the 2D covariance [[a, b], [b, c]] (eps2d added), and z.
-            p = A * X + b
-            z = p[2]
-            rz = 1.0 / z
-            tx = z * wp.clamp(p[0] * rz, -lim[0], lim[1])
-            ty = z * wp.clamp(p[1] * rz, -lim[2], lim[3])
-            r0 = wp.vec3(A[0, 0], A[0, 1], A[0, 2])
-            r1 = wp.vec3(A[1, 0], A[1, 1], A[1, 2])
-            r2 = wp.vec3(A[2, 0], A[2, 1], A[2, 2])
-            m0 = (fx * rz) * r0 - (fx * tx * rz * rz) * r2  # rows of J A: splat frame -> screen
-            m1 = (fy * rz) * r1 - (fy * ty * rz * rz) * r2
-            s0 = C * m0
-            s1 = C * m1
-            sa = wp.dot(m0, s0) + eps2d
-            sb = 0.5 * (wp.dot(m1, s0) + wp.dot(m0, s1))  # a non-symmetric C acts as its symmetric part
-            sc = wp.dot(m1, s1) + eps2d
-            return wp.spatial_vector(fx * p[0] * rz + cx, fy * p[1] * rz + cy, sa, sb, sc, z)
+    @wp.kernel(enable_backward=False)
+    def forward(start: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
+                glist: wp.array(dtype=wp.int32), table: wp.array(dtype=float), D: int, C: int, TX: int, W: int,
+                H: int, out: wp.array(dtype=float), tfin: wp.array(dtype=float),
+                last: wp.array(dtype=wp.int32)):
+        tile_forward(start, count, glist, table, D, C, TX, W, H, wp.tid(), out, tfin, last)
 
-        @wp.kernel(enable_backward=False)
-        def project_fwd(X: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33), opac: wp.array(dtype=float),
-                        Ab: wp.array(dtype=wp.mat33), bb: wp.array(dtype=wp.vec3), fx: float, fy: float, cx: float,
-                        cy: float, W: int, H: int, near: float, far: float, eps2d: float, lim: wp.vec4, big: float,
-                        key: wp.array(dtype=float), uv: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3),
-                        logo: wp.array(dtype=float), lo: wp.array(dtype=wp.vec2i), hi: wp.array(dtype=wp.vec2i)):
-            # One splat, culled as project_gaussians culls: key = its z when drawn, +inf when culled (behind
-            # near, past far, opacity < 1/255, a degenerate or non-finite projection, a box holding no pixel centre).
-            i = wp.tid()
-            key[i] = INF
-            o = opac[i]
-            q = screen(X[i], C[i], Ab[0], bb[0], fx, fy, cx, cy, lim, eps2d)
-            z = q[5]
-            if not (z > near and z < far and o >= ALPHA_MIN_):
-                return
-            u = q[0]
-            v = q[1]
-            a = q[2]
-            b = q[3]
-            c = q[4]
-            det = a * c - b * b
-            if not (det > 0.0 and wp.isfinite(det) and wp.isfinite(a) and wp.isfinite(c) and wp.isfinite(u)
-                    and wp.isfinite(v)):
-                return
-            extent = wp.min(wp.sqrt(2.0 * wp.log(wp.max(o, ALPHA_MIN_) / ALPHA_MIN_)), MAX_EXTENT_)
-            rx = extent * wp.sqrt(wp.max(a, 0.0))
-            ry = extent * wp.sqrt(wp.max(c, 0.0))
-            lu = wp.max(wp.ceil(wp.clamp(u - rx - 0.5 - 1.0e-3, -big, big)), 0.0)
-            hu = wp.min(wp.floor(wp.clamp(u + rx - 0.5 + 1.0e-3, -big, big)), float(W - 1))
-            lv = wp.max(wp.ceil(wp.clamp(v - ry - 0.5 - 1.0e-3, -big, big)), 0.0)
-            hv = wp.min(wp.floor(wp.clamp(v + ry - 0.5 + 1.0e-3, -big, big)), float(H - 1))
-            if lu > hu or lv > hv:
-                return
-            key[i] = z
-            uv[i] = wp.vec2(u, v)
-            inv = 1.0 / det
-            conic[i] = wp.vec3(c * inv, -b * inv, a * inv)
-            logo[i] = wp.log(o)
-            lo[i] = wp.vec2i(int(lu), int(lv))
-            hi[i] = wp.vec2i(int(hu), int(hv))
+    @wp.kernel(enable_backward=False)
+    def backward(start: wp.array(dtype=wp.int32), count: wp.array(dtype=wp.int32),
+                 glist: wp.array(dtype=wp.int32), table: wp.array(dtype=float), D: int, C: int, TX: int,
+                 W: int, H: int, tfin: wp.array(dtype=float), last: wp.array(dtype=wp.int32),
+                 gout: wp.array(dtype=float), gtable: wp.array(dtype=float)):
+        tile_backward(start, count, glist, table, D, C, TX, W, H, wp.tid(), tfin, last, gout, gtable)
 
-        @wp.kernel
-        def project_diff(X: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33), idx: wp.array(dtype=wp.int32),
-                         Ab: wp.array(dtype=wp.mat33), bb: wp.array(dtype=wp.vec3), fx: float, fy: float, cx: float,
-                         cy: float, lim: wp.vec4, eps2d: float, uv: wp.array(dtype=wp.vec2),
-                         conic: wp.array(dtype=wp.vec3)):
-            # The drawn splat k's (input idx[k]) 2D mean and conic, as project_fwd computes them. Only its adjoint
-            # (generated by Warp) is launched, for the gradients w.r.t. the shared A and b (summed over the splats).
-            k = wp.tid()
-            i = idx[k]
-            q = screen(X[i], C[i], Ab[0], bb[0], fx, fy, cx, cy, lim, eps2d)
-            inv = 1.0 / (q[2] * q[4] - q[3] * q[3])
-            uv[k] = wp.vec2(q[0], q[1])
-            conic[k] = wp.vec3(q[4] * inv, -q[3] * inv, q[2] * inv)
+    ALPHA_MIN_ = wp.constant(ALPHA_MIN)
+    INF = wp.constant(math.inf)
+    store = store_drawn()  # _warp_raster's: the culling, pixel box and outputs of project_gaussians
 
-        _built = (wp, forward, backward, tile_hits, fill_tiles, project_fwd, project_diff)
-        return _built
+    @wp.func
+    def screen(X: wp.vec3, C: wp.mat33, A: wp.mat33, b: wp.vec3, fx: float, fy: float, cx: float, cy: float,
+               lim: wp.vec4, eps2d: float):
+        # project_gaussians' arithmetic for the splat at A X + b (camera space, OpenCV axes) with covariance
+        # A C Aᵀ: EWA with the Jacobian's x/z, y/z clamped to lim = (-x, +x, -y, +y) bounds. Returns
+        # (u, v, a, b, c, z): the 2D mean and the 2D covariance [[a, b], [b, c]] (eps2d added), and z.
+        p = A * X + b
+        z = p[2]
+        rz = 1.0 / z
+        tx = z * wp.clamp(p[0] * rz, -lim[0], lim[1])
+        ty = z * wp.clamp(p[1] * rz, -lim[2], lim[3])
+        r0 = wp.vec3(A[0, 0], A[0, 1], A[0, 2])
+        r1 = wp.vec3(A[1, 0], A[1, 1], A[1, 2])
+        r2 = wp.vec3(A[2, 0], A[2, 1], A[2, 2])
+        m0 = (fx * rz) * r0 - (fx * tx * rz * rz) * r2  # rows of J A: splat frame -> screen
+        m1 = (fy * rz) * r1 - (fy * ty * rz * rz) * r2
+        s0 = C * m0
+        s1 = C * m1
+        sa = wp.dot(m0, s0) + eps2d
+        sb = 0.5 * (wp.dot(m1, s0) + wp.dot(m0, s1))  # a non-symmetric C acts as its symmetric part
+        sc = wp.dot(m1, s1) + eps2d
+        return wp.spatial_vector(fx * p[0] * rz + cx, fy * p[1] * rz + cy, sa, sb, sc, z)
+
+    @wp.kernel(enable_backward=False)
+    def project_fwd(X: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33), opac: wp.array(dtype=float),
+                    Ab: wp.array(dtype=wp.mat33), bb: wp.array(dtype=wp.vec3), fx: float, fy: float, cx: float,
+                    cy: float, W: int, H: int, near: float, far: float, eps2d: float, lim: wp.vec4, big: float,
+                    key: wp.array(dtype=float), uv: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3),
+                    logo: wp.array(dtype=float), lo: wp.array(dtype=wp.vec2i), hi: wp.array(dtype=wp.vec2i)):
+        # One splat, culled as project_gaussians culls: key = its z when drawn, +inf when culled (behind
+        # near, past far, opacity < 1/255, a degenerate or non-finite projection, a box holding no pixel centre).
+        i = wp.tid()
+        key[i] = INF
+        o = opac[i]
+        q = screen(X[i], C[i], Ab[0], bb[0], fx, fy, cx, cy, lim, eps2d)
+        z = q[5]
+        if not (z > near and z < far and o >= ALPHA_MIN_):
+            return
+        store(i, z, o, q[0], q[1], q[2], q[3], q[4], W, H, big, key, uv, conic, logo, lo, hi)
+
+    @wp.kernel
+    def project_diff(X: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33), idx: wp.array(dtype=wp.int32),
+                     Ab: wp.array(dtype=wp.mat33), bb: wp.array(dtype=wp.vec3), fx: float, fy: float, cx: float,
+                     cy: float, lim: wp.vec4, eps2d: float, uv: wp.array(dtype=wp.vec2),
+                     conic: wp.array(dtype=wp.vec3)):
+        # The drawn splat k's (input idx[k]) 2D mean and conic, as project_fwd computes them. Only its adjoint
+        # (generated by Warp) is launched, for the gradients w.r.t. the shared A and b (summed over the splats).
+        k = wp.tid()
+        i = idx[k]
+        q = screen(X[i], C[i], Ab[0], bb[0], fx, fy, cx, cy, lim, eps2d)
+        inv = 1.0 / (q[2] * q[4] - q[3] * q[3])
+        uv[k] = wp.vec2(q[0], q[1])
+        conic[k] = wp.vec3(q[4] * inv, -q[3] * inv, q[2] * inv)
+
+    return (wp, forward, backward, tile_hits, fill_tiles, project_fwd, project_diff)
 
 
 def available() -> bool:
