@@ -47,7 +47,7 @@ import torch
 from ..errors import InputError
 from ..warp_build import built_once
 from ._torch_raster import ALPHA_MAX, ALPHA_MIN, T_DONE, Projected, check_intersections, composite_tiles
-from ._warp_raster import store_drawn
+from ._warp_raster import EXPO, store_drawn
 
 log = logging.getLogger(__name__)
 
@@ -68,26 +68,11 @@ _failed = False
 # tile's pixels are the inner loop, written without branches (selects) and with an inlined polynomial exp so
 # that the compiler vectorises it; sums over the pixels are kept in LANES partial sums (a float reduction is not
 # vectorised without reassociation, which the compiler may not do on its own). exp: Cephes' single-precision
-# range reduction and degree-7 polynomial (within a float32 ulp over the range used, [ln(1/255), 0]); the
-# forward and backward loops evaluate it identically, so they make the same skip and termination decisions.
-_COMMON = r"""
+# range reduction and degree-7 polynomial (``_warp_raster.EXPO``, within a float32 ulp over the range used,
+# [ln(1/255), 0]); the forward and backward loops evaluate it identically, so they make the same skip and
+# termination decisions.
+_COMMON = EXPO + r"""
 constexpr int TS = TILE_SIDE, P = TS * TS, LANES = 16, CMAX = MAX_FEATURES;
-auto expo = [](float x) -> float {
-    float pw = x < -87.0f ? -87.0f : (x > 0.0f ? 0.0f : x);
-    float n = __builtin_floorf(pw * 1.44269504088896341f + 0.5f);
-    float r = (pw - n * 0.693359375f) + n * 2.12194440e-4f;
-    float e = 1.9875691500e-4f;
-    e = e * r + 1.3981999507e-3f;
-    e = e * r + 8.3334519073e-3f;
-    e = e * r + 4.1665795894e-2f;
-    e = e * r + 1.6666665459e-1f;
-    e = e * r + 5.0000001201e-1f;
-    e = e * r * r + r + 1.0f;
-    int bits = ((int)n + 127) << 23;
-    float scale;
-    __builtin_memcpy(&scale, &bits, 4);
-    return e * scale;
-};
 const int bx = (tile % TX) * TS, by = (tile / TX) * TS;
 const int s0 = start.data[tile], cnt = count.data[tile];
 float px[P], py[P];

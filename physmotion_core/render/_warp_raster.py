@@ -61,24 +61,15 @@ def _f32(x: float) -> str:
     return f"{float(np.float32(x))!r}f"
 
 
-#: The inner loop of ``composite``, in C++ (a Warp native function): one splat over the pixels x0..x1 of one row of
-#: a tile. Written without branches (selects) and with an inlined polynomial exp so that the compiler Warp runs
-#: (clang, -O2 -march=native) vectorises it across the row's pixels: the same loop written in Warp's kernel
-#: language compiles to scalar code, one pixel at a time, with expf a library call. Returns how many pixels
-#: saturated. exp: Cephes' single-precision range reduction and polynomial (x = n ln 2 + r, |r| <= ln 2 / 2,
-#: e^r to degree 7, then scaled by 2^n through the exponent bits): over the range used here (power in [-ln 255, 0];
-#: lower values are rejected by the threshold, higher ones clamped to 0.99 either way) within 7.7e-8 of the exact
-#: value relative, under one float32 ulp (2M points against float64), where expf itself is within 1.9e-7.
-_ROW = r"""
-const float* f = feats.data + (size_t)m * K;
-float* Tr = T.data + base;
-float* ar = aout.data + base;
-float* o = out.data + (size_t)base * K;
-const float A = 0.5f * ca, B = cb, q0 = lm - 0.5f * cc * dy * dy;
-auto weight = [&](int x, float t, int& died) -> float {
-    float dx = u - ((float)x + 0.5f);
-    float power = q0 - (A * dx * dx + B * dx * dy);
-    float pw = power < -87.0f ? -87.0f : (power > 0.0f ? 0.0f : power);
+#: ``expo(x)``, a float32 exp for C++ loops the compiler should vectorise (a lambda that inlines, with no library
+#: call), shared by ``_ROW`` and ``_warp_grad``'s loops: Cephes' single-precision range reduction and polynomial
+#: (x = n ln 2 + r, |r| <= ln 2 / 2, e^r to degree 7, then scaled by 2^n through the exponent bits), x clamped to
+#: [-87, 0]. Over the range the splat loops use (x in [-ln 255, 0]; lower values are rejected by the threshold,
+#: higher ones clamped to 0.99 either way) within 7.7e-8 of the exact value relative, under one float32 ulp (2M
+#: points against float64), where expf itself is within 1.9e-7.
+EXPO = r"""
+auto expo = [](float x) -> float {
+    float pw = x < -87.0f ? -87.0f : (x > 0.0f ? 0.0f : x);
     float n = __builtin_floorf(pw * 1.44269504088896341f + 0.5f);
     float r = (pw - n * 0.693359375f) + n * 2.12194440e-4f;
     float e = 1.9875691500e-4f;
@@ -91,7 +82,25 @@ auto weight = [&](int x, float t, int& died) -> float {
     int bits = ((int)n + 127) << 23;
     float scale;
     __builtin_memcpy(&scale, &bits, 4);
-    float al = e * scale;
+    return e * scale;
+};
+"""
+
+#: The inner loop of ``composite``, in C++ (a Warp native function): one splat over the pixels x0..x1 of one row of
+#: a tile. Written without branches (selects) and with the inlined polynomial exp ``EXPO`` so that the compiler
+#: Warp runs (clang, -O2 -march=native) vectorises it across the row's pixels: the same loop written in Warp's
+#: kernel language compiles to scalar code, one pixel at a time, with expf a library call. Returns how many pixels
+#: saturated.
+_ROW = EXPO + r"""
+const float* f = feats.data + (size_t)m * K;
+float* Tr = T.data + base;
+float* ar = aout.data + base;
+float* o = out.data + (size_t)base * K;
+const float A = 0.5f * ca, B = cb, q0 = lm - 0.5f * cc * dy * dy;
+auto weight = [&](int x, float t, int& died) -> float {
+    float dx = u - ((float)x + 0.5f);
+    float power = q0 - (A * dx * dx + B * dx * dy);
+    float al = expo(power);
     al = al > ALPHA_MAX ? ALPHA_MAX : al;
     bool use = (power > -LN_255) & (al > ALPHA_MIN) & (t > 0.0f);
     al = use ? al : 0.0f;
