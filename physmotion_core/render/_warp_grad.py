@@ -47,7 +47,7 @@ import torch
 from ..errors import InputError
 from ..warp_build import built_once
 from ._torch_raster import ALPHA_MAX, ALPHA_MIN, T_DONE, Projected, check_intersections, composite_tiles
-from ._warp_raster import EXPO, store_drawn
+from ._warp_raster import EXPO, projection_funcs
 
 log = logging.getLogger(__name__)
 
@@ -349,30 +349,13 @@ def _build(wp):
 
     ALPHA_MIN_ = wp.constant(ALPHA_MIN)
     INF = wp.constant(math.inf)
-    store = store_drawn()  # _warp_raster's: the culling, pixel box and outputs of project_gaussians
+    ewa, store = projection_funcs()  # _warp_raster's: project_gaussians' projection, culling and box
 
     @wp.func
     def screen(X: wp.vec3, C: wp.mat33, A: wp.mat33, b: wp.vec3, fx: float, fy: float, cx: float, cy: float,
                lim: wp.vec4, eps2d: float):
-        # project_gaussians' arithmetic for the splat at A X + b (camera space, OpenCV axes) with covariance
-        # A C Aᵀ: EWA with the Jacobian's x/z, y/z clamped to lim = (-x, +x, -y, +y) bounds. Returns
-        # (u, v, a, b, c, z): the 2D mean and the 2D covariance [[a, b], [b, c]] (eps2d added), and z.
-        p = A * X + b
-        z = p[2]
-        rz = 1.0 / z
-        tx = z * wp.clamp(p[0] * rz, -lim[0], lim[1])
-        ty = z * wp.clamp(p[1] * rz, -lim[2], lim[3])
-        r0 = wp.vec3(A[0, 0], A[0, 1], A[0, 2])
-        r1 = wp.vec3(A[1, 0], A[1, 1], A[1, 2])
-        r2 = wp.vec3(A[2, 0], A[2, 1], A[2, 2])
-        m0 = (fx * rz) * r0 - (fx * tx * rz * rz) * r2  # rows of J A: splat frame -> screen
-        m1 = (fy * rz) * r1 - (fy * ty * rz * rz) * r2
-        s0 = C * m0
-        s1 = C * m1
-        sa = wp.dot(m0, s0) + eps2d
-        sb = 0.5 * (wp.dot(m1, s0) + wp.dot(m0, s1))  # a non-symmetric C acts as its symmetric part
-        sc = wp.dot(m1, s1) + eps2d
-        return wp.spatial_vector(fx * p[0] * rz + cx, fy * p[1] * rz + cy, sa, sb, sc, z)
+        # The splat at A X + b (camera space) with covariance A C Aᵀ, projected: (u, v, a, b, c, z).
+        return ewa(A * X + b, A, C, fx, fy, cx, cy, lim, eps2d)
 
     @wp.kernel(enable_backward=False)
     def project_fwd(X: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33), opac: wp.array(dtype=float),

@@ -169,13 +169,36 @@ def mark_failed(exc: BaseException) -> None:
 
 
 @built_once
-def store_drawn(wp):
-    """The Warp function that ends both compiled projections (``project`` here, ``project_fwd`` of
-    ``_warp_grad``), as ``project_gaussians`` ends: given splat i's camera z, opacity o, 2D mean (u, v) and 2D
-    covariance [[a, b], [b, c]], it culls a degenerate or non-finite projection and a pixel box (at the opacity's
-    extent) that holds no pixel centre, and writes a drawn splat's key (z), mean, conic, log-opacity and box."""
+def projection_funcs(wp):
+    """The Warp functions both compiled projections (``project`` here, ``project_fwd`` / ``project_diff`` of
+    ``_warp_grad``) are made of, with ``project_gaussians``' arithmetic: (ewa, store).
+
+    ``ewa(p, M, S, ...)``: the splat at camera-space p (OpenCV axes) whose covariance is M S Mᵀ, projected by EWA
+    with the Jacobian's x/z, y/z clamped to lim = (-x, +x, -y, +y) bounds; returns (u, v, a, b, c, z): the 2D mean,
+    the 2D covariance [[a, b], [b, c]] (eps2d added) and z. ``store(i, z, o, u, v, a, b, c, ...)``: culls a
+    degenerate or non-finite projection and a pixel box (at the opacity o's extent) that holds no pixel centre, and
+    writes a drawn splat's key (z), mean, conic, log-opacity and box."""
     ALPHA_MIN_ = wp.constant(ALPHA_MIN)
     MAX_EXTENT_ = wp.constant(MAX_EXTENT)
+
+    @wp.func
+    def ewa(p: wp.vec3, M: wp.mat33, S: wp.mat33, fx: float, fy: float, cx: float, cy: float, lim: wp.vec4,
+            eps2d: float):
+        z = p[2]
+        rz = 1.0 / z
+        tx = z * wp.clamp(p[0] * rz, -lim[0], lim[1])
+        ty = z * wp.clamp(p[1] * rz, -lim[2], lim[3])
+        r0 = wp.vec3(M[0, 0], M[0, 1], M[0, 2])
+        r1 = wp.vec3(M[1, 0], M[1, 1], M[1, 2])
+        r2 = wp.vec3(M[2, 0], M[2, 1], M[2, 2])
+        m0 = (fx * rz) * r0 + (-fx * tx * rz * rz) * r2  # rows of J M, the Jacobian of the splat's frame -> screen
+        m1 = (fy * rz) * r1 + (-fy * ty * rz * rz) * r2
+        s0 = S * m0
+        s1 = S * m1
+        a = wp.dot(m0, s0) + eps2d
+        b = 0.5 * (wp.dot(m1, s0) + wp.dot(m0, s1))  # a non-symmetric S acts as its symmetric part
+        c = wp.dot(m1, s1) + eps2d
+        return wp.spatial_vector(fx * p[0] * rz + cx, fy * p[1] * rz + cy, a, b, c, z)
 
     @wp.func
     def store(i: int, z: float, o: float, u: float, v: float, a: float, b: float, c: float, W: int, H: int,
@@ -202,7 +225,7 @@ def store_drawn(wp):
         lo[i] = wp.vec2i(int(lu), int(lv))
         hi[i] = wp.vec2i(int(hu), int(hv))
 
-    return store
+    return ewa, store
 
 
 @built_once
@@ -359,7 +382,7 @@ def _build(wp):
                                  cn[0], cn[1], cn[2], lm)
 
     INF = wp.constant(math.inf)
-    store = store_drawn()
+    ewa, store = projection_funcs()
 
     @wp.kernel(enable_backward=False)
     def project(means: wp.array(dtype=wp.vec3), cov: wp.array(dtype=wp.mat33), opac: wp.array(dtype=float),
@@ -380,23 +403,8 @@ def _build(wp):
         o = opac[i]
         if not (z > near and z < far and o >= ALPHA_MIN_):
             return
-        rz = 1.0 / z
-        tx = z * wp.clamp(p[0] * rz, -lim[0], lim[1])
-        ty = z * wp.clamp(p[1] * rz, -lim[2], lim[3])
-        r0 = wp.vec3(R[0, 0], R[0, 1], R[0, 2])
-        r1 = wp.vec3(R[1, 0], R[1, 1], R[1, 2])
-        r2 = wp.vec3(R[2, 0], R[2, 1], R[2, 2])
-        m0 = (fx * rz) * r0 + (-fx * tx * rz * rz) * r2  # rows of J R, the world -> screen Jacobian
-        m1 = (fy * rz) * r1 + (-fy * ty * rz * rz) * r2
-        S = cov[i]
-        s0 = S * m0
-        s1 = S * m1
-        a = wp.dot(m0, s0) + eps2d
-        b = 0.5 * (wp.dot(m1, s0) + wp.dot(m0, s1))  # a non-symmetric Σ acts as its symmetric part
-        c = wp.dot(m1, s1) + eps2d
-        u = fx * p[0] * rz + cx
-        v = fy * p[1] * rz + cy
-        store(i, z, o, u, v, a, b, c, W, H, big, key, uv, conic, logo, lo, hi)
+        q = ewa(p, R, cov[i], fx, fy, cx, cy, lim, eps2d)
+        store(i, z, o, q[0], q[1], q[2], q[3], q[4], W, H, big, key, uv, conic, logo, lo, hi)
 
     return (wp, count, fill, composite, project)
 
