@@ -38,6 +38,7 @@ fails) this module is off for the rest of the process, with one warning, and the
 
 # No "from __future__ import annotations": Warp reads the kernels' annotations, which name the local `wp`.
 
+import dataclasses
 import logging
 import math
 from typing import Optional
@@ -47,7 +48,7 @@ import torch
 from ..errors import InputError
 from ..warp_build import built_once
 from ._torch_raster import ALPHA_MAX, ALPHA_MIN, T_DONE, Projected, check_intersections, composite_tiles
-from ._warp_raster import EXPO, projection_funcs
+from ._warp_raster import EXPO, drawn, projection_funcs, projection_outputs, screen_bounds
 
 log = logging.getLogger(__name__)
 
@@ -557,33 +558,24 @@ def project_affine(X: torch.Tensor, C: torch.Tensor, opacities: torch.Tensor, A:
     with torch.no_grad():
         A_ = A.detach().to(f32).contiguous().view(1, 3, 3)
         b_ = b.detach().to(f32).contiguous().view(1, 3)
-        key = torch.empty(N, dtype=f32)
-        uv = torch.zeros(N, 2, dtype=f32)
-        conic = torch.zeros(N, 3, dtype=f32)
-        logo = torch.zeros(N, dtype=f32)
-        lo = torch.zeros(N, 2, dtype=torch.int32)
-        hi = torch.zeros(N, 2, dtype=torch.int32)
-        tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
-        lim = wp.vec4(cx / fx + 0.3 * tan_x, (width - cx) / fx + 0.3 * tan_x, cy / fy + 0.3 * tan_y,
-                      (height - cy) / fy + 0.3 * tan_y)
+        outs = projection_outputs(N)
+        key, uv, conic, logo, lo, hi = outs
+        lim, big = screen_bounds(wp, fx, fy, cx, cy, width, height)
         consts = [float(fx), float(fy), float(cx), float(cy), lim, float(eps2d)]
         if N:
             wp.launch(project_fwd, dim=N, device="cpu",
                       inputs=[_wp(wp, Xc, wp.vec3), _wp(wp, Cc, wp.mat33),
                               _wp(wp, opacities.detach().to(f32).contiguous(), float),
                               _wp(wp, A_, wp.mat33), _wp(wp, b_, wp.vec3), float(fx), float(fy), float(cx), float(cy),
-                              int(width), int(height), float(near), float(far), float(eps2d), lim,
-                              float(max(width, height) * 4 + 16), _wp(wp, key, float), _wp(wp, uv, wp.vec2),
-                              _wp(wp, conic, wp.vec3), _wp(wp, logo, float), _wp(wp, lo, wp.vec2i),
-                              _wp(wp, hi, wp.vec2i)])
+                              int(width), int(height), float(near), float(far), float(eps2d), lim, big,
+                              _wp(wp, key, float), _wp(wp, uv, wp.vec2), _wp(wp, conic, wp.vec3),
+                              _wp(wp, logo, float), _wp(wp, lo, wp.vec2i), _wp(wp, hi, wp.vec2i)])
             wp.synchronize_device("cpu")
-        ok = (key < math.inf).nonzero().squeeze(1)
-        order = ok.index_select(0, torch.argsort(key.index_select(0, ok), stable=True))  # front to back
-        uv_k, conic_k = uv.index_select(0, order), conic.index_select(0, order)
+        proj = drawn(*outs)
     if A.requires_grad or b.requires_grad:
-        uv_k, conic_k = _Project.apply(A, b, uv_k, conic_k, (Xc, Cc, order.to(torch.int32), consts))
-    return Projected(index=order, uv=uv_k, conic=conic_k, log_opacity=logo.index_select(0, order),
-                     pix_lo=lo.index_select(0, order).long(), pix_hi=hi.index_select(0, order).long())
+        uv_k, conic_k = _Project.apply(A, b, proj.uv, proj.conic, (Xc, Cc, proj.index.to(torch.int32), consts))
+        proj = dataclasses.replace(proj, uv=uv_k, conic=conic_k)
+    return proj
 
 
 def usable(*tensors: torch.Tensor) -> bool:

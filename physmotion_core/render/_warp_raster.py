@@ -499,6 +499,34 @@ def composite_warp(proj: Projected, features: torch.Tensor, width: int, height: 
     return img.view(height, width, C + 1)
 
 
+def projection_outputs(n: int) -> tuple[torch.Tensor, ...]:
+    """The buffers a projection kernel (``project`` here, ``_warp_grad``'s ``project_fwd``) fills for n splats: key
+    (n,), uv (n, 2), conic (n, 3), log-opacity (n,) float32 and the pixel box lo, hi (n, 2) int32 (only the drawn
+    splats' entries are written, beyond the key)."""
+    f32, i32 = torch.float32, torch.int32
+    return (torch.empty(n, dtype=f32), torch.empty(n, 2, dtype=f32), torch.empty(n, 3, dtype=f32),
+            torch.empty(n, dtype=f32), torch.empty(n, 2, dtype=i32), torch.empty(n, 2, dtype=i32))
+
+
+def screen_bounds(wp, fx: float, fy: float, cx: float, cy: float, width: int, height: int):
+    """The projection kernels' ``lim`` (the bounds (-x, +x, -y, +y) of the Jacobian's x/z, y/z: 30 % of the
+    half-frame beyond each edge, as ``project_gaussians``) and ``big`` (the clamp of pixel-box coordinates)."""
+    tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
+    lim = wp.vec4(cx / fx + 0.3 * tan_x, (width - cx) / fx + 0.3 * tan_x,
+                  cy / fy + 0.3 * tan_y, (height - cy) / fy + 0.3 * tan_y)
+    return lim, float(max(width, height) * 4 + 16)
+
+
+def drawn(key: torch.Tensor, uv: torch.Tensor, conic: torch.Tensor, logo: torch.Tensor, lo: torch.Tensor,
+          hi: torch.Tensor) -> Projected:
+    """The drawn splats (finite key) of a projection kernel's outputs, front to back (a stable sort by key)."""
+    ok = (key < math.inf).nonzero().squeeze(1)
+    order = ok.index_select(0, torch.argsort(key.index_select(0, ok), stable=True))
+    return Projected(index=order, uv=uv.index_select(0, order), conic=conic.index_select(0, order),
+                     log_opacity=logo.index_select(0, order), pix_lo=lo.index_select(0, order).long(),
+                     pix_hi=hi.index_select(0, order).long())
+
+
 def project_warp(means: torch.Tensor, cov3d: torch.Tensor, opacities: torch.Tensor, w2c: torch.Tensor, fx: float,
                  fy: float, cx: float, cy: float, width: int, height: int, near: float, far: float,
                  eps2d: float) -> tuple[Projected, torch.Tensor]:
@@ -519,20 +547,13 @@ def project_warp(means: torch.Tensor, cov3d: torch.Tensor, opacities: torch.Tens
             return a
 
         mc = torch.empty(N, 3, dtype=f32)
-        key = torch.empty(N, dtype=f32)
-        uv = torch.empty(N, 2, dtype=f32)
-        conic = torch.empty(N, 3, dtype=f32)
-        logo = torch.empty(N, dtype=f32)
-        lo = torch.empty(N, 2, dtype=torch.int32)
-        hi = torch.empty(N, 2, dtype=torch.int32)
+        outs = projection_outputs(N)
+        key, uv, conic, logo, lo, hi = outs
         if N:
             w = w2c.detach().to(f32)
             R = wp.mat33(*[float(v) for v in w[:3, :3].reshape(-1).tolist()])
             t = wp.vec3(*[float(v) for v in w[:3, 3].tolist()])
-            tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
-            lim = wp.vec4(cx / fx + 0.3 * tan_x, (width - cx) / fx + 0.3 * tan_x,
-                          cy / fy + 0.3 * tan_y, (height - cy) / fy + 0.3 * tan_y)
-            big = float(max(width, height) * 4 + 16)
+            lim, big = screen_bounds(wp, fx, fy, cx, cy, width, height)
             wp.launch(project, dim=N, device="cpu",
                       inputs=[view(means, wp.vec3), view(cov3d.detach().to(f32), wp.mat33),
                               view(opacities.detach().to(f32).reshape(-1), float), R, t, float(fx), float(fy),
@@ -540,11 +561,7 @@ def project_warp(means: torch.Tensor, cov3d: torch.Tensor, opacities: torch.Tens
                               lim, big, view(mc, wp.vec3), view(key, float), view(uv, wp.vec2), view(conic, wp.vec3),
                               view(logo, float), view(lo, wp.vec2i), view(hi, wp.vec2i)])
             wp.synchronize_device("cpu")
-        ok = (key < math.inf).nonzero().squeeze(1)
-        order = ok.index_select(0, torch.argsort(key.index_select(0, ok), stable=True))  # front to back
-        proj = Projected(index=order, uv=uv.index_select(0, order), conic=conic.index_select(0, order),
-                         log_opacity=logo.index_select(0, order), pix_lo=lo.index_select(0, order).long(),
-                         pix_hi=hi.index_select(0, order).long())
+        proj = drawn(*outs)
     return proj, mc
 
 
