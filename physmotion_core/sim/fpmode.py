@@ -4,8 +4,9 @@ A scene at rest or in free fall has a velocity field uniform to round-off, so it
 gradients C are ~1e-15 1/s and the products the substep forms from them (the rotation's torque, its
 square, the stress of F − R ~ 1e-19, the affine momentum) fall below float32's smallest normal number,
 1.2e-38. x86 cores compute with such denormal numbers through a microcode assist of ~100 cycles per
-operation: a falling 2.1 M-particle jelly took 700 ns per particle for its material update against
-230 ns for a 55 k one, whose C happened to be larger (docs/benchmarks.md, "Large scenes on the CPU").
+operation: the material update of a 2.1 M-particle jelly released at rest took 982 ns per particle,
+218 with the flushing (55 k particles, whose C happened to be larger: 233 and 104; docs/benchmarks.md,
+"Large scenes: what changed").
 With MXCSR's flush-to-zero and denormals-are-zero bits set, such values are zero: no change a
 simulation could resolve (they are 1e-38 of any quantity that matters), at full speed.
 

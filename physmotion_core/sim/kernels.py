@@ -42,6 +42,7 @@ from __future__ import annotations
 import warp as wp
 
 from .constitutive import MaterialParams, update_material  # noqa: F401 - the material table and its rules
+from .constitutive import MODEL_FIXED_COROTATED, barrier_corotated
 
 # The simulation is never differentiated: no adjoint code (halves the CUDA build; the forward code
 # and its results are unchanged).
@@ -1058,7 +1059,13 @@ def g2p(
     Fp = ps.F[p]
     inc = dt * (new_C * Fp) + ps.F_err[p]
     Ftrial = Fp + inc
-    c2 = update_material(mat, Ftrial, new_C, ps.rot[p], ps.plastic[p], dt, p, ps.rot, ps.plastic, ps.F, ps.tau)
+    c2 = float(0.0)
+    if mat.model == MODEL_FIXED_COROTATED:
+        # The jelly directly: the small rule inlines here, where the whole dispatch (every model's SVD
+        # route) is a call that copies its array arguments.
+        c2 = barrier_corotated(mat, Ftrial, new_C, ps.rot[p], dt, p, ps.rot, ps.F, ps.tau)
+    else:
+        c2 = update_material(mat, Ftrial, new_C, ps.rot[p], ps.plastic[p], dt, p, ps.rot, ps.plastic, ps.F, ps.tau)
     ps.F_err[p] = rounding_left(Fp, inc, Ftrial, ps.F[p])
 
     # Reductions plan_step reads for the next step: max speed and stiffness (CFL), active box, NaN flag.
