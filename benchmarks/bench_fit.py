@@ -23,6 +23,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import math
+import os
 import sys
 import time
 from pathlib import Path
@@ -103,19 +104,22 @@ def main() -> None:
     baseline = baseline_module(args.baseline) if args.baseline else None
     base_rows = []
 
+    loads = [os.getloadavg()[0]]
+
     def run(kind, name, g, img, mask, R_applied=None, seed=0):
         if baseline is not None:
-            t0 = time.perf_counter()
+            t0, c0 = time.perf_counter(), time.process_time()
             rb = baseline.fit_gaussians_to_photo(g, img, mask, seed=seed)
-            base_rows.append((f"{rb.iou:.3f}", f"{time.perf_counter() - t0:.1f}"))
-        t0 = time.perf_counter()
+            base_rows.append((f"{rb.iou:.3f}", f"{time.perf_counter() - t0:.1f}", f"{time.process_time() - c0:.1f}"))
+        t0, c0 = time.perf_counter(), time.process_time()
         res = fit_gaussians_to_photo(g, img, mask, seed=seed)
-        dt = time.perf_counter() - t0
+        dt, dc = time.perf_counter() - t0, time.process_time() - c0
+        loads.append(os.getloadavg()[0])
         err = "" if R_applied is None else f"{rotation_angle_deg(res.rotation @ R_applied):.2f}"
         rounds = len({c["round"] for c in res.info["contenders"]})
         rows.append((kind, name, len(g), f"{mask.shape[1]}x{mask.shape[0]}", f"{res.iou:.3f}",
-                     f"{res.color_error:.3f}", err, rounds, f"{dt:.1f}"))
-        print(rows[-1], base_rows[-1] if baseline is not None else "", flush=True)
+                     f"{res.color_error:.3f}", err, rounds, f"{dt:.1f}", f"{dc:.1f}"))
+        print(rows[-1], base_rows[-1] if baseline is not None else "", f"load {loads[-1]:.2f}", flush=True)
         return res
 
     img, m = synthetic()
@@ -147,9 +151,10 @@ def main() -> None:
     mask = segment(rgb, alpha=alpha).mask  # as the template: PhysMotion Segment, method auto
     run("own splat", "own_splat_to_physics stand-in (coffee)", turned, rgb.numpy(), mask.numpy(), R_standin)
 
-    head = ("| case | object | Gaussians | photo | IoU | colour L1 | rotation error (°) | rounds | time (s) |"
-            + (f" IoU at {args.baseline} | time at {args.baseline} (s) |" if baseline is not None else "") + "\n"
-            "|---|---|---|---|---|---|---|---|---|" + ("---|---|" if baseline is not None else "") + "\n")
+    head = ("| case | object | Gaussians | photo | IoU | colour L1 | rotation error (°) | rounds | time (s) | CPU (s) |"
+            + (f" IoU at {args.baseline} | time at {args.baseline} (s) | CPU at {args.baseline} (s) |"
+               if baseline is not None else "") + "\n"
+            "|---|---|---|---|---|---|---|---|---|---|" + ("---|---|---|" if baseline is not None else "") + "\n")
     table = head + "\n".join("| " + " | ".join(str(c) for c in r + (base_rows[i] if baseline is not None else ())) + " |"
                               for i, r in enumerate(rows))
     good = [float(r[4]) for r in rows if r[0] != "wrong object"]
@@ -175,16 +180,27 @@ def main() -> None:
         summary += "."
     if baseline is not None:
         ratios = sorted(float(b[1]) / max(float(r[8]), 1e-9) for r, b in zip(rows, base_rows))
-        d_iou = [float(r[4]) - float(b[0]) for r, b in zip(rows, base_rows)]
-        summary += (f" Against `{args.baseline}` (interleaved, same process): {sum(float(b[1]) for b in base_rows):.0f} s "
-                    f"-> {sum(float(r[8]) for r in rows):.0f} s in all, {ratios[len(ratios) // 2]:.1f}x faster per case "
-                    f"(median; {ratios[0]:.1f}x-{ratios[-1]:.1f}x); IoU change {min(d_iou):+.3f} to {max(d_iou):+.3f}.")
+        c_ratios = sorted(float(b[2]) / max(float(r[9]), 1e-9) for r, b in zip(rows, base_rows))
+        d_iou = [float(r[4]) - float(b[0]) for r, b in zip(rows, base_rows) if r[0] != "wrong object"]
+        refused = [r for r in rows if r[0] == "wrong object" and not (
+            float(r[4]) < DEFAULT_IOU_THRESHOLD or float(r[5]) > DEFAULT_MAX_COLOR_ERROR)]
+        summary += (f" Against `{args.baseline}` (interleaved, same process): wall time "
+                    f"{sum(float(b[1]) for b in base_rows):.0f} s -> {sum(float(r[8]) for r in rows):.0f} s in all "
+                    f"({sum(float(b[1]) for b in base_rows) / sum(float(r[8]) for r in rows):.1f}x; per case median "
+                    f"{ratios[len(ratios) // 2]:.1f}x, {ratios[0]:.1f}x-{ratios[-1]:.1f}x), CPU time "
+                    f"{sum(float(b[2]) for b in base_rows):.0f} s -> {sum(float(r[9]) for r in rows):.0f} s "
+                    f"({sum(float(b[2]) for b in base_rows) / sum(float(r[9]) for r in rows):.1f}x; per case median "
+                    f"{c_ratios[len(c_ratios) // 2]:.1f}x, {c_ratios[0]:.1f}x-{c_ratios[-1]:.1f}x); IoU change on the "
+                    f"correct-object cases {min(d_iou):+.3f} to {max(d_iou):+.3f}; wrong objects "
+                    + ("all refused." if not refused else "NOT all refused: " + ", ".join(r[1] for r in refused) + "."))
     baseline_note = "" if baseline is None else (
-        f" The last two columns: the same case fitted by `physmotion_core/lift/fit.py` at `{args.baseline}`, run just "
-        "before the current one in the same process (interleaved, so both see the same load).")
+        f" The last three columns: the same case fitted by `physmotion_core/lift/fit.py` at `{args.baseline}`, run just "
+        "before the current one in the same process (interleaved, so both see the same load; the baseline's renders go "
+        "through the current rasterizer).")
     md = f"""## Fit Gaussians to Photo
 
 `benchmarks/bench_fit.py`, {datetime.date.today().isoformat()}, {machine_description()}, torch threads = {args.threads},
+1-minute load average {min(loads):.1f}-{max(loads):.1f} while it ran (time = wall clock, CPU = this process's CPU time),
 library defaults (48 candidate frames ranked at 32 px, the best 3 (and the best by colour among plausible outlines)
 refined for up to 12 steps each at 48 px, one more than 0.03 behind the best halfway through dropped; the best 2
 within 0.03 of the best finish 30 steps there, the better one then goes on to at most 30 at 96 px and 20 at 160 px,
@@ -193,8 +209,10 @@ object's box, never above the photo's own size; levels below the finest render a
 0.5 (ranking: 1) per mask pixel, doubled until it covers 95 % of what the finest level's set covers; the IoU is
 measured at the finest level with every Gaussian; "rounds" = 2 when the first round failed the checks and a second
 one ran). Rotation error only for the asymmetric synthetic photo and the stand-in: the example photos are
-symmetric objects.{baseline_note}
-The machine was shared with other jobs while this ran, so times are upper bounds.
+symmetric objects. Every render of the fit is compiled (`render/_warp_grad.py`: one affine placement, projection
+and tile compositing in Warp, hand-written backward pass).{baseline_note}
+The machine was shared with other jobs while this ran (2 cores), so wall times are upper bounds; CPU times
+are less sensitive to the load, not immune (shared caches and memory bandwidth).
 
 {table}
 

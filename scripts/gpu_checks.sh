@@ -24,6 +24,9 @@ $PY -m benchmarks.bench_sim --launch-only --device cuda:0 2>&1 | tee "$OUT/launc
 if [ -z "${QUICK:-}" ]; then
   # MPM throughput against particle count / grid size on the GPU (section sim-throughput).
   $PY -m benchmarks.bench_sim --quick --device cuda:0 2>&1 | tee "$OUT/sim.log"
+  # Large scenes: the project vs a minimal MLS-MPM Warp kernel at 55 k and 2.1 M particles, per-kernel split
+  # (section sim-scale-cuda; issue 38: the CPU's changes must not slow the GPU path).
+  $PY -m benchmarks.bench_sim_scale --device cuda:0 --rounds 3 --steps 20 2>&1 | tee "$OUT/sim_scale.log"
   # Wan controls next to the simulation on the GPU, every CPU template (section controls-gpu; issue 17).
   $PY -m benchmarks.bench_controls 2>&1 | tee "$OUT/controls.log"
   # Enhancement: s/frame and peak memory, full-size random SD 2.1 + 2 ControlNets (docs/enhance.md, gpu).

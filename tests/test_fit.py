@@ -503,6 +503,39 @@ def test_gradient_renders_in_longer_chunks_equal_the_rasterizer(lifted):
     assert torch.allclose(grads[0], grads[1], rtol=1e-3, atol=1e-3 * float(grads[0].abs().max()))
 
 
+@pytest.mark.parametrize("focal_free", [True, False])
+def test_compiled_gradient_render_equals_the_tensor_path(lifted, monkeypatch, focal_free):
+    """A refinement step's render through the compiled path (one affine placement, render/_warp_grad.py) gives
+    the tensor path's image and the same gradients of a loss w.r.t. every fitted parameter (rotation, size,
+    position, focal), to float32 round-off; with the focal fixed (no gradient asked of it) too."""
+    from physmotion_core.lift import fit as fit_module
+    from physmotion_core.render import _warp_grad
+
+    if not _warp_grad.available():
+        pytest.skip("Warp is not available")
+    img, m, lift = lifted
+    g = lift.gaussians
+    prep = fit_module._prep(g, g.means.double().mean(0), float(g.means.max() - g.means.min()))
+    lv = fit_module._level(torch.from_numpy(img), torch.from_numpy(m), 64, 60.0)
+    R0 = axis_angle_to_matrix(torch.tensor([0.3, -0.2, 0.1])) @ canonical_rotations(4)[5]
+    outs, grads = [], []
+    for compiled in (True, False):
+        monkeypatch.setattr(_warp_grad, "usable", _warp_grad.usable if compiled else (lambda *a: False))
+        p = fit_module._Params(R0, math.log(55.0), (38.0, 50.0), math.log(130.0), 96.0)
+        with torch.no_grad():
+            p.omega += torch.tensor([0.05, 0.02, -0.03])
+        p.log_f.requires_grad_(focal_free)
+        out = fit_module._render(prep, p, lv, 40.0, 48.0)
+        loss, _, _ = fit_module._losses(out, lv, 0.5)
+        loss.backward()
+        outs.append(torch.cat([out.rgb, out.alpha[..., None]], -1).detach())
+        grads.append(torch.cat([p.omega.grad, p.log_sigma.grad[None], p.uv.grad]
+                               + ([p.log_f.grad[None]] if focal_free else [])))
+    assert outs[0].shape == outs[1].shape and float(outs[1][..., 3].sum()) > 100
+    assert float((outs[0] - outs[1]).abs().max()) < 1e-4
+    assert torch.allclose(grads[0], grads[1], rtol=2e-3, atol=2e-3 * float(grads[1].abs().max())), grads
+
+
 def test_dropped_contenders_and_early_stops_save_steps_not_accuracy(lifted, monkeypatch):
     """Contenders far behind halfway are dropped and finer levels stop on a plateau: fewer steps,
     the same fit as running every step (the progress bar still ends full)."""

@@ -118,9 +118,15 @@ def test_chunk_count_depends_on_the_particle_count_only(monkeypatch):
         assert cpu_threads(0) == int(threads)
         assert cpu_chunks(10 ** 7, "cpu") == mpm.MAX_CPU_CHUNKS
     assert cpu_threads(5) == 5  # an explicit setting wins over the environment
-    # Layers: one per chunk while they fit the budget, else one.
+    # Layers: one per chunk while they fit the budget, else the most of 2, 4, 8 that fit, else one.
     assert mpm.layer_count(16, mpm.CHUNK_GRID_BUDGET // (16 * mpm.LAYER_BYTES)) == 16
-    assert mpm.layer_count(16, mpm.CHUNK_GRID_BUDGET // (16 * mpm.LAYER_BYTES) + 1) == 1
+    assert mpm.layer_count(16, mpm.CHUNK_GRID_BUDGET // (16 * mpm.LAYER_BYTES) + 1) == 8
+    assert mpm.layer_count(16, mpm.CHUNK_GRID_BUDGET // (3 * mpm.LAYER_BYTES)) == 2
+    assert mpm.layer_count(16, mpm.CHUNK_GRID_BUDGET // (2 * mpm.LAYER_BYTES) + 1) == 1
+    assert mpm.layer_count(13, mpm.CHUNK_GRID_BUDGET // (13 * mpm.LAYER_BYTES) + 1) == 8
+    # Contiguous runs of chunks share a layer, every layer gets chunks.
+    assert [mpm.layer_of_chunk(c, 16, 8) for c in range(16)] == [0, 0, 1, 1, 2, 2, 3, 3, 4, 4, 5, 5, 6, 6, 7, 7]
+    assert sorted(set(mpm.layer_of_chunk(c, 13, 8) for c in range(13))) == list(range(8))
 
 
 def test_memory_estimate_bounds_the_layers():
@@ -199,3 +205,29 @@ def test_worker_threads_end_with_their_run():
         gc.collect()
         time.sleep(0.05)
     assert threading.active_count() == before
+
+
+def test_chunks_sharing_layers_give_the_same_bits_on_any_thread_count(monkeypatch):
+    """A span too large for a layer per chunk gets fewer layers (here 2 for 3 chunks): the chunks of a layer
+    scatter in chunk order whichever thread runs them, the layers fill concurrently, so 1, 2 and 3 threads
+    give the same bits (tolerance 0); against one unsplit pass the sums run in another order (round-off)."""
+    probe = falling_cube()
+    probe.substep(1e-4)
+    nodes = int(np.prod(probe.grid_m.shape[1:]))
+    # room for 2.5 layers: not the 3 the chunks would take, but 2
+    monkeypatch.setattr(mpm, "CHUNK_GRID_BUDGET", int(2.5 * nodes * mpm.LAYER_BYTES))
+    runs = []
+    for threads in (1, 2, 3):
+        s = falling_cube(threads=threads)
+        s.advance(0.05)
+        assert s.chunks == 3 and s.layers == 2 and s.grid_m.shape[0] == 2
+        runs.append(s)
+    for other in runs[1:]:
+        assert np.array_equal(runs[0].positions(), other.positions())
+        assert np.array_equal(runs[0].velocities(), other.velocities())
+        assert runs[0].substeps == other.substeps
+    monkeypatch.setattr(mpm, "MIN_CHUNK_PARTICLES", 10 ** 9)
+    one = falling_cube()
+    one.advance(0.05)
+    assert one.chunks == 1 and one.substeps == runs[0].substeps
+    assert np.abs(one.positions() - runs[0].positions()).max() < 1e-6

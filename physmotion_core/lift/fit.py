@@ -425,6 +425,9 @@ class _Params:
 def _render(prep: _Prep, p: _Params, lv: _Level, cx: float, cy: float, colors: bool = True):
     from ..render.rasterize import rasterize
 
+    out = _render_compiled(prep, p, lv, cx, cy, colors)
+    if out is not None:
+        return out
     means, cov = p.place(prep, cx, cy)
     f = torch.exp(p.log_f)
     n = means.shape[0]
@@ -443,18 +446,64 @@ def _render(prep: _Prep, p: _Params, lv: _Level, cx: float, cy: float, colors: b
                       covars=cov * d[:, None] * d[None, :])
     rgb = prep.rgb if colors else torch.zeros_like(prep.rgb)
     if torch.is_grad_enabled() and g.means.requires_grad and g.means.device.type == "cpu":
-        # A refinement step: the PyTorch rasterizer (the only CPU path with gradients), its 8 px
-        # tiles walked GRAD_CHUNK splats at a time (twice that where a tile holds 48 or more on
-        # average) instead of its default 16. The result is the same (each pixel still stops at the
-        # splat that saturates it); the fit's renders are small and deep, so the per-chunk cost (one
-        # autograd node each, recomputed in backward) dominated: 1.3-1.7x less time per step (the
-        # stand-in cup at 73x49-243x162 px).
+        # A refinement step without Warp: the PyTorch rasterizer (the only other CPU path with
+        # gradients), its 8 px tiles walked GRAD_CHUNK splats at a time (twice that where a tile holds
+        # 48 or more on average) instead of its default 16. The result is the same (each pixel still
+        # stops at the splat that saturates it); the fit's renders are small and deep, so the per-chunk
+        # cost (one autograd node each, recomputed in backward) dominated: 1.3-1.7x less time per step
+        # (the stand-in cup at 73x49-243x162 px).
         from ..render.rasterize import _rasterize_with_torch
 
         per_tile = n * 64.0 / float(lv.width * lv.height)
         chunk = 2 * GRAD_CHUNK if per_tile >= 48 else GRAD_CHUNK
         return _rasterize_with_torch(g, cam, rgb, g.opacities, None, "z", 0.3, chunk=chunk)
     return rasterize(g, cam, colors=rgb)
+
+
+def _render_compiled(prep: _Prep, p: _Params, lv: _Level, cx: float, cy: float, colors: bool = True):
+    """Every render of the fit (colour and alpha, no depth), compiled (render/_warp_grad.py), with gradients
+    w.r.t. the parameters where they are asked: the object's placement is one affine map of the normalised
+    splats into the camera, x -> A x + b, so the projection takes A and b (12 numbers) and returns their
+    gradient summed over the drawn splats, and the compositing's backward pass is hand-written. The tensor
+    path placed every splat (N 3x3 products), projected them through some forty autograd nodes and composited
+    in dense tensor blocks; the renders without gradients (ranking, alignment, the final IoU) went through
+    ``rasterize`` after the same placement. The same images and gradients to float32 round-off
+    (tests/test_fit.py). None where the compiled path is not available (then ``_render`` takes the others)."""
+    from ..render import _warp_grad
+    from ..render.rasterize import RenderOutput
+
+    if not _warp_grad.usable(prep.means, prep.cov):
+        return None
+    R = p.rotation()
+    f = torch.exp(p.log_f)
+    s = torch.exp(p.log_sigma) / f  # D0 = 1
+    u, v = p.uv[0] * p.side, p.uv[1] * p.side
+    # OpenGL camera frame (what _Params.place gives) -> OpenCV (y and z flipped), and x, y scaled by
+    # ρ = f / f.detach() (= 1 in value: the focal's gradient, see _render).
+    ratio = f / f.detach()
+    flip = torch.stack([ratio, -ratio, -torch.ones((), dtype=f.dtype)])
+    A = (s * R) * flip[:, None]
+    b = torch.stack([(u - cx) / f, -(v - cy) / f, -torch.ones((), dtype=f.dtype)]) * flip
+    fl = float(f.detach())
+    rgb = prep.rgb if colors else torch.zeros_like(prep.rgb)
+    try:
+        proj = _warp_grad.project_affine(prep.means, prep.cov, prep.opacities, A, b, fx=fl * lv.kx, fy=fl * lv.ky,
+                                         cx=cx * lv.kx, cy=cy * lv.ky, width=lv.width, height=lv.height, near=1e-3,
+                                         far=1e3, eps2d=0.3)
+        if proj is None:
+            return None
+        img = _warp_grad.composite(proj, rgb.index_select(0, proj.index), lv.width, lv.height)
+    except InputError:
+        raise
+    except Exception as exc:  # noqa: BLE001 - a failed compiled launch: the other paths for the rest of the process
+        _warp_grad.mark_failed(exc)
+        return None
+    alpha = img[..., 3]
+    if (A.requires_grad or b.requires_grad) and not alpha.requires_grad:
+        # Nothing drawn: keep the (zero) image attached so backward() still works.
+        img = img + 0.0 * (A.sum() + b.sum())
+        alpha = img[..., 3]
+    return RenderOutput(rgb=img[..., :3], alpha=alpha, depth=torch.zeros_like(alpha.detach()), backend="warp")
 
 
 def _losses(out, lv: _Level, colour_weight: float) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:

@@ -408,6 +408,38 @@ def check_intersections(proj: Projected, ts: int, width: int, height: int, limit
     return total
 
 
+def tile_lists(proj: Projected, ts: int, width: int, height: int,
+               cull: bool = True) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor, int]:
+    """Each ``ts`` px tile's depth-ordered list of the projected splats that may touch it (their ellipse at
+    alpha = 1/255, see ``_tile_runs``; with ``cull`` off, their box). Returns (glist, tile_start, tile_count,
+    total): tile t's list is ``glist[tile_start[t]:tile_start[t] + tile_count[t]]`` (indices into ``proj``,
+    front first); ``glist`` has ``total`` entries plus a sentinel M (= the number of splats) at the end.
+    InputError above ``MAX_INTERSECTIONS`` box intersections. Shared by ``composite_tiles`` and the compiled
+    differentiable compositing (``_warp_grad``)."""
+    device = proj.uv.device
+    M = proj.uv.shape[0]
+    TX, TY = -(-width // ts), -(-height // ts)
+    n_tiles = TX * TY
+    with torch.no_grad():
+        check_intersections(proj, ts, width, height)
+        g, ty, c_lo, c_hi = _tile_runs(proj, ts, cull)
+        counts = (c_hi - c_lo + 1).clamp_min(0)
+        total = int(counts.sum())
+        run = torch.repeat_interleave(torch.arange(g.numel(), device=device), counts, output_size=total)
+        first = (torch.cumsum(counts, 0) - counts).index_select(0, run)
+        tx = c_lo.index_select(0, run) + torch.arange(total, device=device) - first
+        tile = (ty.index_select(0, run) * TX + tx).to(torch.int32)
+        gauss = g.index_select(0, run)  # runs follow the Gaussians' (depth) order
+        del g, ty, c_lo, c_hi, counts, run, first, tx
+        # Gaussians are already depth-sorted, so a stable sort by tile keeps depth order per tile.
+        tile, perm = torch.sort(tile, stable=True)
+        glist = torch.cat([gauss.index_select(0, perm), gauss.new_full((1,), M)])  # + sentinel
+        tile_count = torch.bincount(tile, minlength=n_tiles)
+        del gauss, tile, perm
+        tile_start = torch.cumsum(tile_count, 0) - tile_count
+    return glist, tile_start, tile_count, total
+
+
 def composite_tiles(proj: Projected, features: torch.Tensor, width: int, height: int, *,
                     tile_size: int = 8, chunk: int = 16,
                     max_elements: Optional[int] = None, cull: bool = True,
@@ -439,22 +471,7 @@ def composite_tiles(proj: Projected, features: torch.Tensor, width: int, height:
 
     # ---- (Gaussian, tile) intersections, in (tile, depth) order ------------------------------
     with torch.no_grad():
-        check_intersections(proj, ts, width, height)
-        g, ty, c_lo, c_hi = _tile_runs(proj, ts, cull)
-        counts = (c_hi - c_lo + 1).clamp_min(0)
-        total = int(counts.sum())
-        run = torch.repeat_interleave(torch.arange(g.numel(), device=device), counts, output_size=total)
-        first = (torch.cumsum(counts, 0) - counts).index_select(0, run)
-        tx = c_lo.index_select(0, run) + torch.arange(total, device=device) - first
-        tile = (ty.index_select(0, run) * TX + tx).to(torch.int32)
-        gauss = g.index_select(0, run)  # runs follow the Gaussians' (depth) order
-        del g, ty, c_lo, c_hi, counts, run, first, tx
-        # Gaussians are already depth-sorted, so a stable sort by tile keeps depth order per tile.
-        tile, perm = torch.sort(tile, stable=True)
-        glist = torch.cat([gauss.index_select(0, perm), gauss.new_full((1,), M)])  # + sentinel
-        tile_count = torch.bincount(tile, minlength=n_tiles)
-        del gauss, tile, perm
-        tile_start = torch.cumsum(tile_count, 0) - tile_count
+        glist, tile_start, tile_count, total = tile_lists(proj, ts, width, height, cull)
         wanted = tile_count > 0
         if pixels is not None:
             if tuple(pixels.shape) != (height, width):

@@ -35,17 +35,14 @@ does this job.
 # No "from __future__ import annotations": Warp reads the kernels' annotations, which name the local `wp`.
 
 import math
-import threading
 from typing import Optional
 
 import torch
 
 from ..errors import InputError
+from ..warp_build import built_once
 from ._torch_raster import (ALPHA_MAX, ALPHA_MIN, MAX_EXTENT, MAX_INTERSECTIONS, T_DONE, Projected,
                             check_intersections)
-
-_lock = threading.Lock()
-_built = None
 
 #: Pixel side of a tile for a whole frame. Larger tiles than ``composite_tiles``' 8: a pixel only visits the splats
 #: whose ellipse holds it (row spans, below), so a larger tile costs no more per pixel, lists each splat in fewer
@@ -64,24 +61,15 @@ def _f32(x: float) -> str:
     return f"{float(np.float32(x))!r}f"
 
 
-#: The inner loop of ``composite``, in C++ (a Warp native function): one splat over the pixels x0..x1 of one row of
-#: a tile. Written without branches (selects) and with an inlined polynomial exp so that the compiler Warp runs
-#: (clang, -O2 -march=native) vectorises it across the row's pixels: the same loop written in Warp's kernel
-#: language compiles to scalar code, one pixel at a time, with expf a library call. Returns how many pixels
-#: saturated. exp: Cephes' single-precision range reduction and polynomial (x = n ln 2 + r, |r| <= ln 2 / 2,
-#: e^r to degree 7, then scaled by 2^n through the exponent bits): over the range used here (power in [-ln 255, 0];
-#: lower values are rejected by the threshold, higher ones clamped to 0.99 either way) within 7.7e-8 of the exact
-#: value relative, under one float32 ulp (2M points against float64), where expf itself is within 1.9e-7.
-_ROW = r"""
-const float* f = feats.data + (size_t)m * K;
-float* Tr = T.data + base;
-float* ar = aout.data + base;
-float* o = out.data + (size_t)base * K;
-const float A = 0.5f * ca, B = cb, q0 = lm - 0.5f * cc * dy * dy;
-auto weight = [&](int x, float t, int& died) -> float {
-    float dx = u - ((float)x + 0.5f);
-    float power = q0 - (A * dx * dx + B * dx * dy);
-    float pw = power < -87.0f ? -87.0f : (power > 0.0f ? 0.0f : power);
+#: ``expo(x)``, a float32 exp for C++ loops the compiler should vectorise (a lambda that inlines, with no library
+#: call), shared by ``_ROW`` and ``_warp_grad``'s loops: Cephes' single-precision range reduction and polynomial
+#: (x = n ln 2 + r, |r| <= ln 2 / 2, e^r to degree 7, then scaled by 2^n through the exponent bits), x clamped to
+#: [-87, 0]. Over the range the splat loops use (x in [-ln 255, 0]; lower values are rejected by the threshold,
+#: higher ones clamped to 0.99 either way) within 7.7e-8 of the exact value relative, under one float32 ulp (2M
+#: points against float64), where expf itself is within 1.9e-7.
+EXPO = r"""
+auto expo = [](float x) -> float {
+    float pw = x < -87.0f ? -87.0f : (x > 0.0f ? 0.0f : x);
     float n = __builtin_floorf(pw * 1.44269504088896341f + 0.5f);
     float r = (pw - n * 0.693359375f) + n * 2.12194440e-4f;
     float e = 1.9875691500e-4f;
@@ -94,7 +82,25 @@ auto weight = [&](int x, float t, int& died) -> float {
     int bits = ((int)n + 127) << 23;
     float scale;
     __builtin_memcpy(&scale, &bits, 4);
-    float al = e * scale;
+    return e * scale;
+};
+"""
+
+#: The inner loop of ``composite``, in C++ (a Warp native function): one splat over the pixels x0..x1 of one row of
+#: a tile. Written without branches (selects) and with the inlined polynomial exp ``EXPO`` so that the compiler
+#: Warp runs (clang, -O2 -march=native) vectorises it across the row's pixels: the same loop written in Warp's
+#: kernel language compiles to scalar code, one pixel at a time, with expf a library call. Returns how many pixels
+#: saturated.
+_ROW = EXPO + r"""
+const float* f = feats.data + (size_t)m * K;
+float* Tr = T.data + base;
+float* ar = aout.data + base;
+float* o = out.data + (size_t)base * K;
+const float A = 0.5f * ca, B = cb, q0 = lm - 0.5f * cc * dy * dy;
+auto weight = [&](int x, float t, int& died) -> float {
+    float dx = u - ((float)x + 0.5f);
+    float power = q0 - (A * dx * dx + B * dx * dy);
+    float al = expo(power);
     al = al > ALPHA_MAX ? ALPHA_MAX : al;
     bool use = (power > -LN_255) & (al > ALPHA_MIN) & (t > 0.0f);
     al = use ? al : 0.0f;
@@ -162,227 +168,245 @@ def mark_failed(exc: BaseException) -> None:
     _failed = True
 
 
-def _build():
-    global _built
-    with _lock:
-        if _built is not None:
-            return _built
-        import warp as wp
+@built_once
+def projection_funcs(wp):
+    """The Warp functions both compiled projections (``project`` here, ``project_fwd`` / ``project_diff`` of
+    ``_warp_grad``) are made of, with ``project_gaussians``' arithmetic: (ewa, store).
 
-        wp.config.quiet = True
-        wp.init()
-        # Constants the kernels read (Warp folds captured constants in when it compiles them).
-        ALPHA_MIN_ = wp.constant(ALPHA_MIN)
-        ALPHA_MAX_ = wp.constant(ALPHA_MAX)
-        T_DONE_ = wp.constant(T_DONE)
-        LN_255 = wp.constant(math.log(255.0))
+    ``ewa(p, M, S, ...)``: the splat at camera-space p (OpenCV axes) whose covariance is M S Mᵀ, projected by EWA
+    with the Jacobian's x/z, y/z clamped to lim = (-x, +x, -y, +y) bounds; returns (u, v, a, b, c, z): the 2D mean,
+    the 2D covariance [[a, b], [b, c]] (eps2d added) and z. ``store(i, z, o, u, v, a, b, c, ...)``: culls a
+    degenerate or non-finite projection and a pixel box (at the opacity o's extent) that holds no pixel centre, and
+    writes a drawn splat's key (z), mean, conic, log-opacity and box."""
+    ALPHA_MIN_ = wp.constant(ALPHA_MIN)
+    MAX_EXTENT_ = wp.constant(MAX_EXTENT)
 
-        @wp.func
-        def reaches(u: float, v: float, ca: float, cb: float, cc: float, r2: float, x0: float, x1: float,
-                    y0: float, y1: float):
-            # Whether the ellipse ca dx² + 2 cb dx dy + cc dy² <= r2 about (u, v) meets the rectangle of pixel
-            # centres [x0, x1] x [y0, y1]: the smallest value of the form over the rectangle, <= r2. The minimum of
-            # a positive-definite form over a rectangle is at the centre when the rectangle holds it, else on an edge,
-            # where along x = const the minimising y is the unconstrained one clamped to the edge (and likewise).
-            if u >= x0 and u <= x1 and v >= y0 and v <= y1:
-                return True
-            best = float(1.0e30)
-            for side in range(4):
-                dx = float(0.0)
-                dy = float(0.0)
-                if side < 2:  # a vertical edge: dx fixed, dy free on the edge
-                    if side == 0:
-                        dx = x0 - u
-                    else:
-                        dx = x1 - u
-                    dy = wp.clamp(-cb * dx / cc, y0 - v, y1 - v)
-                else:  # a horizontal edge
-                    if side == 2:
-                        dy = y0 - v
-                    else:
-                        dy = y1 - v
-                    dx = wp.clamp(-cb * dy / ca, x0 - u, x1 - u)
-                q = ca * dx * dx + 2.0 * cb * dx * dy + cc * dy * dy
-                best = wp.min(best, q)
-            return best <= r2
+    @wp.func
+    def ewa(p: wp.vec3, M: wp.mat33, S: wp.mat33, fx: float, fy: float, cx: float, cy: float, lim: wp.vec4,
+            eps2d: float):
+        z = p[2]
+        rz = 1.0 / z
+        tx = z * wp.clamp(p[0] * rz, -lim[0], lim[1])
+        ty = z * wp.clamp(p[1] * rz, -lim[2], lim[3])
+        r0 = wp.vec3(M[0, 0], M[0, 1], M[0, 2])
+        r1 = wp.vec3(M[1, 0], M[1, 1], M[1, 2])
+        r2 = wp.vec3(M[2, 0], M[2, 1], M[2, 2])
+        m0 = (fx * rz) * r0 + (-fx * tx * rz * rz) * r2  # rows of J M, the Jacobian of the splat's frame -> screen
+        m1 = (fy * rz) * r1 + (-fy * ty * rz * rz) * r2
+        s0 = S * m0
+        s1 = S * m1
+        a = wp.dot(m0, s0) + eps2d
+        b = 0.5 * (wp.dot(m1, s0) + wp.dot(m0, s1))  # a non-symmetric S acts as its symmetric part
+        c = wp.dot(m1, s1) + eps2d
+        return wp.spatial_vector(fx * p[0] * rz + cx, fy * p[1] * rz + cy, a, b, c, z)
 
-        @wp.func
-        def level(ca: float, cc: float, logo: float):
-            # alpha >= 1/255 <=> the form <= 2 (log o - ln(1/255)); widened by a margin above the float32 round-off
-            # of the row spans and the per-pixel test, so a tile's list and a row's span hold every pixel the test
-            # passes (a superset: the others fail the test and add nothing). The form's error at a span end is about
-            # 2 sqrt(ca r2) times the end's error, ~1e-7 |u| px: under 0.07 for ca <= 100 and |u| <= 1e4 px, and
-            # 1e-3 ca grows faster than it beyond. (composite_tiles' culling needs a margin that grows with the
-            # tile's side squared, for its tile-local expansion; here each pixel's offset is taken directly.)
-            return 2.0 * (logo + LN_255) + 0.1 + 1.0e-3 * (ca + cc)
+    @wp.func
+    def store(i: int, z: float, o: float, u: float, v: float, a: float, b: float, c: float, W: int, H: int,
+              big: float, key: wp.array(dtype=float), uv: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3),
+              logo: wp.array(dtype=float), lo: wp.array(dtype=wp.vec2i), hi: wp.array(dtype=wp.vec2i)):
+        det = a * c - b * b
+        if not (det > 0.0 and wp.isfinite(det) and wp.isfinite(a) and wp.isfinite(c) and wp.isfinite(u)
+                and wp.isfinite(v)):
+            return
+        extent = wp.min(wp.sqrt(2.0 * wp.log(wp.max(o, ALPHA_MIN_) / ALPHA_MIN_)), MAX_EXTENT_)
+        rx = extent * wp.sqrt(wp.max(a, 0.0))
+        ry = extent * wp.sqrt(wp.max(c, 0.0))
+        lu = wp.max(wp.ceil(wp.clamp(u - rx - 0.5 - 1.0e-3, -big, big)), 0.0)
+        hu = wp.min(wp.floor(wp.clamp(u + rx - 0.5 + 1.0e-3, -big, big)), float(W - 1))
+        lv = wp.max(wp.ceil(wp.clamp(v - ry - 0.5 - 1.0e-3, -big, big)), 0.0)
+        hv = wp.min(wp.floor(wp.clamp(v + ry - 0.5 + 1.0e-3, -big, big)), float(H - 1))
+        if lu > hu or lv > hv:
+            return
+        key[i] = z
+        uv[i] = wp.vec2(u, v)
+        inv = 1.0 / det
+        conic[i] = wp.vec3(c * inv, -b * inv, a * inv)
+        logo[i] = wp.log(o)
+        lo[i] = wp.vec2i(int(lu), int(lv))
+        hi[i] = wp.vec2i(int(hu), int(hv))
 
-        @wp.func
-        def listed(uv: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3), logo: wp.array(dtype=float),
-                   lo: wp.array(dtype=wp.vec2i), hi: wp.array(dtype=wp.vec2i), ts: int, m: int, tx: int, ty: int):
-            # Whether splat m goes in the list of tile (tx, ty): its ellipse reaches a pixel centre of the tile
-            # inside the splat's box.
-            c = conic[m]
-            x0 = float(wp.max(tx * ts, lo[m][0])) + 0.5
-            x1 = float(wp.min(tx * ts + ts - 1, hi[m][0])) + 0.5
-            y0 = float(wp.max(ty * ts, lo[m][1])) + 0.5
-            y1 = float(wp.min(ty * ts + ts - 1, hi[m][1])) + 0.5
-            return reaches(uv[m][0], uv[m][1], c[0], c[1], c[2], level(c[0], c[2], logo[m]), x0, x1, y0, y1)
+    return ewa, store
 
-        @wp.kernel(enable_backward=False)
-        def count(uv: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3), logo: wp.array(dtype=float),
-                  lo: wp.array(dtype=wp.vec2i), hi: wp.array(dtype=wp.vec2i), ts: int, TX: int,
-                  hold: wp.array(dtype=wp.uint8), per_tile: wp.array(dtype=int)):
-            # One splat: +1 to every tile it goes in (the counts do not depend on the order). ``hold`` (empty: every
-            # tile): only the tiles that hold an asked pixel get lists.
-            m = wp.tid()
+
+@built_once
+def _build(wp):
+    # Constants the kernels read (Warp folds captured constants in when it compiles them).
+    ALPHA_MIN_ = wp.constant(ALPHA_MIN)
+    ALPHA_MAX_ = wp.constant(ALPHA_MAX)
+    T_DONE_ = wp.constant(T_DONE)
+    LN_255 = wp.constant(math.log(255.0))
+
+    @wp.func
+    def reaches(u: float, v: float, ca: float, cb: float, cc: float, r2: float, x0: float, x1: float,
+                y0: float, y1: float):
+        # Whether the ellipse ca dx² + 2 cb dx dy + cc dy² <= r2 about (u, v) meets the rectangle of pixel
+        # centres [x0, x1] x [y0, y1]: the smallest value of the form over the rectangle, <= r2. The minimum of
+        # a positive-definite form over a rectangle is at the centre when the rectangle holds it, else on an edge,
+        # where along x = const the minimising y is the unconstrained one clamped to the edge (and likewise).
+        if u >= x0 and u <= x1 and v >= y0 and v <= y1:
+            return True
+        best = float(1.0e30)
+        for side in range(4):
+            dx = float(0.0)
+            dy = float(0.0)
+            if side < 2:  # a vertical edge: dx fixed, dy free on the edge
+                if side == 0:
+                    dx = x0 - u
+                else:
+                    dx = x1 - u
+                dy = wp.clamp(-cb * dx / cc, y0 - v, y1 - v)
+            else:  # a horizontal edge
+                if side == 2:
+                    dy = y0 - v
+                else:
+                    dy = y1 - v
+                dx = wp.clamp(-cb * dy / ca, x0 - u, x1 - u)
+            q = ca * dx * dx + 2.0 * cb * dx * dy + cc * dy * dy
+            best = wp.min(best, q)
+        return best <= r2
+
+    @wp.func
+    def level(ca: float, cc: float, logo: float):
+        # alpha >= 1/255 <=> the form <= 2 (log o - ln(1/255)); widened by a margin above the float32 round-off
+        # of the row spans and the per-pixel test, so a tile's list and a row's span hold every pixel the test
+        # passes (a superset: the others fail the test and add nothing). The form's error at a span end is about
+        # 2 sqrt(ca r2) times the end's error, ~1e-7 |u| px: under 0.07 for ca <= 100 and |u| <= 1e4 px, and
+        # 1e-3 ca grows faster than it beyond. (composite_tiles' culling needs a margin that grows with the
+        # tile's side squared, for its tile-local expansion; here each pixel's offset is taken directly.)
+        return 2.0 * (logo + LN_255) + 0.1 + 1.0e-3 * (ca + cc)
+
+    @wp.func
+    def listed(uv: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3), logo: wp.array(dtype=float),
+               lo: wp.array(dtype=wp.vec2i), hi: wp.array(dtype=wp.vec2i), ts: int, m: int, tx: int, ty: int):
+        # Whether splat m goes in the list of tile (tx, ty): its ellipse reaches a pixel centre of the tile
+        # inside the splat's box.
+        c = conic[m]
+        x0 = float(wp.max(tx * ts, lo[m][0])) + 0.5
+        x1 = float(wp.min(tx * ts + ts - 1, hi[m][0])) + 0.5
+        y0 = float(wp.max(ty * ts, lo[m][1])) + 0.5
+        y1 = float(wp.min(ty * ts + ts - 1, hi[m][1])) + 0.5
+        return reaches(uv[m][0], uv[m][1], c[0], c[1], c[2], level(c[0], c[2], logo[m]), x0, x1, y0, y1)
+
+    @wp.kernel(enable_backward=False)
+    def count(uv: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3), logo: wp.array(dtype=float),
+              lo: wp.array(dtype=wp.vec2i), hi: wp.array(dtype=wp.vec2i), ts: int, TX: int,
+              hold: wp.array(dtype=wp.uint8), per_tile: wp.array(dtype=int)):
+        # One splat: +1 to every tile it goes in (the counts do not depend on the order). ``hold`` (empty: every
+        # tile): only the tiles that hold an asked pixel get lists.
+        m = wp.tid()
+        for ty in range(lo[m][1] / ts, hi[m][1] / ts + 1):
+            for tx in range(lo[m][0] / ts, hi[m][0] / ts + 1):
+                t = ty * TX + tx
+                if hold.shape[0] == 0 or hold[t] != wp.uint8(0):
+                    if listed(uv, conic, logo, lo, hi, ts, m, tx, ty):
+                        wp.atomic_add(per_tile, t, 1)
+
+    @wp.kernel(enable_backward=False)
+    def fill(uv: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3), logo: wp.array(dtype=float),
+             lo: wp.array(dtype=wp.vec2i), hi: wp.array(dtype=wp.vec2i), ts: int, TX: int, M: int,
+             hold: wp.array(dtype=wp.uint8), cursor: wp.array(dtype=int), lists: wp.array(dtype=int)):
+        # Launched once (dim 1): the splats in depth order, each appended to the tiles it goes in (of those
+        # ``hold`` names, as count), so every tile's list is in depth order. ``cursor`` starts at each tile's
+        # first slot.
+        for m in range(M):
             for ty in range(lo[m][1] / ts, hi[m][1] / ts + 1):
                 for tx in range(lo[m][0] / ts, hi[m][0] / ts + 1):
                     t = ty * TX + tx
                     if hold.shape[0] == 0 or hold[t] != wp.uint8(0):
                         if listed(uv, conic, logo, lo, hi, ts, m, tx, ty):
-                            wp.atomic_add(per_tile, t, 1)
+                            lists[cursor[t]] = m
+                            cursor[t] = cursor[t] + 1
 
-        @wp.kernel(enable_backward=False)
-        def fill(uv: wp.array(dtype=wp.vec2), conic: wp.array(dtype=wp.vec3), logo: wp.array(dtype=float),
-                 lo: wp.array(dtype=wp.vec2i), hi: wp.array(dtype=wp.vec2i), ts: int, TX: int, M: int,
-                 hold: wp.array(dtype=wp.uint8), cursor: wp.array(dtype=int), lists: wp.array(dtype=int)):
-            # Launched once (dim 1): the splats in depth order, each appended to the tiles it goes in (of those
-            # ``hold`` names, as count), so every tile's list is in depth order. ``cursor`` starts at each tile's
-            # first slot.
-            for m in range(M):
-                for ty in range(lo[m][1] / ts, hi[m][1] / ts + 1):
-                    for tx in range(lo[m][0] / ts, hi[m][0] / ts + 1):
-                        t = ty * TX + tx
-                        if hold.shape[0] == 0 or hold[t] != wp.uint8(0):
-                            if listed(uv, conic, logo, lo, hi, ts, m, tx, ty):
-                                lists[cursor[t]] = m
-                                cursor[t] = cursor[t] + 1
+    @wp.func
+    def span(a: float, b: float, c: float, r2: float, u: float, v: float, y: int, x0: int, x1: int):
+        # The pixel columns of row y, within [x0, x1], whose centres the ellipse a dx² + 2 b dx dy + c dy² <= r2
+        # about (u, v) holds: dx = (-b dy ± sqrt(a r2 - det dy²)) / a. Empty: first > last.
+        dy = float(y) + 0.5 - v
+        disc = a * r2 - (a * c - b * b) * dy * dy
+        if disc < 0.0:
+            return wp.vec2i(1, 0)
+        s = wp.sqrt(disc)
+        lo = wp.ceil(u + (-b * dy - s) / a - 0.5)
+        hi = wp.floor(u + (-b * dy + s) / a - 0.5)
+        return wp.vec2i(wp.max(x0, int(wp.max(lo, -1.0e9))), wp.min(x1, int(wp.min(hi, 1.0e9))))
 
-        @wp.func
-        def span(a: float, b: float, c: float, r2: float, u: float, v: float, y: int, x0: int, x1: int):
-            # The pixel columns of row y, within [x0, x1], whose centres the ellipse a dx² + 2 b dx dy + c dy² <= r2
-            # about (u, v) holds: dx = (-b dy ± sqrt(a r2 - det dy²)) / a. Empty: first > last.
-            dy = float(y) + 0.5 - v
-            disc = a * r2 - (a * c - b * b) * dy * dy
-            if disc < 0.0:
-                return wp.vec2i(1, 0)
-            s = wp.sqrt(disc)
-            lo = wp.ceil(u + (-b * dy - s) / a - 0.5)
-            hi = wp.floor(u + (-b * dy + s) / a - 0.5)
-            return wp.vec2i(wp.max(x0, int(wp.max(lo, -1.0e9))), wp.min(x1, int(wp.min(hi, 1.0e9))))
+    @wp.func_native(_ROW)
+    def row(T: wp.array(dtype=float), out: wp.array(dtype=float), aout: wp.array(dtype=float),
+            feats: wp.array(dtype=float), K: int, m: int, base: int, x0: int, x1: int, u: float, dy: float,
+            ca: float, cb: float, cc: float, lm: float) -> int:
+        ...
 
-        @wp.func_native(_ROW)
-        def row(T: wp.array(dtype=float), out: wp.array(dtype=float), aout: wp.array(dtype=float),
-                feats: wp.array(dtype=float), K: int, m: int, base: int, x0: int, x1: int, u: float, dy: float,
-                ca: float, cb: float, cc: float, lm: float) -> int:
-            ...
+    @wp.kernel(enable_backward=False)
+    def composite(start: wp.array(dtype=int), stop: wp.array(dtype=int), lists: wp.array(dtype=int),
+                  uv: wp.array(dtype=wp.vec2),
+                  conic: wp.array(dtype=wp.vec3), logo: wp.array(dtype=float), lo: wp.array(dtype=wp.vec2i),
+                  hi: wp.array(dtype=wp.vec2i), feats: wp.array(dtype=float), K: int, ts: int, TX: int, W: int,
+                  H: int, asked: wp.array(dtype=wp.uint8), T: wp.array(dtype=float),
+                  out: wp.array(dtype=float), alpha_out: wp.array(dtype=float)):
+        # One tile: its splats front to back, each over the pixels of the tile its ellipse at alpha = 1/255 (plus
+        # the margin) holds, row by row (``row``); a pixel keeps its transmittance in T (0 once saturated, or not
+        # asked). ``feats`` and ``out`` hold K floats per splat / pixel.
+        tile = wp.tid()
+        s0 = start[tile]
+        s1 = stop[tile]
+        if s1 <= s0:
+            return
+        bx0 = (tile % TX) * ts
+        by0 = (tile / TX) * ts
+        bx1 = wp.min(bx0 + ts, W) - 1
+        by1 = wp.min(by0 + ts, H) - 1
+        alive = int(0)
+        for y in range(by0, by1 + 1):
+            for x in range(bx0, bx1 + 1):
+                p = y * W + x
+                if asked.shape[0] == 0 or asked[p] != wp.uint8(0):
+                    T[p] = 1.0
+                    alive += 1
+                else:
+                    T[p] = 0.0
+        for i in range(s0, s1):
+            if alive == 0:
+                break
+            m = lists[i]
+            cn = conic[m]
+            u = uv[m][0]
+            v = uv[m][1]
+            lm = logo[m]
+            r2 = level(cn[0], cn[2], lm)
+            x0 = wp.max(lo[m][0], bx0)
+            x1 = wp.min(hi[m][0], bx1)
+            for y in range(wp.max(lo[m][1], by0), wp.min(hi[m][1], by1) + 1):
+                sp = span(cn[0], cn[1], cn[2], r2, u, v, y, x0, x1)
+                if sp[0] <= sp[1]:
+                    alive -= row(T, out, alpha_out, feats, K, m, y * W, sp[0], sp[1], u, v - (float(y) + 0.5),
+                                 cn[0], cn[1], cn[2], lm)
 
-        @wp.kernel(enable_backward=False)
-        def composite(start: wp.array(dtype=int), stop: wp.array(dtype=int), lists: wp.array(dtype=int),
-                      uv: wp.array(dtype=wp.vec2),
-                      conic: wp.array(dtype=wp.vec3), logo: wp.array(dtype=float), lo: wp.array(dtype=wp.vec2i),
-                      hi: wp.array(dtype=wp.vec2i), feats: wp.array(dtype=float), K: int, ts: int, TX: int, W: int,
-                      H: int, asked: wp.array(dtype=wp.uint8), T: wp.array(dtype=float),
-                      out: wp.array(dtype=float), alpha_out: wp.array(dtype=float)):
-            # One tile: its splats front to back, each over the pixels of the tile its ellipse at alpha = 1/255 (plus
-            # the margin) holds, row by row (``row``); a pixel keeps its transmittance in T (0 once saturated, or not
-            # asked). ``feats`` and ``out`` hold K floats per splat / pixel.
-            tile = wp.tid()
-            s0 = start[tile]
-            s1 = stop[tile]
-            if s1 <= s0:
-                return
-            bx0 = (tile % TX) * ts
-            by0 = (tile / TX) * ts
-            bx1 = wp.min(bx0 + ts, W) - 1
-            by1 = wp.min(by0 + ts, H) - 1
-            alive = int(0)
-            for y in range(by0, by1 + 1):
-                for x in range(bx0, bx1 + 1):
-                    p = y * W + x
-                    if asked.shape[0] == 0 or asked[p] != wp.uint8(0):
-                        T[p] = 1.0
-                        alive += 1
-                    else:
-                        T[p] = 0.0
-            for i in range(s0, s1):
-                if alive == 0:
-                    break
-                m = lists[i]
-                cn = conic[m]
-                u = uv[m][0]
-                v = uv[m][1]
-                lm = logo[m]
-                r2 = level(cn[0], cn[2], lm)
-                x0 = wp.max(lo[m][0], bx0)
-                x1 = wp.min(hi[m][0], bx1)
-                for y in range(wp.max(lo[m][1], by0), wp.min(hi[m][1], by1) + 1):
-                    sp = span(cn[0], cn[1], cn[2], r2, u, v, y, x0, x1)
-                    if sp[0] <= sp[1]:
-                        alive -= row(T, out, alpha_out, feats, K, m, y * W, sp[0], sp[1], u, v - (float(y) + 0.5),
-                                     cn[0], cn[1], cn[2], lm)
+    INF = wp.constant(math.inf)
+    ewa, store = projection_funcs()
 
-        MAX_EXTENT_ = wp.constant(MAX_EXTENT)
-        INF = wp.constant(math.inf)
+    @wp.kernel(enable_backward=False)
+    def project(means: wp.array(dtype=wp.vec3), cov: wp.array(dtype=wp.mat33), opac: wp.array(dtype=float),
+                R: wp.mat33, t: wp.vec3, fx: float, fy: float, cx: float, cy: float, W: int, H: int,
+                near: float, far: float, eps2d: float, lim: wp.vec4, big: float,
+                mc: wp.array(dtype=wp.vec3), key: wp.array(dtype=float), uv: wp.array(dtype=wp.vec2),
+                conic: wp.array(dtype=wp.vec3), logo: wp.array(dtype=float), lo: wp.array(dtype=wp.vec2i),
+                hi: wp.array(dtype=wp.vec2i)):
+        # One splat, as project_gaussians computes it: camera-space mean, EWA 2D covariance (the Jacobian's
+        # x/z, y/z clamped to lim = (-x, +x, -y, +y) bounds), conic, pixel box at the opacity's extent; key = its
+        # z when it is drawn, +inf when culled (behind near, past far, opacity < 1/255, a degenerate or
+        # non-finite projection, a box that holds no pixel centre).
+        i = wp.tid()
+        p = R * means[i] + t
+        mc[i] = p
+        key[i] = INF
+        z = p[2]
+        o = opac[i]
+        if not (z > near and z < far and o >= ALPHA_MIN_):
+            return
+        q = ewa(p, R, cov[i], fx, fy, cx, cy, lim, eps2d)
+        store(i, z, o, q[0], q[1], q[2], q[3], q[4], W, H, big, key, uv, conic, logo, lo, hi)
 
-        @wp.kernel(enable_backward=False)
-        def project(means: wp.array(dtype=wp.vec3), cov: wp.array(dtype=wp.mat33), opac: wp.array(dtype=float),
-                    R: wp.mat33, t: wp.vec3, fx: float, fy: float, cx: float, cy: float, W: int, H: int,
-                    near: float, far: float, eps2d: float, lim: wp.vec4, big: float,
-                    mc: wp.array(dtype=wp.vec3), key: wp.array(dtype=float), uv: wp.array(dtype=wp.vec2),
-                    conic: wp.array(dtype=wp.vec3), logo: wp.array(dtype=float), lo: wp.array(dtype=wp.vec2i),
-                    hi: wp.array(dtype=wp.vec2i)):
-            # One splat, as project_gaussians computes it: camera-space mean, EWA 2D covariance (the Jacobian's
-            # x/z, y/z clamped to lim = (-x, +x, -y, +y) bounds), conic, pixel box at the opacity's extent; key = its
-            # z when it is drawn, +inf when culled (behind near, past far, opacity < 1/255, a degenerate or
-            # non-finite projection, a box that holds no pixel centre).
-            i = wp.tid()
-            p = R * means[i] + t
-            mc[i] = p
-            key[i] = INF
-            z = p[2]
-            o = opac[i]
-            if not (z > near and z < far and o >= ALPHA_MIN_):
-                return
-            rz = 1.0 / z
-            tx = z * wp.clamp(p[0] * rz, -lim[0], lim[1])
-            ty = z * wp.clamp(p[1] * rz, -lim[2], lim[3])
-            r0 = wp.vec3(R[0, 0], R[0, 1], R[0, 2])
-            r1 = wp.vec3(R[1, 0], R[1, 1], R[1, 2])
-            r2 = wp.vec3(R[2, 0], R[2, 1], R[2, 2])
-            m0 = (fx * rz) * r0 + (-fx * tx * rz * rz) * r2  # rows of J R, the world -> screen Jacobian
-            m1 = (fy * rz) * r1 + (-fy * ty * rz * rz) * r2
-            S = cov[i]
-            s0 = S * m0
-            s1 = S * m1
-            a = wp.dot(m0, s0) + eps2d
-            b = 0.5 * (wp.dot(m1, s0) + wp.dot(m0, s1))  # a non-symmetric Σ acts as its symmetric part
-            c = wp.dot(m1, s1) + eps2d
-            det = a * c - b * b
-            u = fx * p[0] * rz + cx
-            v = fy * p[1] * rz + cy
-            if not (det > 0.0 and wp.isfinite(det) and wp.isfinite(a) and wp.isfinite(c) and wp.isfinite(u)
-                    and wp.isfinite(v)):
-                return
-            extent = wp.min(wp.sqrt(2.0 * wp.log(wp.max(o, ALPHA_MIN_) / ALPHA_MIN_)), MAX_EXTENT_)
-            rx = extent * wp.sqrt(wp.max(a, 0.0))
-            ry = extent * wp.sqrt(wp.max(c, 0.0))
-            lu = wp.max(wp.ceil(wp.clamp(u - rx - 0.5 - 1.0e-3, -big, big)), 0.0)
-            hu = wp.min(wp.floor(wp.clamp(u + rx - 0.5 + 1.0e-3, -big, big)), float(W - 1))
-            lv = wp.max(wp.ceil(wp.clamp(v - ry - 0.5 - 1.0e-3, -big, big)), 0.0)
-            hv = wp.min(wp.floor(wp.clamp(v + ry - 0.5 + 1.0e-3, -big, big)), float(H - 1))
-            if lu > hu or lv > hv:
-                return
-            key[i] = z
-            uv[i] = wp.vec2(u, v)
-            inv = 1.0 / det
-            conic[i] = wp.vec3(c * inv, -b * inv, a * inv)
-            logo[i] = wp.log(o)
-            lo[i] = wp.vec2i(int(lu), int(lv))
-            hi[i] = wp.vec2i(int(hu), int(hv))
-
-        _built = (wp, count, fill, composite, project)
-        return _built
+    return (wp, count, fill, composite, project)
 
 
 
@@ -475,6 +499,34 @@ def composite_warp(proj: Projected, features: torch.Tensor, width: int, height: 
     return img.view(height, width, C + 1)
 
 
+def projection_outputs(n: int) -> tuple[torch.Tensor, ...]:
+    """The buffers a projection kernel (``project`` here, ``_warp_grad``'s ``project_fwd``) fills for n splats: key
+    (n,), uv (n, 2), conic (n, 3), log-opacity (n,) float32 and the pixel box lo, hi (n, 2) int32 (only the drawn
+    splats' entries are written, beyond the key)."""
+    f32, i32 = torch.float32, torch.int32
+    return (torch.empty(n, dtype=f32), torch.empty(n, 2, dtype=f32), torch.empty(n, 3, dtype=f32),
+            torch.empty(n, dtype=f32), torch.empty(n, 2, dtype=i32), torch.empty(n, 2, dtype=i32))
+
+
+def screen_bounds(wp, fx: float, fy: float, cx: float, cy: float, width: int, height: int):
+    """The projection kernels' ``lim`` (the bounds (-x, +x, -y, +y) of the Jacobian's x/z, y/z: 30 % of the
+    half-frame beyond each edge, as ``project_gaussians``) and ``big`` (the clamp of pixel-box coordinates)."""
+    tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
+    lim = wp.vec4(cx / fx + 0.3 * tan_x, (width - cx) / fx + 0.3 * tan_x,
+                  cy / fy + 0.3 * tan_y, (height - cy) / fy + 0.3 * tan_y)
+    return lim, float(max(width, height) * 4 + 16)
+
+
+def drawn(key: torch.Tensor, uv: torch.Tensor, conic: torch.Tensor, logo: torch.Tensor, lo: torch.Tensor,
+          hi: torch.Tensor) -> Projected:
+    """The drawn splats (finite key) of a projection kernel's outputs, front to back (a stable sort by key)."""
+    ok = (key < math.inf).nonzero().squeeze(1)
+    order = ok.index_select(0, torch.argsort(key.index_select(0, ok), stable=True))
+    return Projected(index=order, uv=uv.index_select(0, order), conic=conic.index_select(0, order),
+                     log_opacity=logo.index_select(0, order), pix_lo=lo.index_select(0, order).long(),
+                     pix_hi=hi.index_select(0, order).long())
+
+
 def project_warp(means: torch.Tensor, cov3d: torch.Tensor, opacities: torch.Tensor, w2c: torch.Tensor, fx: float,
                  fy: float, cx: float, cy: float, width: int, height: int, near: float, far: float,
                  eps2d: float) -> tuple[Projected, torch.Tensor]:
@@ -495,20 +547,13 @@ def project_warp(means: torch.Tensor, cov3d: torch.Tensor, opacities: torch.Tens
             return a
 
         mc = torch.empty(N, 3, dtype=f32)
-        key = torch.empty(N, dtype=f32)
-        uv = torch.empty(N, 2, dtype=f32)
-        conic = torch.empty(N, 3, dtype=f32)
-        logo = torch.empty(N, dtype=f32)
-        lo = torch.empty(N, 2, dtype=torch.int32)
-        hi = torch.empty(N, 2, dtype=torch.int32)
+        outs = projection_outputs(N)
+        key, uv, conic, logo, lo, hi = outs
         if N:
             w = w2c.detach().to(f32)
             R = wp.mat33(*[float(v) for v in w[:3, :3].reshape(-1).tolist()])
             t = wp.vec3(*[float(v) for v in w[:3, 3].tolist()])
-            tan_x, tan_y = 0.5 * width / fx, 0.5 * height / fy
-            lim = wp.vec4(cx / fx + 0.3 * tan_x, (width - cx) / fx + 0.3 * tan_x,
-                          cy / fy + 0.3 * tan_y, (height - cy) / fy + 0.3 * tan_y)
-            big = float(max(width, height) * 4 + 16)
+            lim, big = screen_bounds(wp, fx, fy, cx, cy, width, height)
             wp.launch(project, dim=N, device="cpu",
                       inputs=[view(means, wp.vec3), view(cov3d.detach().to(f32), wp.mat33),
                               view(opacities.detach().to(f32).reshape(-1), float), R, t, float(fx), float(fy),
@@ -516,11 +561,7 @@ def project_warp(means: torch.Tensor, cov3d: torch.Tensor, opacities: torch.Tens
                               lim, big, view(mc, wp.vec3), view(key, float), view(uv, wp.vec2), view(conic, wp.vec3),
                               view(logo, float), view(lo, wp.vec2i), view(hi, wp.vec2i)])
             wp.synchronize_device("cpu")
-        ok = (key < math.inf).nonzero().squeeze(1)
-        order = ok.index_select(0, torch.argsort(key.index_select(0, ok), stable=True))  # front to back
-        proj = Projected(index=order, uv=uv.index_select(0, order), conic=conic.index_select(0, order),
-                         log_opacity=logo.index_select(0, order), pix_lo=lo.index_select(0, order).long(),
-                         pix_hi=hi.index_select(0, order).long())
+        proj = drawn(*outs)
     return proj, mc
 
 

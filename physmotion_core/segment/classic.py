@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import math
+from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Optional, Sequence
 
@@ -607,8 +608,14 @@ def _click_prompted(img: np.ndarray, pts: np.ndarray, labels: np.ndarray, iters:
 
     fg_pts = pts[labels == 1]
     search = min(CLICK_SEARCH_MAX_SIDE, GRABCUT_MAX_SIDE if max_side is None else int(max_side))
-    whole = grabcut(img, points=pts, point_labels=labels, iters=iters, max_side=search, _click="whole")
-    grown = _grown_click(img, pts, labels, iters, search)
+    # The two candidates are independent: the whole-image pass runs on a second thread while this one
+    # grows the box (OpenCV releases the GIL inside grabCut and its RNG is per thread, and each pass
+    # seeds it, so the masks are the same as one after the other).
+    with ThreadPoolExecutor(1, thread_name_prefix="physmotion-click") as pool:
+        pending = pool.submit(grabcut, img, points=pts, point_labels=labels, iters=iters, max_side=search,
+                              _click="whole")
+        grown = _grown_click(img, pts, labels, iters, search)
+        whole = pending.result()
     best, best_key = whole, None
     for k, cand in enumerate((whole, grown)):
         if not cand.any():

@@ -76,31 +76,101 @@ TINY = wp.constant(1.0e-12)  # norms below this are zero (no direction to projec
 # ----------------------------------------------------------------------------------------------
 
 
+# The tracked rotation of the corotated models (track_rotation): the corrections a substep accepts after one
+# step, and the accuracy and the cap of the full iteration a poor warm start falls back to.
+ROT_ONE_STEP = wp.constant(1.0e-3)  # rad: a correction this small leaves ~strain x it, far below float32's stress noise
+ROT_CONVERGED = wp.constant(1.0e-6)  # rad: the full iteration stops at a correction this small
+ROT_MAX_ITERATIONS = wp.constant(40)
+
+
+@wp.func
+def svd(F: wp.mat33):
+    U = wp.mat33()
+    sig = wp.vec3()
+    V = wp.mat33()
+    wp.svd3(F, U, sig, V)
+    return U, sig, V
+
+
+@wp.func
+def nearest_rotation(F: wp.mat33) -> wp.mat33:
+    """The rotation nearest F (its polar factor; for an inverted F, the proper rotation with the axis of the
+    smallest singular value flipped). Only for the rare crushed particle: it costs an SVD."""
+    U, sig, V = svd(F)
+    R = U * wp.transpose(V)
+    if wp.determinant(R) < 0.0:
+        R = U * wp.diag(wp.vec3(1.0, 1.0, -1.0)) * wp.transpose(V)
+    return R
+
+
+@wp.func
+def rotation_torque(q: wp.quat, A: wp.mat33):
+    """Σ rᵢ×aᵢ and Σ rᵢ·aᵢ over the columns of R(q) and A: the axial vector of the skew part of Rᵀ A
+    (in world axes; zero at the rotation part of A) and its trace."""
+    R = wp.quat_to_matrix(q)
+    r0 = wp.vec3(R[0, 0], R[1, 0], R[2, 0])
+    r1 = wp.vec3(R[0, 1], R[1, 1], R[2, 1])
+    r2 = wp.vec3(R[0, 2], R[1, 2], R[2, 2])
+    a0 = wp.vec3(A[0, 0], A[1, 0], A[2, 0])
+    a1 = wp.vec3(A[0, 1], A[1, 1], A[2, 1])
+    a2 = wp.vec3(A[0, 2], A[1, 2], A[2, 2])
+    return wp.cross(r0, a0) + wp.cross(r1, a1) + wp.cross(r2, a2), wp.dot(r0, a0) + wp.dot(r1, a1) + wp.dot(r2, a2)
+
+
+@wp.func
+def turn_small(q: wp.quat, omega: wp.vec3) -> wp.quat:
+    """q turned by the small rotation vector omega, without trigonometry: the unit quaternion along
+    (ω/2, 1) turns by 2 atan(|ω|/2) = |ω| (1 − |ω|²/12 + ...) about ω, exact to third order."""
+    return wp.normalize(wp.quat(0.5 * omega[0], 0.5 * omega[1], 0.5 * omega[2], 1.0) * q)
+
+
 @wp.func
 def extract_rotation(A: wp.mat33, q0: wp.quat) -> wp.quat:
-    """Rotation part of A (the R maximising tr(RᵀA) over SO(3)), warm-started from q0.
+    """Rotation part of A (the R maximising tr(RᵀA) over SO(3)), iterated to convergence from q0.
 
     Müller et al. 2016, "A Robust Method to Extract the Rotational Part of Deformations": each
-    iteration rotates the estimate about ω = Σ rᵢ×aᵢ / |Σ rᵢ·aᵢ|. F changes little per substep, so
-    two iterations from the previous substep's rotation track it; this is ~3x cheaper than a 3x3
-    SVD on CPU and, unlike the SVD's sign conventions, never flips between substeps. It converges
-    to the same R as the signed polar decomposition R = U Vᵀ (U, V proper rotations).
+    iteration rotates the estimate about ω = Σ rᵢ×aᵢ / |Σ rᵢ·aᵢ|. About the rotation part R* of
+    A = R* S, an error about principal axis k of S shrinks by σ_k / tr S per iteration (a third for
+    S near I): slow but safe from any start, so it is the fallback of ``track_rotation`` (a cold or
+    poor warm start). It converges to the signed polar factor R = U Vᵀ (U, V proper rotations),
+    slowly from a start near half a turn away (the torque vanishes there too): if ROT_MAX_ITERATIONS
+    do not converge (about one cold start in 4000 at random), the SVD gives the rotation.
     """
     q = q0
-    for it in range(2):
-        R = wp.quat_to_matrix(q)
-        r0 = wp.vec3(R[0, 0], R[1, 0], R[2, 0])
-        r1 = wp.vec3(R[0, 1], R[1, 1], R[2, 1])
-        r2 = wp.vec3(R[0, 2], R[1, 2], R[2, 2])
-        a0 = wp.vec3(A[0, 0], A[1, 0], A[2, 0])
-        a1 = wp.vec3(A[0, 1], A[1, 1], A[2, 1])
-        a2 = wp.vec3(A[0, 2], A[1, 2], A[2, 2])
-        denom = wp.abs(wp.dot(r0, a0) + wp.dot(r1, a1) + wp.dot(r2, a2)) + 1.0e-9
-        omega = (wp.cross(r0, a0) + wp.cross(r1, a1) + wp.cross(r2, a2)) * (1.0 / denom)
+    converged = bool(False)
+    for it in range(ROT_MAX_ITERATIONS):
+        torque, tr = rotation_torque(q, A)
+        omega = torque * (1.0 / (wp.abs(tr) + 1.0e-9))
         w = wp.length(omega)
         if w > 1.0e-9:
             q = wp.normalize(wp.quat_from_axis_angle(omega / w, w) * q)
+        if w < ROT_CONVERGED:
+            converged = True
+            break
+    if not converged:
+        q = wp.quat_from_matrix(nearest_rotation(A))
     return q
+
+
+@wp.func
+def track_rotation(A: wp.mat33, q_pred: wp.quat) -> wp.quat:
+    """Rotation part of A by one Newton step from a close estimate q_pred (the previous substep's
+    rotation turned by the particle's spin), with the full iteration as fallback.
+
+    About the rotation part R* of A = R* S (S = diag σ in its axes), the torque Σ rᵢ×aᵢ of an
+    estimate off by a small rotation e is −(σ_i + σ_j) e_k about each principal axis k (i, j the
+    other two), and Σ rᵢ·aᵢ ≈ tr S. Newton's step divides the torque by σ_i + σ_j; dividing it by
+    ⅔ tr S instead (exact for S = σ I) leaves an error of (1 − 3(σ_i + σ_j) / 2 tr S) e_k, of the
+    order of the strain times e (a strain of 5 % and a warm start 1e-3 rad off leave ~5e-5 rad),
+    and still shrinks any error (the factor lies in (−½, 1)). When the correction is larger than
+    ROT_ONE_STEP (the first substep, a hit that turned the particle against its spin) the estimate
+    was poor and ``extract_rotation`` iterates to convergence from it.
+    """
+    torque, tr = rotation_torque(q_pred, A)
+    omega = torque * (1.5 / (wp.abs(tr) + 1.0e-9))
+    if wp.dot(omega, omega) > ROT_ONE_STEP * ROT_ONE_STEP:
+        return extract_rotation(A, q_pred)
+    return turn_small(q_pred, omega)
 
 
 @wp.func
@@ -119,7 +189,7 @@ def corotated_stress(F: wp.mat33, R: wp.mat33, mu: float, lam: float) -> wp.mat3
 
 
 @wp.func
-def barrier_corotated_stress(F: wp.mat33, R: wp.mat33, mu: float, lam: float) -> wp.mat33:
+def barrier_corotated_stress(F: wp.mat33, R: wp.mat33, J: float, mu: float, lam: float) -> wp.mat33:
     """Fixed-corotated stress with a volumetric term that resists collapse (MODEL_FIXED_COROTATED).
 
     The plain energy μ Σ(σᵢ − 1)² + λ/2 (J − 1)² stays finite as J → 0 and its Kirchhoff stress
@@ -128,9 +198,8 @@ def barrier_corotated_stress(F: wp.mat33, R: wp.mat33, mu: float, lam: float) ->
     λ/2 (log J)², whose Kirchhoff pressure λ log J grows without bound as J → 0 (it matches the
     former term to second order at J = 1: same small-strain stiffness, C² join). Below J = 0.05
     the pressure stops growing (as for neo-Hookean) so the step stays bounded; an inverted F
-    (J ≤ 0) gets that full pressure and is pushed back.
+    (J ≤ 0) gets that full pressure and is pushed back. ``J`` is det F (the caller has it).
     """
-    J = wp.determinant(F)
     T = 2.0 * mu * (F - R) * wp.transpose(F)
     p = lam * (J - 1.0) * J
     if J < 1.0:
@@ -205,15 +274,6 @@ def wave_speed_sq(mu: float, lam: float, density: float, J: float) -> float:
     return (lam + 2.0 * mu) / density * wp.max(1.0, 1.0 / wp.max(J, MIN_J))
 
 
-@wp.func
-def svd(F: wp.mat33):
-    U = wp.mat33()
-    sig = wp.vec3()
-    V = wp.mat33()
-    wp.svd3(F, U, sig, V)
-    return U, sig, V
-
-
 # ----------------------------------------------------------------------------------------------
 # Elastic models
 # ----------------------------------------------------------------------------------------------
@@ -226,11 +286,7 @@ def barrier_corotated(mat: MaterialParams, F: wp.mat33, Cp: wp.mat33, q_in: wp.q
     """Fixed-corotated elasticity with the volumetric barrier (jelly). The rotation of F is tracked
     (``rot``): predicted with this substep's spin (the skew part of C), then refined."""
     spin = wp.vec3(Cp[2, 1] - Cp[1, 2], Cp[0, 2] - Cp[2, 0], Cp[1, 0] - Cp[0, 1]) * (0.5 * dt)
-    turn = wp.length(spin)
-    q_pred = q_in
-    if turn > TINY:
-        q_pred = wp.normalize(wp.quat_from_axis_angle(spin / turn, turn) * q_in)
-    q = extract_rotation(F, q_pred)
+    q = track_rotation(F, turn_small(q_in, spin))
     rot[p] = q
     R = wp.quat_to_matrix(q)
     J = wp.determinant(F)
@@ -242,25 +298,17 @@ def barrier_corotated(mat: MaterialParams, F: wp.mat33, Cp: wp.mat33, q_in: wp.q
         # and the barrier's pressure pushes it back out (docs/materials.md).
         Fe = wp.pow(MIN_J, 1.0 / 3.0) * R
         Fout[p] = Fe
-        tau[p] = barrier_corotated_stress(Fe, R, mat.mu, mat.lam)
+        tau[p] = barrier_corotated_stress(Fe, R, wp.determinant(Fe), mat.mu, mat.lam)
         return wave_speed_sq(mat.mu, mat.lam, mat.density, MIN_J) * wp.max(1.0, 1.0 / MIN_J)
     # Two returns rather than a clamped J: with J clamped by a branch, the CPU compiler folds the
     # NaN of a corrupted F into the wave speed, where the single-function form never did (a NaN F
     # must be reported the substep its velocities turn NaN, tests/test_sim.py).
     Fout[p] = F
-    tau[p] = barrier_corotated_stress(F, R, mat.mu, mat.lam)
-    return wave_speed_sq(mat.mu, mat.lam, mat.density, J) * wp.max(1.0, 1.0 / J)
-
-
-@wp.func
-def nearest_rotation(F: wp.mat33) -> wp.mat33:
-    """The rotation nearest F (its polar factor; for an inverted F, the proper rotation with the axis of the
-    smallest singular value flipped). Only for the rare crushed particle: it costs an SVD."""
-    U, sig, V = svd(F)
-    R = U * wp.transpose(V)
-    if wp.determinant(R) < 0.0:
-        R = U * wp.diag(wp.vec3(1.0, 1.0, -1.0)) * wp.transpose(V)
-    return R
+    tau[p] = barrier_corotated_stress(F, R, J, mat.mu, mat.lam)
+    # wave_speed_sq(..., J) * max(1, 1/J) with J ≥ MIN_J here: one division for both factors (and a NaN J
+    # still gives a NaN wave speed: max(1, NaN) is NaN).
+    stiff = wp.max(1.0, 1.0 / J)
+    return (mat.lam + 2.0 * mat.mu) / mat.density * stiff * stiff
 
 
 @wp.func

@@ -42,6 +42,7 @@ from __future__ import annotations
 import warp as wp
 
 from .constitutive import MaterialParams, update_material  # noqa: F401 - the material table and its rules
+from .constitutive import MODEL_FIXED_COROTATED, barrier_corotated
 
 # The simulation is never differentiated: no adjoint code (halves the CUDA build; the forward code
 # and its results are unchanged).
@@ -473,12 +474,22 @@ def update_node_fields(
     dt: float,
     layer_box: wp.array2d(dtype=int),
     layer_lo: wp.vec3i,
+    field_inv_rho: wp.array(dtype=float),
 ):
     """update_node for several velocity fields (one per object; no anchors): each field's mass,
     momentum and mass gradient summed over the layers; each field's free velocity; where two or more
-    fields have mass, contact between them (field_contact, normals from the mass gradients); then
-    the walls, per field. Pass 1 leaves each field's sums in layer 0's slot, pass 2 reads and clears
-    them (only this thread touches this node's slots)."""
+    fields have mass and their material fills the node, contact between them (field_contact, normals
+    from the mass gradients); then the walls, per field. Pass 1 leaves each field's sums in layer 0's
+    slot, pass 2 reads and clears them (only this thread touches this node's slots).
+
+    The fill check (a volume gap check): a field's nodal mass over its rest density,
+    m_f / ρ_f (``field_inv_rho``), is the volume of its material that the node's B-spline holds,
+    dx³ for a node deep inside a body. Two bodies touch at a node when their volumes there add up to
+    the node's, Σ m_f / ρ_f ≥ dx³; with less, a gap lies between them within the node's reach, and
+    they move freely. Without the check every node that both bodies' stencils reach (two node rows
+    along an interface, more at a body's edges, where the mass-gradient normal tilts towards the
+    sliding) took part, and a block sliding over another stopped at a third of Coulomb's distance
+    (issue 37; docs/accuracy.md, "Contact between objects")."""
     layers = grid_m.shape[0] // fields
     li = i - layer_lo[0]
     lj = j - layer_lo[1]
@@ -487,6 +498,7 @@ def update_node_fields(
     P = wp.vec3(0.0, 0.0, 0.0)
     G = wp.vec3(0.0, 0.0, 0.0)
     present = int(0)
+    fill = float(0.0)
     for f in range(fields):
         m = float(0.0)
         mv = wp.vec3(0.0, 0.0, 0.0)
@@ -507,6 +519,7 @@ def update_node_fields(
         if m > 0.0:
             v = mv / m + dt * gravity
             present += 1
+            fill += m * field_inv_rho[f]
             M += m
             P += m * v
             G += g
@@ -527,7 +540,7 @@ def update_node_fields(
         if bc.has_ground != 0 and j <= bc.ground_node:
             ground_m[f, i, j, k] = m
         if m > 0.0:
-            if present > 1:
+            if present > 1 and fill >= grid.dx * grid.dx * grid.dx:
                 # The field's outward normal against the others': its own mass gradient minus theirs
                 # (with two fields the two normals are exactly opposite).
                 n = 2.0 * g - G
@@ -629,6 +642,7 @@ def grid_update(
     anchor_hi: wp.vec3i,
     fields: int,
     grid_g: wp.array4d(dtype=wp.vec3),
+    field_inv_rho: wp.array(dtype=float),
 ):
     """Node velocities from the accumulated mass and momentum (one velocity field, or one per object
     with ``fields`` > 1: update_node_fields). The accumulators have one layer per
@@ -651,7 +665,7 @@ def grid_update(
     for k in range(k0, wp.min(k0 + run, k_end)):
         if fields > 1:
             update_node_fields(i, j, k, fields, grid_m, grid_mv, grid_g, grid_v, ground_m, grid, bc, gravity, dt,
-                               layer_box, layer_lo)
+                               layer_box, layer_lo, field_inv_rho)
         else:
             update_node(i, j, k, grid_m, grid_mv, grid_v, grid_fix, grid_fix_v, ground_m, grid, bc, gravity, dt,
                         layer_box, layer_lo, anchors, anchor_lo, anchor_hi)
@@ -1045,7 +1059,13 @@ def g2p(
     Fp = ps.F[p]
     inc = dt * (new_C * Fp) + ps.F_err[p]
     Ftrial = Fp + inc
-    c2 = update_material(mat, Ftrial, new_C, ps.rot[p], ps.plastic[p], dt, p, ps.rot, ps.plastic, ps.F, ps.tau)
+    c2 = float(0.0)
+    if mat.model == MODEL_FIXED_COROTATED:
+        # The jelly directly: the small rule inlines here, where the whole dispatch (every model's SVD
+        # route) is a call that copies its array arguments.
+        c2 = barrier_corotated(mat, Ftrial, new_C, ps.rot[p], dt, p, ps.rot, ps.F, ps.tau)
+    else:
+        c2 = update_material(mat, Ftrial, new_C, ps.rot[p], ps.plastic[p], dt, p, ps.rot, ps.plastic, ps.F, ps.tau)
     ps.F_err[p] = rounding_left(Fp, inc, Ftrial, ps.F[p])
 
     # Reductions plan_step reads for the next step: max speed and stiffness (CFL), active box, NaN flag.

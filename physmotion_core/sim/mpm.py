@@ -17,6 +17,7 @@ import numpy as np
 from ..errors import InputError, SimulationError
 from ..types.conditions import Ground, ObjectContact, Walls
 from ..types.material import CONSTITUTIVE_MODELS, Material
+from . import fpmode
 from . import kernels as K
 from .materials import kernel_params
 
@@ -40,8 +41,10 @@ MAX_GRAPHS = 8  # captured launch graphs kept per solver (one per grid span and 
 # the GIL while a kernel runs). How many chunks depends only on the particle count, never on the
 # number of threads, so a run gives the same bits on any machine. The layers cover the launch's grid
 # span (plus LAYER_SLACK), not the whole domain, and are reallocated when the span outgrows them; a
-# span too large for CHUNK_GRID_BUDGET gets one layer, filled by the chunks one after another (what
-# one unsplit pass computes), while g2p stays parallel.
+# span too large for CHUNK_GRID_BUDGET with a layer per chunk gets 2, 4, 8, ... layers (layer_count),
+# each filled by a contiguous run of chunks one after another in chunk order (layer_of_chunk), so p2g
+# still runs on two or more threads, and the sums still depend only on the scene; with no room for
+# two layers, one layer, filled by all chunks in turn (what one unsplit pass computes).
 MIN_CHUNK_PARTICLES = 4096
 MAX_CPU_CHUNKS = 16
 LAYER_BYTES = 32  # per grid node and chunk: mass (4) + momentum (12) + anchored mass (4) + anchored momentum (12)
@@ -154,8 +157,35 @@ def layer_bytes(fields: int = 1) -> int:
 
 
 def layer_count(chunks: int, span_nodes: int, fields: int = 1) -> int:
-    """Accumulator layers for a span of ``span_nodes`` nodes: one per chunk within the budget, else one."""
-    return chunks if chunks > 1 and chunks * span_nodes * layer_bytes(fields) <= CHUNK_GRID_BUDGET else 1
+    """Accumulator layers for a span of ``span_nodes`` nodes: one per chunk within the budget, else the
+    most of 2, 4, 8, ... (fewer than the chunks) that fit it, else one."""
+    per_layer = span_nodes * layer_bytes(fields)
+    if chunks <= 1:
+        return 1
+    if chunks * per_layer <= CHUNK_GRID_BUDGET:
+        return chunks
+    layers = 1
+    while 2 * layers < chunks and 2 * layers * per_layer <= CHUNK_GRID_BUDGET:
+        layers *= 2
+    return layers
+
+
+def layer_of_chunk(chunk: int, chunks: int, layers: int) -> int:
+    """The accumulator layer chunk ``chunk`` scatters into: contiguous runs of chunks share a layer (their
+    particles lie near each other, so the layer's box stays small), and take turns on it in chunk order."""
+    return chunk * layers // chunks
+
+
+class _InOrder:
+    """Launches that must run one after another (the chunks sharing one accumulator layer), as one part
+    of a step that runs concurrently with the step's other parts."""
+
+    def __init__(self, cmds: list):
+        self.cmds = cmds
+
+    def launch(self) -> None:
+        for c in self.cmds:
+            c.launch()
 
 
 def cpu_threads(requested: int = 0) -> int:
@@ -287,6 +317,9 @@ class MPMSolver:
         self.threads = cpu_threads(threads) if self.device == "cpu" else 1
         self._pool: Optional[ThreadPoolExecutor] = None
         self._capturing = False
+        # The substeps compute with denormals flushed to zero on the CPU (fpmode: a scene at rest made them
+        # ~3x slower per particle).
+        self._flushed = fpmode.FlushedDenormals(self.device)
 
     def _init_fields(self, objects: np.ndarray, flags: np.ndarray) -> None:
         """One grid velocity field per object where objects meet on fields of their own (multi-field
@@ -364,6 +397,12 @@ class MPMSolver:
         self.flags = wp.array(flags, dtype=int)
         self.anchor_v = wp.zeros(n, dtype=wp.vec3)
         self.field = wp.array(self.field_np, dtype=int)
+        # Each field's rest density (its material's mass over volume), inverted: update_node_fields'
+        # fill check turns a field's nodal mass into the volume of material it stands for.
+        vol = np.asarray(volume, np.float64)
+        fmass = np.bincount(self.field_np, weights=mass.astype(np.float64), minlength=self.fields)
+        fvol = np.bincount(self.field_np, weights=vol, minlength=self.fields)
+        self.field_inv_rho = wp.array((fvol / np.maximum(fmass, 1e-30)).astype(np.float32), dtype=float)
         self.f_static = wp.zeros(n, dtype=wp.vec3)
         self.f_total = wp.zeros(n, dtype=wp.vec3)
         self.material_table = wp.array([kernel_params(m) for m in materials], dtype=K.MaterialParams)
@@ -736,7 +775,9 @@ class MPMSolver:
         if self.threads <= 1 or self._capturing:
             return False
         if self._pool is None:
-            self._pool = ThreadPoolExecutor(self.threads - 1, thread_name_prefix="physmotion-mpm")
+            self._pool = ThreadPoolExecutor(self.threads - 1, thread_name_prefix="physmotion-mpm",
+                                            initializer=fpmode.flush_denormals_in_this_thread,
+                                            initargs=(self.device,))
             weakref.finalize(self, self._pool.shutdown, wait=False)
         return True
 
@@ -795,18 +836,21 @@ class MPMSolver:
                                            self.torque_taus, self.f_static, self.f_total])
             forces = self.f_total
         chunks = list(enumerate(self._chunk_ranges))
-        layered = self.layers > 1  # else the chunks take turns on one layer
-        prog.append((K.p2g, [self._cmd(K.p2g, count, [
+        # Each layer's chunks scatter into it one after another, in chunk order; the layers fill concurrently.
+        layer_of = [layer_of_chunk(c, self.chunks, self.layers) for c in range(self.chunks)]
+        scatter = [self._cmd(K.p2g, count, [
             self.particles, forces, self.grid, self.dt_arr, self.grid_m, self.grid_mv, self.grid_fix,
-            self.grid_fix_v, self.apic, start, c if layered else 0, self.layer_box, self._layer_lo_w, self.fields,
+            self.grid_fix_v, self.apic, start, layer_of[c], self.layer_box, self._layer_lo_w, self.fields,
             self.grid_g, self._contact_row()])
-            for c, (start, count) in chunks], layered))
+            for c, (start, count) in chunks]
+        prog.append((K.p2g, [_InOrder([cmd for c, cmd in enumerate(scatter) if layer_of[c] == layer])
+                             for layer in range(self.layers)], self.layers > 1))
         slabs = self._grid_slabs(span_lo, dims)
         k_end = int(span_hi[2]) + 1
         prog.append((K.grid_update, [self._cmd(K.grid_update, slab_dims, [
             self.grid_m, self.grid_mv, self.grid_v, self.grid_fix, self.grid_fix_v, self.ground_m, slab_lo, self.grid,
             self.bc, self._gravity_w, self.dt_arr, self.layer_box, self._layer_lo_w, run, k_end, int(anchors), alo, ahi,
-            self.fields, self.grid_g])
+            self.fields, self.grid_g, self.field_inv_rho])
             for slab_dims, slab_lo, run in slabs], True))
         if self.ground is not None and span_lo[1] <= self.domain.ground_node:
             step(K.ground_contact, (dims[0], dims[2]), [self.grid_v, self.ground_m, self.grid_mv, lo, self.bc,
@@ -926,7 +970,7 @@ class MPMSolver:
         wp = self.wp
         self.cond.fill_(1)
         self.launches += 1
-        with wp.ScopedDevice(self.device):
+        with wp.ScopedDevice(self.device), self._flushed:
             if eager or not self.use_graph or self.kernel_times is not None:
                 wp.capture_while(self.cond, self._substep_kernels, span_lo=span[0], span_hi=span[1],
                                  torques=self._torques_on)
@@ -1026,7 +1070,7 @@ class MPMSolver:
         self._status[K.I_LAUNCH_SUBSTEPS] = 0
         self._status[K.I_CHUNK] = 1
         self._push()
-        with self.wp.ScopedDevice(self.device):
+        with self.wp.ScopedDevice(self.device), self._flushed:
             self._substep_kernels(self._span[0], self._span[1], self._torques_on)
         self._pull()
         self._ctl[K.C_FORCE_DT] = 0.0

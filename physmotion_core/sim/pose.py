@@ -20,91 +20,80 @@ splits the Gaussians between that many threads (Warp releases the GIL while a CP
 
 # No "from __future__ import annotations": Warp reads the kernel's annotations, which name the local `wp`.
 
-import threading
 from concurrent.futures import ThreadPoolExecutor
 
 import numpy as np
 import torch
 
-_lock = threading.Lock()
-_built = None
+from ..warp_build import built_once
 
 
-def _build():
-    global _built
-    with _lock:
-        if _built is not None:
-            return _built
-        import warp as wp
+@built_once
+def _build(wp):
+    @wp.func
+    def weight(x: wp.array(dtype=wp.vec3), nb: wp.array2d(dtype=int), w: wp.array2d(dtype=float),
+               rest_d: wp.array2d(dtype=float), spacing: float, crack: int, xo: wp.vec3, n: int, k: int):
+        # Neighbour k's weight before normalising: 0 once torn away from the Gaussian's own particle
+        # (NaN counts as torn); the own particle's never below 1e-6.
+        wk = w[n, k]
+        if crack != 0:
+            d = wp.length(x[nb[n, k]] - xo)
+            if not (d <= 2.0 * rest_d[n, k] + spacing):
+                wk = 0.0
+        if k == 0:
+            wk = wp.max(wk, 1.0e-6)
+        return wk
 
-        wp.config.quiet = True
-        wp.init()
+    @wp.kernel(enable_backward=False)
+    def pose(x: wp.array(dtype=wp.vec3), X: wp.array(dtype=wp.vec3), F: wp.array(dtype=wp.mat33),
+             nb: wp.array2d(dtype=int), w: wp.array2d(dtype=float), rest_d: wp.array2d(dtype=float),
+             spacing: float, crack: int, centre: wp.vec3d, Xg: wp.array(dtype=wp.vec3),
+             cov: wp.array(dtype=wp.mat33), offset: int,
+             means: wp.array(dtype=wp.vec3), covars: wp.array(dtype=wp.mat33)):
+        n = wp.tid() + offset
+        K = nb.shape[1]
+        xo = x[nb[n, 0]]
+        # One pass over the neighbours (each weight, with its tearing test, computed once), normalised at the end.
+        total = float(0.0)
+        Fg = wp.mat33(0.0)
+        m = wp.vec3d(0.0, 0.0, 0.0)
+        for k in range(K):
+            wk = weight(x, nb, w, rest_d, spacing, crack, xo, n, k)
+            p = nb[n, k]
+            Fp = F[p]
+            total += wk
+            Fg += wk * Fp
+            b = wp.vec3d(x[p]) - wp.mat33d(Fp) * (wp.vec3d(X[p]) - centre)
+            m += wp.float64(wk) * b
+        Fg = Fg * (1.0 / total)
+        m = m / wp.float64(total)
+        means[n] = wp.vec3(m + wp.mat33d(Fg) * (wp.vec3d(Xg[n]) - centre))
+        covars[n] = Fg * cov[n] * wp.transpose(Fg)
 
-        @wp.func
-        def weight(x: wp.array(dtype=wp.vec3), nb: wp.array2d(dtype=int), w: wp.array2d(dtype=float),
-                   rest_d: wp.array2d(dtype=float), spacing: float, crack: int, xo: wp.vec3, n: int, k: int):
-            # Neighbour k's weight before normalising: 0 once torn away from the Gaussian's own particle
-            # (NaN counts as torn); the own particle's never below 1e-6.
-            wk = w[n, k]
-            if crack != 0:
-                d = wp.length(x[nb[n, k]] - xo)
-                if not (d <= 2.0 * rest_d[n, k] + spacing):
-                    wk = 0.0
-            if k == 0:
-                wk = wp.max(wk, 1.0e-6)
-            return wk
+    @wp.kernel(enable_backward=False)
+    def clamp_stretch(F: wp.array(dtype=wp.mat33d), limit: wp.float64, rotation_free: wp.array(dtype=wp.uint8),
+                      out: wp.array(dtype=wp.mat33d)):
+        # F = U S Vᵀ with S clamped to [1/limit, limit]; where rotation_free, V S Vᵀ. Warp's svd3 keeps U and V
+        # rotations and puts an inversion's sign on the last singular value (the smallest in magnitude): that
+        # sign moves into U's last column, so S is non-negative as in the usual SVD. The products are unique
+        # (equal singular values clamp to equal values), so they equal those of any other SVD of F.
+        i = wp.tid()
+        U = wp.mat33d()
+        S = wp.vec3d()
+        V = wp.mat33d()
+        wp.svd3(F[i], U, S, V)
+        lo = wp.float64(1.0) / limit
+        s = wp.vec3d(wp.clamp(wp.abs(S[0]), lo, limit), wp.clamp(wp.abs(S[1]), lo, limit),
+                     wp.clamp(wp.abs(S[2]), lo, limit))
+        if rotation_free[i] != wp.uint8(0):
+            out[i] = V * wp.diag(s) * wp.transpose(V)
+        else:
+            one = wp.float64(1.0)
+            sg = wp.vec3d(wp.where(S[0] < wp.float64(0.0), -one, one), wp.where(S[1] < wp.float64(0.0), -one, one),
+                          wp.where(S[2] < wp.float64(0.0), -one, one))
+            out[i] = U * wp.diag(wp.cw_mul(sg, s)) * wp.transpose(V)
 
-        @wp.kernel(enable_backward=False)
-        def pose(x: wp.array(dtype=wp.vec3), X: wp.array(dtype=wp.vec3), F: wp.array(dtype=wp.mat33),
-                 nb: wp.array2d(dtype=int), w: wp.array2d(dtype=float), rest_d: wp.array2d(dtype=float),
-                 spacing: float, crack: int, centre: wp.vec3d, Xg: wp.array(dtype=wp.vec3),
-                 cov: wp.array(dtype=wp.mat33), offset: int,
-                 means: wp.array(dtype=wp.vec3), covars: wp.array(dtype=wp.mat33)):
-            n = wp.tid() + offset
-            K = nb.shape[1]
-            xo = x[nb[n, 0]]
-            # One pass over the neighbours (each weight, with its tearing test, computed once), normalised at the end.
-            total = float(0.0)
-            Fg = wp.mat33(0.0)
-            m = wp.vec3d(0.0, 0.0, 0.0)
-            for k in range(K):
-                wk = weight(x, nb, w, rest_d, spacing, crack, xo, n, k)
-                p = nb[n, k]
-                Fp = F[p]
-                total += wk
-                Fg += wk * Fp
-                b = wp.vec3d(x[p]) - wp.mat33d(Fp) * (wp.vec3d(X[p]) - centre)
-                m += wp.float64(wk) * b
-            Fg = Fg * (1.0 / total)
-            m = m / wp.float64(total)
-            means[n] = wp.vec3(m + wp.mat33d(Fg) * (wp.vec3d(Xg[n]) - centre))
-            covars[n] = Fg * cov[n] * wp.transpose(Fg)
-
-        @wp.kernel(enable_backward=False)
-        def clamp_stretch(F: wp.array(dtype=wp.mat33d), limit: wp.float64, rotation_free: wp.array(dtype=wp.uint8),
-                          out: wp.array(dtype=wp.mat33d)):
-            # F = U S Vᵀ with S clamped to [1/limit, limit]; where rotation_free, V S Vᵀ. Warp's svd3 keeps U and V
-            # rotations and puts an inversion's sign on the last singular value (the smallest in magnitude): that
-            # sign moves into U's last column, so S is non-negative as in the usual SVD. The products are unique
-            # (equal singular values clamp to equal values), so they equal those of any other SVD of F.
-            i = wp.tid()
-            U = wp.mat33d()
-            S = wp.vec3d()
-            V = wp.mat33d()
-            wp.svd3(F[i], U, S, V)
-            lo = wp.float64(1.0) / limit
-            s = wp.vec3d(wp.clamp(wp.abs(S[0]), lo, limit), wp.clamp(wp.abs(S[1]), lo, limit),
-                         wp.clamp(wp.abs(S[2]), lo, limit))
-            if rotation_free[i] != wp.uint8(0):
-                out[i] = V * wp.diag(s) * wp.transpose(V)
-            else:
-                one = wp.float64(1.0)
-                sg = wp.vec3d(wp.where(S[0] < wp.float64(0.0), -one, one), wp.where(S[1] < wp.float64(0.0), -one, one),
-                              wp.where(S[2] < wp.float64(0.0), -one, one))
-                out[i] = U * wp.diag(wp.cw_mul(sg, s)) * wp.transpose(V)
-
-        _built = (wp, pose, clamp_stretch)
-        return _built
+    return (wp, pose, clamp_stretch)
 
 
 def clamp_stretch(F: torch.Tensor, limit: float, rotation_free: torch.Tensor) -> torch.Tensor:
