@@ -21,13 +21,10 @@ arithmetic that the compiler optimises as a whole; the same loop in Warp's kerne
 
 # No "from __future__ import annotations": Warp reads the kernels' annotations, which name the local `wp`.
 
-import threading
-
 import numpy as np
 import torch
 
-_lock = threading.Lock()
-_built = None
+from ..warp_build import built_once
 
 #: ``stretch``'s loop over one row of the box (C++).
 _STRETCH_ROW = r"""
@@ -140,93 +137,85 @@ return 0;
 
 
 
-def _build():
-    global _built
-    with _lock:
-        if _built is not None:
-            return _built
-        import warp as wp
+@built_once
+def _build(wp):
+    f64 = wp.float64
 
-        wp.config.quiet = True
-        wp.init()
-        f64 = wp.float64
-
-        @wp.kernel(enable_backward=False)
-        def coords(ext: wp.array(dtype=float), C: int, depth: wp.array(dtype=float), W: int, x0: int, y0: int,
-                   bw: int, one: int, A: wp.mat33d, b: wp.vec3d, rfx: f64, rfy: f64, rcx: f64, rcy: f64,
-                   pfx: f64, pfy: f64, pcx: f64, pcy: f64, u_out: wp.array(dtype=f64),
-                   v_out: wp.array(dtype=f64), ok: wp.array(dtype=wp.uint8)):
-            # One pixel of the box: its photo coordinate (pixel units, centres at +0.5) and whether it has one
-            # (seen splats reach it, and under the one map its surface point lies in front of the photo's camera).
-            i = wp.tid()
-            x = x0 + i % bw
-            y = y0 + i / bw
-            p = y * W + x
-            S = ext[p * C + C - 1]
-            u = f64(0.0)
-            v = f64(0.0)
-            good = S > 1.0e-6
-            rx = (f64(x) + f64(0.5) - rcx) / rfx
-            ry = (f64(y) + f64(0.5) - rcy) / rfy
-            if good:
-                if one != 0:
-                    d = f64(depth[p])
-                    X = A[0, 0] * rx + A[0, 1] * ry + A[0, 2]
-                    Y = A[1, 0] * rx + A[1, 1] * ry + A[1, 2]
-                    Z = A[2, 0] * rx + A[2, 1] * ry + A[2, 2]
-                    X = d * X + b[0]
-                    Y = d * Y + b[1]
-                    Z = d * Z + b[2]
-                    if Z > f64(1.0e-9):
-                        u = pfx * X / Z + pcx
-                        v = pfy * Y / Z + pcy
-                    else:
-                        good = False
+    @wp.kernel(enable_backward=False)
+    def coords(ext: wp.array(dtype=float), C: int, depth: wp.array(dtype=float), W: int, x0: int, y0: int,
+               bw: int, one: int, A: wp.mat33d, b: wp.vec3d, rfx: f64, rfy: f64, rcx: f64, rcy: f64,
+               pfx: f64, pfy: f64, pcx: f64, pcy: f64, u_out: wp.array(dtype=f64),
+               v_out: wp.array(dtype=f64), ok: wp.array(dtype=wp.uint8)):
+        # One pixel of the box: its photo coordinate (pixel units, centres at +0.5) and whether it has one
+        # (seen splats reach it, and under the one map its surface point lies in front of the photo's camera).
+        i = wp.tid()
+        x = x0 + i % bw
+        y = y0 + i / bw
+        p = y * W + x
+        S = ext[p * C + C - 1]
+        u = f64(0.0)
+        v = f64(0.0)
+        good = S > 1.0e-6
+        rx = (f64(x) + f64(0.5) - rcx) / rfx
+        ry = (f64(y) + f64(0.5) - rcy) / rfy
+        if good:
+            if one != 0:
+                d = f64(depth[p])
+                X = A[0, 0] * rx + A[0, 1] * ry + A[0, 2]
+                Y = A[1, 0] * rx + A[1, 1] * ry + A[1, 2]
+                Z = A[2, 0] * rx + A[2, 1] * ry + A[2, 2]
+                X = d * X + b[0]
+                Y = d * Y + b[1]
+                Z = d * Z + b[2]
+                if Z > f64(1.0e-9):
+                    u = pfx * X / Z + pcx
+                    v = pfy * Y / Z + pcy
                 else:
-                    s = f64(S)
-                    u = pfx * rx + pcx + f64(ext[p * C]) / s
-                    v = pfy * ry + pcy + f64(ext[p * C + 1]) / s
-            u_out[i] = u
-            v_out[i] = v
-            if good:
-                ok[i] = wp.uint8(1)
+                    good = False
             else:
-                ok[i] = wp.uint8(0)
+                s = f64(S)
+                u = pfx * rx + pcx + f64(ext[p * C]) / s
+                v = pfy * ry + pcy + f64(ext[p * C + 1]) / s
+        u_out[i] = u
+        v_out[i] = v
+        if good:
+            ok[i] = wp.uint8(1)
+        else:
+            ok[i] = wp.uint8(0)
 
-        @wp.func_native(_STRETCH_ROW)
-        def stretch_row(u: wp.array(dtype=f64), v: wp.array(dtype=f64), ok: wp.array(dtype=wp.uint8), bw: int,
-                        bh: int, by: int, st0: f64, st1: f64, fade: wp.array(dtype=float)) -> int:
-            ...
+    @wp.func_native(_STRETCH_ROW)
+    def stretch_row(u: wp.array(dtype=f64), v: wp.array(dtype=f64), ok: wp.array(dtype=wp.uint8), bw: int,
+                    bh: int, by: int, st0: f64, st1: f64, fade: wp.array(dtype=float)) -> int:
+        ...
 
-        @wp.kernel(enable_backward=False)
-        def stretch(u: wp.array(dtype=f64), v: wp.array(dtype=f64), ok: wp.array(dtype=wp.uint8), bw: int, bh: int,
-                    st0: f64, st1: f64, fade: wp.array(dtype=float)):
-            # One row of the box: the photo's weight left by the stretch of its coordinates (``_STRETCH_ROW``).
-            stretch_row(u, v, ok, bw, bh, wp.tid(), st0, st1, fade)
+    @wp.kernel(enable_backward=False)
+    def stretch(u: wp.array(dtype=f64), v: wp.array(dtype=f64), ok: wp.array(dtype=wp.uint8), bw: int, bh: int,
+                st0: f64, st1: f64, fade: wp.array(dtype=float)):
+        # One row of the box: the photo's weight left by the stretch of its coordinates (``_STRETCH_ROW``).
+        stretch_row(u, v, ok, bw, bh, wp.tid(), st0, st1, fade)
 
-        @wp.func_native(_BLEND_ROW)
-        def blend_row(u: wp.array(dtype=f64), v: wp.array(dtype=f64), ok: wp.array(dtype=wp.uint8),
-                      ext: wp.array(dtype=float), C: int, rgb: wp.array(dtype=float), alpha: wp.array(dtype=float),
-                      dist: wp.array(dtype=float), W: int, x0: int, y0: int, bw: int, bh: int, by: int,
-                      planes: wp.array(dtype=float), PW: int, PH: int, min_cov: float, in0: float, in1: float,
-                      fade: wp.array(dtype=float), out_rgb: wp.array(dtype=float),
-                      out_a: wp.array(dtype=float)) -> int:
-            ...
-
-        @wp.kernel(enable_backward=False)
-        def blend(u: wp.array(dtype=f64), v: wp.array(dtype=f64), ok: wp.array(dtype=wp.uint8),
+    @wp.func_native(_BLEND_ROW)
+    def blend_row(u: wp.array(dtype=f64), v: wp.array(dtype=f64), ok: wp.array(dtype=wp.uint8),
                   ext: wp.array(dtype=float), C: int, rgb: wp.array(dtype=float), alpha: wp.array(dtype=float),
-                  dist: wp.array(dtype=float), W: int, x0: int, y0: int, bw: int, bh: int,
+                  dist: wp.array(dtype=float), W: int, x0: int, y0: int, bw: int, bh: int, by: int,
                   planes: wp.array(dtype=float), PW: int, PH: int, min_cov: float, in0: float, in1: float,
-                  fade: wp.array(dtype=float), out_rgb: wp.array(dtype=float), out_a: wp.array(dtype=float)):
-            # One row of the box: per pixel the photo's share (times ``fade``), the bicubic sample of (premultiplied
-            # colour, matte) and the frame's colour and coverage (``_BLEND_ROW``).
-            by = wp.tid()
-            blend_row(u, v, ok, ext, C, rgb, alpha, dist, W, x0, y0, bw, bh, by, planes, PW, PH, min_cov, in0, in1,
-                      fade, out_rgb, out_a)
+                  fade: wp.array(dtype=float), out_rgb: wp.array(dtype=float),
+                  out_a: wp.array(dtype=float)) -> int:
+        ...
 
-        _built = (wp, coords, stretch, blend)
-        return _built
+    @wp.kernel(enable_backward=False)
+    def blend(u: wp.array(dtype=f64), v: wp.array(dtype=f64), ok: wp.array(dtype=wp.uint8),
+              ext: wp.array(dtype=float), C: int, rgb: wp.array(dtype=float), alpha: wp.array(dtype=float),
+              dist: wp.array(dtype=float), W: int, x0: int, y0: int, bw: int, bh: int,
+              planes: wp.array(dtype=float), PW: int, PH: int, min_cov: float, in0: float, in1: float,
+              fade: wp.array(dtype=float), out_rgb: wp.array(dtype=float), out_a: wp.array(dtype=float)):
+        # One row of the box: per pixel the photo's share (times ``fade``), the bicubic sample of (premultiplied
+        # colour, matte) and the frame's colour and coverage (``_BLEND_ROW``).
+        by = wp.tid()
+        blend_row(u, v, ok, ext, C, rgb, alpha, dist, W, x0, y0, bw, bh, by, planes, PW, PH, min_cov, in0, in1,
+                  fade, out_rgb, out_a)
+
+    return wp, coords, stretch, blend
 
 
 def available() -> bool:
