@@ -100,37 +100,44 @@ def m_clear(gm: wp.array3d(dtype=float), gv: wp.array3d(dtype=wp.vec3)):
     gv[i, j, k] = wp.vec3(0.0)
 
 
+@wp.func
+def cell_of(x: wp.vec3, inv_dx: float):
+    """The lower corner of a particle's 3x3x3 stencil and the particle's offset from it, in cells."""
+    xp = x * inv_dx
+    base = wp.vec3i(int(xp[0] - 0.5), int(xp[1] - 0.5), int(xp[2] - 0.5))
+    return base, xp - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
+
+
+@wp.func
+def quadratic_weights(fx: wp.vec3):
+    """Quadratic B-spline weights of the stencil's three nodes along each axis."""
+    w0 = 0.5 * wp.cw_mul(wp.vec3(1.5) - fx, wp.vec3(1.5) - fx)
+    w1 = wp.vec3(0.75) - wp.cw_mul(fx - wp.vec3(1.0), fx - wp.vec3(1.0))
+    w2 = 0.5 * wp.cw_mul(fx - wp.vec3(0.5), fx - wp.vec3(0.5))
+    return w0, w1, w2
+
+
+@wp.func
+def stencil_weight(w0: wp.vec3, w1: wp.vec3, w2: wp.vec3, i: int, axis: int) -> float:
+    if i == 0:
+        return w0[axis]
+    if i == 1:
+        return w1[axis]
+    return w2[axis]
+
+
 @wp.kernel
 def m_p2g(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33),
           tau: wp.array(dtype=wp.mat33), inv_dx: float, dt: float, vol: float, mass: float,
           gm: wp.array3d(dtype=float), gv: wp.array3d(dtype=wp.vec3)):
     p = wp.tid()
-    xp = x[p] * inv_dx
-    base = wp.vec3i(int(xp[0] - 0.5), int(xp[1] - 0.5), int(xp[2] - 0.5))
-    fx = xp - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
-    w0 = 0.5 * wp.cw_mul(wp.vec3(1.5) - fx, wp.vec3(1.5) - fx)
-    w1 = wp.vec3(0.75) - wp.cw_mul(fx - wp.vec3(1.0), fx - wp.vec3(1.0))
-    w2 = 0.5 * wp.cw_mul(fx - wp.vec3(0.5), fx - wp.vec3(0.5))
+    base, fx = cell_of(x[p], inv_dx)
+    w0, w1, w2 = quadratic_weights(fx)
     affine = (-dt * vol * 4.0 * inv_dx * inv_dx) * tau[p] + mass * C[p]
     for i in range(3):
-        wi = w0[0]
-        if i == 1:
-            wi = w1[0]
-        elif i == 2:
-            wi = w2[0]
         for j in range(3):
-            wj = w0[1]
-            if j == 1:
-                wj = w1[1]
-            elif j == 2:
-                wj = w2[1]
             for k in range(3):
-                wk = w0[2]
-                if k == 1:
-                    wk = w1[2]
-                elif k == 2:
-                    wk = w2[2]
-                w = wi * wj * wk
+                w = stencil_weight(w0, w1, w2, i, 0) * stencil_weight(w0, w1, w2, j, 1) * stencil_weight(w0, w1, w2, k, 2)
                 dpos = (wp.vec3(float(i), float(j), float(k)) - fx) / inv_dx
                 wp.atomic_add(gm, base[0] + i, base[1] + j, base[2] + k, w * mass)
                 wp.atomic_add(gv, base[0] + i, base[1] + j, base[2] + k, w * (mass * v[p] + affine * dpos))
@@ -161,33 +168,14 @@ def m_grid(gm: wp.array3d(dtype=float), gv: wp.array3d(dtype=wp.vec3), dt: float
 def m_g2p(x: wp.array(dtype=wp.vec3), v: wp.array(dtype=wp.vec3), C: wp.array(dtype=wp.mat33),
           F: wp.array(dtype=wp.mat33), inv_dx: float, dt: float, gv: wp.array3d(dtype=wp.vec3)):
     p = wp.tid()
-    xp = x[p] * inv_dx
-    base = wp.vec3i(int(xp[0] - 0.5), int(xp[1] - 0.5), int(xp[2] - 0.5))
-    fx = xp - wp.vec3(float(base[0]), float(base[1]), float(base[2]))
-    w0 = 0.5 * wp.cw_mul(wp.vec3(1.5) - fx, wp.vec3(1.5) - fx)
-    w1 = wp.vec3(0.75) - wp.cw_mul(fx - wp.vec3(1.0), fx - wp.vec3(1.0))
-    w2 = 0.5 * wp.cw_mul(fx - wp.vec3(0.5), fx - wp.vec3(0.5))
+    base, fx = cell_of(x[p], inv_dx)
+    w0, w1, w2 = quadratic_weights(fx)
     new_v = wp.vec3(0.0)
     new_C = wp.mat33(0.0)
     for i in range(3):
-        wi = w0[0]
-        if i == 1:
-            wi = w1[0]
-        elif i == 2:
-            wi = w2[0]
         for j in range(3):
-            wj = w0[1]
-            if j == 1:
-                wj = w1[1]
-            elif j == 2:
-                wj = w2[1]
             for k in range(3):
-                wk = w0[2]
-                if k == 1:
-                    wk = w1[2]
-                elif k == 2:
-                    wk = w2[2]
-                w = wi * wj * wk
+                w = stencil_weight(w0, w1, w2, i, 0) * stencil_weight(w0, w1, w2, j, 1) * stencil_weight(w0, w1, w2, k, 2)
                 g = gv[base[0] + i, base[1] + j, base[2] + k]
                 new_v += w * g
                 new_C += (4.0 * inv_dx * w) * wp.outer(g, wp.vec3(float(i), float(j), float(k)) - fx)
