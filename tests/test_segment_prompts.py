@@ -296,3 +296,47 @@ def test_a_click_on_a_compact_object_finds_it_whole():
     img = np.clip(img, 0, 1).astype(np.float32)
     m = segment(img, points=[(120, 90)]).mask.numpy() > 0.5
     assert (m & cell).sum() / (m | cell).sum() > 0.9
+
+
+def _clock_like(seed=3):
+    """A white disk with a pale grey rim on a mid-grey wall, and far from it (outside any window
+    around the disk) a large patch of the rim's own pale grey: the wall across the room."""
+    rng = np.random.default_rng(seed)
+    H, W = 200, 320
+    img = np.full((H, W, 3), 0.45, np.float32)
+    yy, xx = np.mgrid[:H, :W]
+    r = np.hypot(xx - 100, yy - 100)
+    face, disk = r <= 30, r <= 42
+    img[disk] = 0.68  # the rim
+    img[face] = 0.95
+    img[:, 230:] = 0.68  # far away, the rim's colour
+    img = np.clip(img + rng.normal(0, 0.015, img.shape), 0, 1).astype(np.float32)
+    return img, disk, (52, 52, 149, 149)
+
+
+def test_a_box_learns_the_background_around_it_not_across_the_photo():
+    from physmotion_core.segment import classic as C
+
+    img, disk, box = _clock_like()
+    iou = lambda m: (m & disk).sum() / (m | disk).sum()  # noqa: E731
+    m = grabcut(img, box=box)
+    assert iou(m) > 0.95, iou(m)  # the rim is the object's
+    # On the whole photo the far patch teaches the background model the rim's grey, and the rim goes.
+    whole = grabcut(img, box=box, _window=False)
+    assert iou(whole) < 0.75, iou(whole)
+    # The window: the box grown by BOX_WINDOW of its size per side, clipped to the photo.
+    assert C._box_window((52, 52, 149, 149), 320, 200) == (37, 37, 164, 164)
+    assert C._box_window((0, 5, 300, 190), 320, 200) == (0, 0, 320, 200) or \
+        C._box_window((0, 5, 300, 190), 320, 200) is None
+    assert C._box_window((0, 0, 320, 200), 320, 200) is None
+
+
+def test_a_box_window_keeps_prompts_and_errors():
+    img, disk, box = _clock_like()
+    # A background click far outside the box (and its window) changes nothing; an object click
+    # outside the box is still refused, naming the box.
+    a = grabcut(img, box=box)
+    b = grabcut(img, box=box, points=[(100, 100), (300, 20)], point_labels=[1, 0])
+    assert (a == b).all()
+    with pytest.raises(InputError, match="outside the box"):
+        grabcut(img, box=box, points=[(250, 100)])

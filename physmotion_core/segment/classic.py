@@ -448,6 +448,57 @@ def _tighten_to_box(bgr: np.ndarray, gc: np.ndarray, bgd: np.ndarray, fgd: np.nd
         cv2.grabCut(bgr, gc, None, bgd, fgd, max(1, int(iters) // 2), cv2.GC_EVAL)
 
 
+#: A box prompt's GrabCut runs on the box grown by this fraction of its size on each side (not on
+#: the whole photo): its background colour model then describes what borders the object.
+BOX_WINDOW = 0.15
+
+
+def _box_window(box: tuple[int, int, int, int], W: int, H: int) -> Optional[tuple[int, int, int, int]]:
+    """The part of the photo a box prompt's GrabCut runs on: the box grown by ``BOX_WINDOW`` of its
+    width and height on each side (at least 2 px, within the photo), or None when that is the whole
+    photo.
+
+    OpenCV's GrabCut learns its background colours from every pixel outside the box. Far from the
+    object those are often colours that never border it (the lighter wall across the room from a
+    clock whose blurred rim is pale grey, the sky far above a rocket), and the background model that
+    has them claims the object's own pale or dark parts. Measured on the benchmark photos
+    (docs/quality.md): with a window of 0.1-0.25 of the box, box IoU >= 0.85 on 6 of 8 against 5 with
+    the whole photo, and under random box jitter (each side moved by up to 2 % of the photo, 4 draws)
+    5-6 of 8 against 3."""
+    x0, y0, x1, y1 = box
+    gx = max(2, int(math.ceil(BOX_WINDOW * (x1 - x0))))
+    gy = max(2, int(math.ceil(BOX_WINDOW * (y1 - y0))))
+    wx0, wy0, wx1, wy1 = max(0, x0 - gx), max(0, y0 - gy), min(W, x1 + gx), min(H, y1 + gy)
+    if (wx0, wy0, wx1, wy1) == (0, 0, W, H):
+        return None
+    return wx0, wy0, wx1, wy1
+
+
+def _grabcut_in_window(img: np.ndarray, window, box, pts: np.ndarray, labels: np.ndarray, iters: int,
+                       max_side, _click: str, _tight: bool) -> np.ndarray:
+    """``grabcut`` of a box prompt run on ``window`` only (``_box_window``); clicks outside the window
+    lie outside the box, which is background anyway, and are dropped (object clicks outside the box
+    are refused as before)."""
+    H, W = img.shape[:2]
+    x0, y0, x1, y1 = _check_box(box, W, H)
+    if len(pts):
+        fx, fy = pts[labels == 1, 0], pts[labels == 1, 1]
+        if ((fx < x0) | (fx >= x1) | (fy < y0) | (fy >= y1)).any():
+            raise InputError(f"an object point lies outside the box {tuple(box)}: move the point "
+                             "onto the object inside the box, or draw the box around it")
+    wx0, wy0, wx1, wy1 = window
+    inside = (pts[:, 0] >= wx0) & (pts[:, 0] < wx1) & (pts[:, 1] >= wy0) & (pts[:, 1] < wy1) if len(pts) else \
+        np.zeros(0, bool)
+    sub = np.ascontiguousarray(img[wy0:wy1, wx0:wx1])
+    sp = pts[inside] - [wx0, wy0] if len(pts) else pts
+    m = grabcut(sub, box=(x0 - wx0, y0 - wy0, x1 - wx0, y1 - wy0), points=sp if len(sp) else None,
+                point_labels=labels[inside] if len(sp) else None, iters=iters, max_side=max_side,
+                _click=_click, _tight=_tight, _window=False)
+    out = np.zeros((H, W), bool)
+    out[wy0:wy1, wx0:wx1] = m
+    return out
+
+
 def _paint_seeds(gc: np.ndarray, fg_pts: np.ndarray, bg_pts: np.ndarray, radius: int) -> None:
     for pts, value in ((bg_pts, cv2.GC_BGD), (fg_pts, cv2.GC_FGD)):
         for x, y in pts:
@@ -455,10 +506,12 @@ def _paint_seeds(gc: np.ndarray, fg_pts: np.ndarray, bg_pts: np.ndarray, radius:
 
 
 def grabcut(image, *, box=None, init_mask=None, points=None, point_labels=None, iters: int = 5,
-            max_side: Optional[int] = None, _click: str = "choose", _tight: bool = True) -> np.ndarray:
+            max_side: Optional[int] = None, _click: str = "choose", _tight: bool = True,
+            _window: bool = True) -> np.ndarray:
     """GrabCut foreground (bool (H,W)) of an image, seeded by a box, a rough mask and/or clicks.
 
-    - ``box`` (x0, y0, x1, y1): everything outside it is certainly background.
+    - ``box`` (x0, y0, x1, y1): everything outside it is certainly background, and GrabCut learns
+      the background from around the box only (``BOX_WINDOW``; see ``_box_window``).
     - ``init_mask``: its inside is "probably object", its outside "probably background" (a rough
       mask is refined), and far outside it certainly background.
     - ``points``: (x, y) pixel clicks with ``point_labels`` (1 object, 0 background; default all
@@ -477,6 +530,10 @@ def grabcut(image, *, box=None, init_mask=None, points=None, point_labels=None, 
     pts, labels = check_points(points, point_labels, width=W, height=H)
     if _click == "choose" and box is None and init_mask is None and bool((labels == 1).any()):
         return _click_prompted(img, pts, labels, int(iters), max_side)
+    if box is not None and init_mask is None and _window:
+        window = _box_window(_check_box(box, W, H), W, H)
+        if window is not None:
+            return _grabcut_in_window(img, window, box, pts, labels, iters, max_side, _click, _tight)
     small, scale = _resize_to_max_side(img, GRABCUT_MAX_SIDE if max_side is None else int(max_side))
     h, w = small.shape[:2]
     sp = np.clip(np.floor(pts * scale), 0, [w - 1, h - 1]) if len(pts) else pts
@@ -577,8 +634,11 @@ def _grown_click(img: np.ndarray, pts: np.ndarray, labels: np.ndarray, iters: in
     box = [max(0.0, x0), max(0.0, y0), min(float(W), x1 + 1), min(float(H), y1 + 1)]
     comp = None
     for _ in range(GROW_PASSES):
+        # On the whole photo, not a box prompt's window (``_box_window``): a growing box starts inside
+        # the object, where a window's ring is the object's own colour and the cut collapses onto the
+        # click (the clock's click; the rocket's 0.525 -> 0.460).
         m = grabcut(img, box=[int(round(b)) for b in box], points=pts, point_labels=labels, iters=iters,
-                    max_side=max_side, _click="whole", _tight=False)
+                    max_side=max_side, _click="whole", _tight=False, _window=False)
         n, cc = cv2.connectedComponents(m.astype(np.uint8), connectivity=8)
         ids = sorted({int(cc[int(y), int(x)]) for x, y in fg} - {0})
         comp = np.isin(cc, ids) if ids else m
@@ -629,12 +689,13 @@ def _click_prompted(img: np.ndarray, pts: np.ndarray, labels: np.ndarray, iters:
     if max(H, W) <= search or not best.any():
         return best
     # The search ran small; the chosen object is cut once more at full size in its box, grown by a
-    # tenth (the box is not tight, so no tightness seeds).
+    # tenth (the box is not tight, so no tightness seeds; and on the whole photo: a box prompt's window
+    # (``_box_window``) here turned the cell's click from IoU 1.00 into 0.98 and helped none).
     x0, y0, x1, y1 = mask_box(best)
     gx, gy = 0.1 * (x1 - x0) + 2, 0.1 * (y1 - y0) + 2
     box = [max(0, int(x0 - gx)), max(0, int(y0 - gy)), min(W, int(math.ceil(x1 + gx))), min(H, int(math.ceil(y1 + gy)))]
     return grabcut(img, box=box, points=pts, point_labels=labels, iters=iters, max_side=max_side, _click="whole",
-                   _tight=False)
+                   _tight=False, _window=False)
 
 
 def _drop_clicked_background(fg: np.ndarray, fg_pts: np.ndarray, bg_pts: np.ndarray, radius: int) -> np.ndarray:
