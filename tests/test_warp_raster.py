@@ -134,6 +134,31 @@ def test_compiled_projection_matches_project_gaussians():
     assert empty.index.numel() == 0 and empty.pix_lo.shape == (0, 2)
 
 
+@pytest.mark.parametrize("C", [3, 5, 7])  # K = 4, 5 and 7: the row loop's vectors
+def test_vector_lanes_past_a_span_add_nothing(C):
+    """The row loop composites eight pixels at a time; its lanes past a span's end (pixels the splat does not reach,
+    the next tile's, the next row's) must add exactly nothing. With one splat's first channel infinite (0 x inf is
+    nan), the frame takes the scalar loop: the infinity stays in the pixels that splat reaches, every other pixel
+    and channel equals the render with that channel finite, and that render equals the tensor path."""
+    cam = camera(163, 121)
+    g = random_gaussians(400, seed=5, spread=0.7, size=0.05, opacity=(0.2, 0.9))
+    proj, mc = _projected(g, cam)
+    feats = _features(g, proj, mc, max(C - 4, 0))[:, :C].contiguous()
+    ok = WR.composite_warp(proj, feats, cam.width, cam.height)
+    torch.testing.assert_close(ok, composite_tiles(proj, feats, cam.width, cam.height), atol=2e-5, rtol=1e-5)
+    j = 0  # the front splat: nothing hides it, so every pixel it reaches takes its infinity
+    bad = feats.clone()
+    bad[j, 0] = float("inf")
+    got = WR.composite_warp(proj, bad, cam.width, cam.height)
+    alone = dataclasses.replace(proj, index=proj.index[j:j + 1], uv=proj.uv[j:j + 1], conic=proj.conic[j:j + 1],
+                                log_opacity=proj.log_opacity[j:j + 1], pix_lo=proj.pix_lo[j:j + 1],
+                                pix_hi=proj.pix_hi[j:j + 1])
+    reach = WR.composite_warp(alone, torch.ones(1, 1), cam.width, cam.height)[..., -1] > 0
+    assert int(reach.sum()) > 10 and bool(torch.isinf(got[..., 0][reach]).all())
+    assert torch.equal(got[..., 0][~reach], ok[..., 0][~reach])
+    assert torch.equal(got[..., 1:], ok[..., 1:])
+
+
 def test_tile_size_changes_nothing():
     """A pixel visits the same splats in the same order whatever the tile: bit-identical results."""
     cam = camera(97, 70)
