@@ -159,6 +159,21 @@ def test_vector_lanes_past_a_span_add_nothing(C):
     assert torch.equal(got[..., 1:], ok[..., 1:])
 
 
+@pytest.mark.parametrize("n", [0, 1, 7, 1000, 50000])
+def test_depth_order_is_the_stable_argsort(n):
+    """``depth_order`` (Warp's radix sort) against torch's stable argsort of the finite keys: ties (kept in index
+    order), negative keys, -0 and +0 (equal), culled splats (+inf, dropped)."""
+    import math
+
+    gen = torch.Generator().manual_seed(n)
+    key = torch.randn(n, generator=gen) * 10
+    for value, share in ((math.inf, 0.1), (0.5, 0.2), (-0.0, 0.05), (0.0, 0.05)):
+        key[torch.rand(n, generator=gen) < share] = value
+    ok = (key < math.inf).nonzero().squeeze(1)
+    want = ok.index_select(0, torch.argsort(key.index_select(0, ok), stable=True))
+    assert torch.equal(WR.depth_order(key), want)
+
+
 def test_tile_size_changes_nothing():
     """A pixel visits the same splats in the same order whatever the tile: bit-identical results."""
     cam = camera(97, 70)

@@ -81,13 +81,16 @@ auto keys = [](float t, float* w) {
     w[2] = ((a + 2.0f) * r - (a + 3.0f)) * r * r + 1.0f;
     w[3] = 1.0f - w[0] - w[1] - w[2];
 };
+typedef float pm_v4f __attribute__((ext_vector_type(4)));
 for (int bx = 0; bx < bw; ++bx) {
+    // A pixel without a photo coordinate keeps the frame's colour and coverage, which the caller put in out_rgb and
+    // out_a (the formulas below give them back exactly there: w = 0, no floor excess).
+    if (!OK[bx]) continue;
     const long p = (long)y * W + x0 + bx;
     const float a = alpha.data[p];
-    const float c0 = rgb.data[3 * p], c1 = rgb.data[3 * p + 1], c2 = rgb.data[3 * p + 2];
     float w = 0.0f;
     float smp[4] = {0.0f, 0.0f, 0.0f, 0.0f};
-    if (OK[bx]) {
+    {
         const float S = ext.data[p * C + C - 1];
         float sh = S / (a > 1e-12f ? a : 1e-12f);
         sh = sh < 0.0f ? 0.0f : (sh > 1.0f ? 1.0f : sh);
@@ -102,7 +105,25 @@ for (int bx = 0; bx < bw; ++bx) {
             float wx[4], wy[4];
             keys((float)(mx - fx), wx);
             keys((float)(my - fy), wy);
-            for (int j = 0; j < 4; ++j) {
+            if (ix >= 1 && ix + 2 < PW && iy >= 1 && iy + 2 < PH) {
+                // All 16 taps inside the photo (most pixels): each tap's 4 floats as one vector, no bounds tests.
+                pm_v4f acc = 0.0f;
+                for (int j = 0; j < 4; ++j) {
+                    const float* t = P + 4 * ((long)(iy - 1 + j) * PW + ix - 1);
+                    pm_v4f t0, t1, t2, t3;
+                    __builtin_memcpy(&t0, t, 16);
+                    __builtin_memcpy(&t1, t + 4, 16);
+                    __builtin_memcpy(&t2, t + 8, 16);
+                    __builtin_memcpy(&t3, t + 12, 16);
+                    pm_v4f row = 0.0f;
+                    row += wx[0] * t0;
+                    row += wx[1] * t1;
+                    row += wx[2] * t2;
+                    row += wx[3] * t3;
+                    acc += wy[j] * row;
+                }
+                smp[0] = acc[0]; smp[1] = acc[1]; smp[2] = acc[2]; smp[3] = acc[3];
+            } else for (int j = 0; j < 4; ++j) {
                 const int yy = iy - 1 + j;
                 if (yy < 0 || yy >= PH) continue;
                 float row[4] = {0.0f, 0.0f, 0.0f, 0.0f};
