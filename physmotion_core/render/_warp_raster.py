@@ -5,11 +5,14 @@ The PyTorch rasterizer (``_torch_raster``) composites dense blocks [tiles, splat
 operations: every (splat, pixel) entry of a tile's list goes through a GEMM, exp2, threshold, clamp, a running
 product and a batched matmul, each a pass over memory, for all 64 pixels of the tile, and a frame takes dozens
 of such steps. Without gradients none of those intermediates is needed: here a compiled loop walks each tile's
-depth-ordered list once, and each splat visits only the pixels of the tile that its ellipse at alpha = 1/255
-(plus a margin) holds, row by row; every pixel keeps its own transmittance and stops at its own saturation, and
-the tile stops once all its pixels have. On the CPU templates' thin, faint shells (about 27 splats contribute to
-each pixel, which rarely saturates) that visits a third or less of the (splat, pixel) pairs the tensor tiles
-evaluate. The loop over one row's pixels (``_ROW``) is C++ in explicit 8-float vectors (an inlined polynomial exp,
+depth-ordered list once, and each splat visits only the pixels of the tile that its box at alpha = 1/255 holds,
+row by row (a box wider than 16 px: only each row's span of the ellipse, plus a margin); every pixel keeps its own
+transmittance and stops at its own saturation, and the tile stops once all its pixels have. On the CPU templates'
+thin, faint shells (about 27 splats contribute to each pixel, which rarely saturates) that visits a fraction of the
+(splat, pixel) pairs the tensor tiles evaluate. A splat's box on a row (at most 16 px: one or two vectors, the same
+count on every row) costs less than the row's span: the span's square root and divisions, and a varying count of
+vectors per row, cost more than the pixels off the ellipse (0.88x the compositing time on the CPU templates,
+measured 2026-12-06). The loop over one row's pixels (``_ROW``) is C++ in explicit 8-float vectors (an inlined polynomial exp,
 no branches): the same loop in Warp's kernel language runs one pixel at a time with expf a library call, and
 compositing took 1.3-1.7x longer (the CPU templates' Wan clips, one core, measured 2026-12-03); left to the
 compiler's own vectorisation, the rows' short spans (5-8 pixels on the CPU templates) mostly ran its scalar
@@ -311,6 +314,7 @@ def _build(wp):
     ALPHA_MAX_ = wp.constant(ALPHA_MAX)
     T_DONE_ = wp.constant(T_DONE)
     LN_255 = wp.constant(math.log(255.0))
+    SPAN_FROM = wp.constant(2 * LANES)
 
     @wp.func
     def reaches(u: float, v: float, ca: float, cb: float, cc: float, r2: float, x0: float, x1: float,
@@ -420,8 +424,8 @@ def _build(wp):
                   W: int,
                   H: int, asked: wp.array(dtype=wp.uint8), T: wp.array(dtype=float),
                   out: wp.array(dtype=float), alpha_out: wp.array(dtype=float)):
-        # One tile: its splats front to back, each over the pixels of the tile its ellipse at alpha = 1/255 (plus
-        # the margin) holds, row by row (``row``); a pixel keeps its transmittance in T (0 once saturated, or not
+        # One tile: its splats front to back, each over the pixels of the tile its box holds (of a box over 16 px
+        # wide, its ellipse at alpha = 1/255 plus the margin), row by row (``row``); a pixel keeps its transmittance in T (0 once saturated, or not
         # asked). ``feats`` and ``out`` hold K floats per splat / pixel; ``vec``: the row loop may use its vectors
         # (``_ROW``).
         tile = wp.tid()
@@ -454,7 +458,13 @@ def _build(wp):
             x0 = wp.max(lo[m][0], bx0)
             x1 = wp.min(hi[m][0], bx1)
             for y in range(wp.max(lo[m][1], by0), wp.min(hi[m][1], by1) + 1):
-                sp = span(cn[0], cn[1], cn[2], r2, u, v, y, x0, x1)
+                # A box up to 16 px wide (nearly every splat) is walked whole on every row: the same pixel tests
+                # decide (a pixel off the ellipse adds nothing), in one or two vectors a row, the same count on
+                # every row, which keeps the row loop predictable; a wider one (a long thin splat across the tile)
+                # walks each row's span only.
+                sp = wp.vec2i(x0, x1)
+                if x1 - x0 >= SPAN_FROM:
+                    sp = span(cn[0], cn[1], cn[2], r2, u, v, y, x0, x1)
                 if sp[0] <= sp[1]:
                     alive -= row(T, out, alpha_out, feats, K, vec, m, y * W, sp[0], sp[1], u,
                                  v - (float(y) + 0.5), cn[0], cn[1], cn[2], lm)

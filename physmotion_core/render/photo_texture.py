@@ -463,6 +463,8 @@ class TexturedPoser:
         self.mu0 = g0.means.double()
         self.L0 = _splat_linear_part(sim, 0)
         self._bound = None
+        self._seen64 = None  # the seen weights in float64 (features), and the rest pose in the render camera
+        self._rest_cam = None  # (_one_map), made on first use
         # Where the photo shows each splat's centre at rest (photo pixels).
         pw = texture.camera.w2c_opencv().double()
         mc = self.mu0 @ pw[:3, :3].T + pw[:3, 3]
@@ -487,17 +489,18 @@ class TexturedPoser:
         from .. import controls as C
 
         R, t = self.w2c[:3, :3], self.w2c[:3, 3]
-        ms = g.means.double() @ R.T + t  # the centres now, render-camera coordinates
+        ms = torch.addmm(t, g.means.double(), R.T)  # the centres now, render-camera coordinates
         one = None
         if C.ONE_MAP_FLOW and not self._clearly_deformed(frame):
             one = self._one_map(frame, ms)
         shift = None
         if one is None:
-            z = ms[:, 2].clamp_min(1e-9)
-            r = torch.stack([ms[:, 0] / z, ms[:, 1] / z, torch.ones_like(z)], 1)
+            r = ms[:, :2] / ms[:, 2:].clamp_min(1e-9)  # the rays' x/z, y/z (their z = 1 is not needed)
             px, py = _render_to_photo_px(self.camera, self.texture.camera, r)
             shift = self.uv0 - torch.stack([px, py], 1)
-        return texture_features(self.seen.to(torch.float64), shift).to(g.means.dtype).to(g.means.device), one
+        if self._seen64 is None:
+            self._seen64 = self.seen.to(torch.float64)
+        return texture_features(self._seen64, shift).to(g.means.dtype).to(g.means.device), one
 
     def _clearly_deformed(self, frame: int) -> bool:
         """Whether the particles' deformation gradients at ``frame`` differ from one another by more than 0.1 %
@@ -523,11 +526,15 @@ class TexturedPoser:
         b_idx = self._bound
         L = C._splat_linear_part(self.sim, frame)[b_idx]
         R = self.w2c[:3, :3]
-        A_p = R @ (self.L0[b_idx] @ C._inverse(L)) @ R.T
-        A0 = A_p.mean(0)
-        dA = float((A_p - A0).flatten(1).norm(dim=1).max())
-        t = self.w2c[:3, 3]
-        m0 = self.mu0 @ R.T + t
+        if self._rest_cam is None:  # the bound particles' rest deformation and the rest centres (camera coordinates)
+            self._rest_cam = (self.L0[b_idx], torch.addmm(self.w2c[:3, 3], self.mu0, R.T))
+        L0, m0 = self._rest_cam
+        # The maps in world axes, B_p = L0 L^-1; in camera axes A_p = R B_p Rᵀ, whose mean is R B̄ Rᵀ and whose
+        # spread has the same (Frobenius) norms: the camera's rotation is applied to the mean only.
+        B_p = L0 @ C._inverse(L)
+        B0 = B_p.mean(0)
+        dA = float((B_p - B0).flatten(1).norm(dim=1).max())
+        A0 = R @ B0 @ R.T
         b = m0 - ms @ A0.T
         b0 = b.mean(0)
         db = float((b - b0).norm(dim=1).max())
