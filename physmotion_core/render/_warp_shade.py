@@ -236,7 +236,22 @@ def _build(wp):
         blend_row(u, v, ok, ext, C, rgb, alpha, dist, W, x0, y0, bw, bh, by, planes, PW, PH, min_cov, in0, in1,
                   fade, out_rgb, out_a)
 
-    return wp, coords, stretch, blend
+    @wp.kernel(enable_backward=False)
+    def shift_features(means: wp.array(dtype=wp.vec3d), R: wp.mat33d, t: wp.vec3d, pfx: f64, pfy: f64, pcx: f64,
+                       pcy: f64, uv0: wp.array(dtype=wp.vec2d), seen: wp.array(dtype=f64),
+                       out: wp.array(dtype=wp.vec3)):
+        # One splat: its centre now in the render camera, the photo pixel its ray meets (the render camera is the
+        # photo's, possibly resized), the shift from there to where the photo shows the centre at rest, times the
+        # seen weight, and the weight (``photo_texture.texture_features``), in float64, stored in float32.
+        i = wp.tid()
+        p = R * means[i] + t
+        z = wp.max(p[2], f64(1.0e-9))
+        s = seen[i]
+        q = uv0[i]
+        out[i] = wp.vec3(float((q[0] - (pfx * (p[0] / z) + pcx)) * s), float((q[1] - (pfy * (p[1] / z) + pcy)) * s),
+                         float(s))
+
+    return wp, coords, stretch, blend, shift_features
 
 
 def available() -> bool:
@@ -268,7 +283,7 @@ def planes_array(planes: np.ndarray):
 
 def photo_coords(ext: torch.Tensor, depth: torch.Tensor, box: tuple, camera, photo_camera, one_map=None):
     """(u, v) float64 (bh*bw) and ok uint8 (bh*bw): the photo coordinates of the box's pixels (``coords``)."""
-    wp, coords, _, _ = _build()
+    wp, coords, _, _, _ = _build()
     y0, y1, x0, x1 = box
     bh, bw = y1 - y0, x1 - x0
     H, W, C = ext.shape
@@ -295,7 +310,7 @@ def photo_coords(ext: torch.Tensor, depth: torch.Tensor, box: tuple, camera, pho
 def stretch_fade(u, v, ok, box, lo: float, hi: float) -> torch.Tensor:
     """(bh, bw) float32: the photo's weight left by the stretch of the box's photo coordinates (``_STRETCH_ROW``:
     1 up to a magnification of ``lo``, 0 from ``hi``, linear in it between; 1 where a pixel has no coordinate)."""
-    wp, _, kernel, _ = _build()
+    wp, _, kernel, _, _ = _build()
     y0, y1, x0, x1 = box
     bh, bw = y1 - y0, x1 - x0
     keep: list = []
@@ -309,7 +324,7 @@ def stretch_fade(u, v, ok, box, lo: float, hi: float) -> torch.Tensor:
 
 def blend(u, v, ok, fade, ext, rgb, alpha, dist, box, planes, planes_wp, consts, out_rgb, out_a) -> None:
     """The ``blend`` loop over the box, writing ``out_rgb`` (H,W,3) and ``out_a`` (H,W) there (contiguous)."""
-    wp, _, _, kernel = _build()
+    wp, _, _, kernel, _ = _build()
     y0, y1, x0, x1 = box
     bh, bw = y1 - y0, x1 - x0
     H, W, C = ext.shape
@@ -324,3 +339,27 @@ def blend(u, v, ok, fade, ext, rgb, alpha, dist, box, planes, planes_wp, consts,
               outputs=[wp.array(out_rgb.numpy().reshape(-1), dtype=float, device="cpu", copy=False),
                        wp.array(out_a.numpy().reshape(-1), dtype=float, device="cpu", copy=False)])
     wp.synchronize_device("cpu")
+
+
+def texture_shift_features(means: torch.Tensor, w2c: torch.Tensor, photo_camera, uv0: torch.Tensor,
+                           seen: torch.Tensor) -> torch.Tensor:
+    """(N, 3) float32: ``photo_texture.texture_features`` of the splats at ``means`` (N, 3) for a render camera
+    ``w2c`` (4x4, OpenCV axes) that is ``photo_camera`` possibly resized: s·Δ and s, Δ = ``uv0`` (N, 2, the photo
+    pixels of the centres at rest) minus the photo pixel of each centre's ray now; computed in float64 in one loop
+    (``shift_features``) instead of a dozen whole-array tensor operations."""
+    wp, _, _, _, kernel = _build()
+    n = int(means.shape[0])
+    out = torch.empty(n, 3, dtype=torch.float32)
+    if n == 0:
+        return out
+    keep: list = []
+    w = w2c.detach().double()
+    R = wp.mat33d(*[float(x) for x in w[:3, :3].reshape(-1).tolist()])
+    t = wp.vec3d(*[float(x) for x in w[:3, 3].tolist()])
+    pc = photo_camera
+    wp.launch(kernel, dim=n, device="cpu",
+              inputs=[_arr(wp, means.detach().double(), wp.vec3d, keep), R, t, float(pc.fx), float(pc.fy), float(pc.cx),
+                      float(pc.cy), _arr(wp, uv0.double(), wp.vec2d, keep), _arr(wp, seen.double(), wp.float64, keep),
+                      _arr(wp, out, wp.vec3, keep)])
+    wp.synchronize_device("cpu")
+    return out

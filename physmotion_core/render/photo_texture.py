@@ -465,6 +465,7 @@ class TexturedPoser:
         self._bound = None
         self._seen64 = None  # the seen weights in float64 (features), and the rest pose in the render camera
         self._rest_cam = None  # (_one_map), made on first use
+        self._use_compiled = None  # whether features() takes the compiled loop (``_compiled``)
         # Where the photo shows each splat's centre at rest (photo pixels).
         pw = texture.camera.w2c_opencv().double()
         mc = self.mu0 @ pw[:3, :3].T + pw[:3, 3]
@@ -489,18 +490,34 @@ class TexturedPoser:
         from .. import controls as C
 
         R, t = self.w2c[:3, :3], self.w2c[:3, 3]
-        ms = torch.addmm(t, g.means.double(), R.T)  # the centres now, render-camera coordinates
-        one = None
+        one, ms = None, None
         if C.ONE_MAP_FLOW and not self._clearly_deformed(frame):
+            ms = torch.addmm(t, g.means.double(), R.T)  # the centres now, render-camera coordinates
             one = self._one_map(frame, ms)
+        if one is None and g.means.device.type == "cpu" and self._compiled():
+            from . import _warp_shade
+
+            return _warp_shade.texture_shift_features(g.means, self.w2c, self.texture.camera, self.uv0,
+                                                      self.seen).to(g.means.dtype), None
         shift = None
         if one is None:
+            if ms is None:
+                ms = torch.addmm(t, g.means.double(), R.T)
             r = ms[:, :2] / ms[:, 2:].clamp_min(1e-9)  # the rays' x/z, y/z (their z = 1 is not needed)
             px, py = _render_to_photo_px(self.camera, self.texture.camera, r)
             shift = self.uv0 - torch.stack([px, py], 1)
         if self._seen64 is None:
             self._seen64 = self.seen.to(torch.float64)
         return texture_features(self._seen64, shift).to(g.means.dtype).to(g.means.device), one
+
+    def _compiled(self) -> bool:
+        """Whether the per-splat channels are computed compiled (``_warp_shade.texture_shift_features``; the tensor
+        operations below are its twin, for a Warp that is unavailable)."""
+        if self._use_compiled is None:
+            from . import _warp_shade
+
+            self._use_compiled = _warp_shade.available()
+        return self._use_compiled
 
     def _clearly_deformed(self, frame: int) -> bool:
         """Whether the particles' deformation gradients at ``frame`` differ from one another by more than 0.1 %
