@@ -374,12 +374,22 @@ def shade(texture: PhotoTexture, camera: Camera, rgb: torch.Tensor, alpha: torch
         out_rgb, out_a = into
         out_rgb.copy_(rgb)
         out_a.copy_(alpha)
+    if compiled is None:
+        from . import _warp_shade
+
+        compiled = _warp_shade.available()
+    # The box of the pixels the seen splats reach (S > 1e-6): every pass below works in it.
     S = extra[..., -1]
-    has = S > 1e-6
-    rows, cols = has.any(1).nonzero(), has.any(0).nonzero()
-    if rows.numel() == 0:
+    if compiled:
+        from . import _warp_shade
+
+        box = _warp_shade.seen_box(extra)
+    else:
+        has = S > 1e-6
+        rows, cols = has.any(1).nonzero(), has.any(0).nonzero()
+        box = None if rows.numel() == 0 else (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
+    if box is None:
         return out_rgb, out_a
-    box = (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
     y0, y1, x0, x1 = box
     pc = texture.camera
     photo_map = None
@@ -387,10 +397,6 @@ def shade(texture: PhotoTexture, camera: Camera, rgb: torch.Tensor, alpha: torch
         A0, b0 = one_map
         M, c = _to_photo_camera(camera, pc)
         photo_map = (M @ A0.double(), M @ b0.double() + c)
-    if compiled is None:
-        from . import _warp_shade
-
-        compiled = _warp_shade.available()
     import cv2
 
     a = alpha[y0:y1, x0:x1]
@@ -456,6 +462,7 @@ class TexturedPoser:
 
         self.sim, self.camera, self.texture = sim, camera, texture
         g0 = sim.gaussians_at(0)
+        self.rest_gaussians = g0  # frame 0 posed: the renderer draws it from here instead of posing it again
         if texture.seen is None or texture.seen.shape[0] != g0.means.shape[0]:
             texture.seen = seen_weights(g0, texture.camera, backend=backend)
         self.seen = texture.seen
