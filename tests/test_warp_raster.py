@@ -134,6 +134,48 @@ def test_compiled_projection_matches_project_gaussians():
     assert empty.index.numel() == 0 and empty.pix_lo.shape == (0, 2)
 
 
+@pytest.mark.parametrize("C", [3, 5, 7])  # K = 4, 5 and 7: the row loop's vectors
+def test_vector_lanes_past_a_span_add_nothing(C):
+    """The row loop composites eight pixels at a time; its lanes past a span's end (pixels the splat does not reach,
+    the next tile's, the next row's) must add nothing: the render equals the tensor path. With one splat's first
+    channel infinite (0 x inf is nan), the frame takes the scalar loop: the infinity stays in the pixels that splat
+    reaches, and every other pixel and channel is finite and equals the vector loop's render with that channel
+    finite (to the round-off of their exps: the vector loop evaluates the polynomial in another order)."""
+    cam = camera(163, 121)
+    g = random_gaussians(400, seed=5, spread=0.7, size=0.05, opacity=(0.2, 0.9))
+    proj, mc = _projected(g, cam)
+    feats = _features(g, proj, mc, max(C - 4, 0))[:, :C].contiguous()
+    ok = WR.composite_warp(proj, feats, cam.width, cam.height)
+    torch.testing.assert_close(ok, composite_tiles(proj, feats, cam.width, cam.height), atol=2e-5, rtol=1e-5)
+    j = 0  # the front splat: nothing hides it, so every pixel it reaches takes its infinity
+    bad = feats.clone()
+    bad[j, 0] = float("inf")
+    got = WR.composite_warp(proj, bad, cam.width, cam.height)
+    alone = dataclasses.replace(proj, index=proj.index[j:j + 1], uv=proj.uv[j:j + 1], conic=proj.conic[j:j + 1],
+                                log_opacity=proj.log_opacity[j:j + 1], pix_lo=proj.pix_lo[j:j + 1],
+                                pix_hi=proj.pix_hi[j:j + 1])
+    reach = WR.composite_warp(alone, torch.ones(1, 1), cam.width, cam.height)[..., -1] > 0
+    assert int(reach.sum()) > 10 and bool(torch.isinf(got[..., 0][reach]).all())
+    assert bool(torch.isfinite(got[..., 0][~reach]).all()) and bool(torch.isfinite(got[..., 1:]).all())
+    torch.testing.assert_close(got[..., 0][~reach], ok[..., 0][~reach], atol=1e-6, rtol=1e-6)
+    torch.testing.assert_close(got[..., 1:], ok[..., 1:], atol=1e-6, rtol=1e-6)
+
+
+@pytest.mark.parametrize("n", [0, 1, 7, 1000, 50000])
+def test_depth_order_is_the_stable_argsort(n):
+    """``depth_order`` (Warp's radix sort) against torch's stable argsort of the finite keys: ties (kept in index
+    order), negative keys, -0 and +0 (equal), culled splats (+inf, dropped)."""
+    import math
+
+    gen = torch.Generator().manual_seed(n)
+    key = torch.randn(n, generator=gen) * 10
+    for value, share in ((math.inf, 0.1), (0.5, 0.2), (-0.0, 0.05), (0.0, 0.05)):
+        key[torch.rand(n, generator=gen) < share] = value
+    ok = (key < math.inf).nonzero().squeeze(1)
+    want = ok.index_select(0, torch.argsort(key.index_select(0, ok), stable=True))
+    assert torch.equal(WR.depth_order(key), want)
+
+
 def test_tile_size_changes_nothing():
     """A pixel visits the same splats in the same order whatever the tile: bit-identical results."""
     cam = camera(97, 70)

@@ -5,13 +5,18 @@ The PyTorch rasterizer (``_torch_raster``) composites dense blocks [tiles, splat
 operations: every (splat, pixel) entry of a tile's list goes through a GEMM, exp2, threshold, clamp, a running
 product and a batched matmul, each a pass over memory, for all 64 pixels of the tile, and a frame takes dozens
 of such steps. Without gradients none of those intermediates is needed: here a compiled loop walks each tile's
-depth-ordered list once, and each splat visits only the pixels of the tile that its ellipse at alpha = 1/255
-(plus a margin) holds, row by row; every pixel keeps its own transmittance and stops at its own saturation, and
-the tile stops once all its pixels have. On the CPU templates' thin, faint shells (about 27 splats contribute to
-each pixel, which rarely saturates) that visits a third or less of the (splat, pixel) pairs the tensor tiles
-evaluate. The loop over one row's pixels (``_ROW``) is C++ written for the compiler to vectorise (no branches, an
-inlined exp): the same loop in Warp's kernel language runs one pixel at a time with expf a library call, and
-compositing took 1.3-1.7x longer (the CPU templates' Wan clips, one core, measured 2026-12-03).
+depth-ordered list once, and each splat visits only the pixels of the tile that its box at alpha = 1/255 holds,
+row by row (a box wider than 16 px: only each row's span of the ellipse, plus a margin); every pixel keeps its own
+transmittance and stops at its own saturation, and the tile stops once all its pixels have. On the CPU templates'
+thin, faint shells (about 27 splats contribute to each pixel, which rarely saturates) that visits a fraction of the
+(splat, pixel) pairs the tensor tiles evaluate. A splat's box on a row (at most 16 px: one or two vectors, the same
+count on every row) costs less than the row's span: the span's square root and divisions, and a varying count of
+vectors per row, cost more than the pixels off the ellipse (0.88x the compositing time on the CPU templates,
+measured 2026-12-06). The loop over one row's pixels (``_ROW``) is C++ in explicit 8-float vectors (an inlined polynomial exp,
+no branches): the same loop in Warp's kernel language runs one pixel at a time with expf a library call, and
+compositing took 1.3-1.7x longer (the CPU templates' Wan clips, one core, measured 2026-12-03); left to the
+compiler's own vectorisation, the rows' short spans (5-8 pixels on the CPU templates) mostly ran its scalar
+remainder loop, and compositing took 1.3-1.6x longer than in explicit vectors (measured 2026-12-06).
 
 Same image-formation model and the same inputs as ``composite_tiles``: the projection, culling and depth
 order of ``project_gaussians``, alpha = min(0.99, o exp(-½ dᵀ conic d)) at the pixel centre, entries with
@@ -86,17 +91,110 @@ auto expo = [](float x) -> float {
 };
 """
 
+#: Lanes of ``_ROW``'s vectors: 8 floats (AVX's 256 bits; two NEON or SSE registers where those are the widest).
+LANES = 8
+
+#: ``K`` (floats per pixel) that ``_ROW`` composites eight pixels at a time; other K take its scalar loop.
+VECTOR_K = (4, 5, 7, 8)
+
+
+def _row_vector_k(K: int) -> str:
+    """C++ for eight pixels' K channels (``_ROW``'s vector loop, one K): the 8 K floats of pixels xs..xs+7 are
+    contiguous in ``out``, so they are K vectors; vector j holds floats 8 j .. 8 j + 7, i.e. pixel (8 j + i) / K's
+    channel (8 j + i) % K in lane i: the pixels' weights and the splat's channels are put in those lanes by constant
+    shuffles (the channels' once per call)."""
+    fe = "\n".join(f"    const pm_v8f fe{j} = __builtin_shufflevector(fv, fv, "
+                   f"{', '.join(str((LANES * j + i) % K) for i in range(LANES))});" for j in range(K))
+    upd = "\n".join(f"        PM_ADD({j}, {', '.join(str((LANES * j + i) // K) for i in range(LANES))})"
+                    for j in range(K))
+    return f"""if (K == {K}) {{
+    pm_v8f fv;
+    __builtin_memcpy(&fv, f, sizeof(fv));
+{fe}
+    for (int xs = x0; xs <= x1; xs += 8) {{
+        PM_LANES
+        float* ob = o + (size_t){K} * xs;
+{upd}
+    }}
+}}"""
+
+
 #: The inner loop of ``composite``, in C++ (a Warp native function): one splat over the pixels x0..x1 of one row of
-#: a tile. Written without branches (selects) and with the inlined polynomial exp ``EXPO`` so that the compiler
-#: Warp runs (clang, -O2 -march=native) vectorises it across the row's pixels: the same loop written in Warp's
-#: kernel language compiles to scalar code, one pixel at a time, with expf a library call. Returns how many pixels
-#: saturated.
+#: a tile. Returns how many pixels saturated.
+#:
+#: Eight pixels at a time in explicit vectors (clang's vector extensions) for the K of ``VECTOR_K``: a row's span is
+#: short (the CPU templates' splats: 5-8 pixels on average, median 5-8), too short for the compiler's own
+#: vectorisation of the pixel loop, whose vector body needs 16 or more pixels (measured: most visits ran its scalar
+#: remainder). Here a span of up to 8 pixels is one pass, its lanes past x1 masked out of every test, so they add
+#: exactly 0 (their w is selected, not computed: T there may be any float, another tile's or unset) and write back
+#: what they read (the buffers are padded by 8 pixels, ``composite_warp``; a frame is one
+#: serial launch, so reading and rewriting a neighbouring pixel's value is safe). The polynomial exp is ``EXPO``'s,
+#: lane by lane, its polynomial evaluated by Estrin's scheme (shorter dependency chains). ``vec`` = 0 (features that are not all finite, where 0 x inf would reach the masked lanes) and
+#: other K take the scalar loop, which skips pixels that add nothing.
 _ROW = EXPO + r"""
 const float* f = feats.data + (size_t)m * K;
 float* Tr = T.data + base;
 float* ar = aout.data + base;
 float* o = out.data + (size_t)base * K;
 const float A = 0.5f * ca, B = cb, q0 = lm - 0.5f * cc * dy * dy;
+int died = 0;
+bool vector_k = false;
+#define PM_VK(N) vector_k = vector_k || K == N;
+VECTOR_KS
+#undef PM_VK
+if (vec != 0 && vector_k) {
+    typedef float pm_v8f __attribute__((ext_vector_type(8)));
+    typedef int pm_v8i __attribute__((ext_vector_type(8)));
+    auto vexpo = [](pm_v8f x) -> pm_v8f {
+        pm_v8f pw = x < -87.0f ? (pm_v8f)(-87.0f) : (x > 0.0f ? (pm_v8f)(0.0f) : x);
+        pm_v8f n = __builtin_elementwise_floor(pw * 1.44269504088896341f + 0.5f);
+        pm_v8f r = (pw - n * 0.693359375f) + n * 2.12194440e-4f;
+        // EXPO's polynomial by Estrin's scheme (pairs of terms, then powers of r²): a chain of 4 dependent
+        // multiply-adds instead of Horner's 7, for the loop's latency; within 1.2e-7 of exp relative (EXPO: 7.7e-8;
+        // expf: 1.9e-7), 2M points over [-ln 255 - 0.2, 0] against float64, measured 2026-12-06.
+        pm_v8f r2 = r * r;
+        pm_v8f pa = r * 1.6666665459e-1f + 5.0000001201e-1f;
+        pm_v8f pb = r * 8.3334519073e-3f + 4.1665795894e-2f;
+        pm_v8f pc = r * 1.9875691500e-4f + 1.3981999507e-3f;
+        pm_v8f e = (pa + r2 * (pb + r2 * pc)) * r2 + (r + 1.0f);
+        pm_v8i bits = (__builtin_convertvector(n, pm_v8i) + 127) << 23;
+        return e * __builtin_bit_cast(pm_v8f, bits);
+    };
+    const pm_v8i lane = {0, 1, 2, 3, 4, 5, 6, 7};
+    const pm_v8f zero = 0.0f;
+    pm_v8i dead = 0;
+    // w and T for pixels xs..xs+7 (the lanes past x1 unused: w = 0, T rewritten as read).
+#define PM_LANES                                                                        \
+        pm_v8f t;                                                                       \
+        __builtin_memcpy(&t, Tr + xs, sizeof(t));                                       \
+        pm_v8f dx = u - (__builtin_convertvector(xs + lane, pm_v8f) + 0.5f);           \
+        pm_v8f power = q0 - (A * dx * dx + B * dx * dy);                                \
+        pm_v8f al = vexpo(power);                                                       \
+        al = al > ALPHA_MAX ? (pm_v8f)(ALPHA_MAX) : al;                                 \
+        pm_v8i use = (power > -LN_255) & (al > ALPHA_MIN) & (t > 0.0f) & (xs + lane <= x1); \
+        al = use != 0 ? al : zero;                                                      \
+        pm_v8f tn = t * (1.0f - al);                                                    \
+        pm_v8i done = use & (tn <= T_DONE);                                             \
+        dead += done;                                                                   \
+        pm_v8f tw = done != 0 ? zero : tn;                                              \
+        __builtin_memcpy(Tr + xs, &tw, sizeof(tw));                                     \
+        pm_v8f w = (use & ~done) != 0 ? al * t : zero;                                  \
+        pm_v8f av;                                                                      \
+        __builtin_memcpy(&av, ar + xs, sizeof(av));                                     \
+        av += w;                                                                        \
+        __builtin_memcpy(ar + xs, &av, sizeof(av));
+#define PM_ADD(J, ...)                                                                  \
+        {                                                                               \
+            pm_v8f q;                                                                   \
+            __builtin_memcpy(&q, ob + 8 * J, sizeof(q));                                \
+            q += __builtin_shufflevector(w, w, __VA_ARGS__) * fe##J;                    \
+            __builtin_memcpy(ob + 8 * J, &q, sizeof(q));                                \
+        }
+VECTOR_ROWS
+#undef PM_LANES
+#undef PM_ADD
+    return -__builtin_reduce_add(dead);
+}
 auto weight = [&](int x, float t, int& died) -> float {
     float dx = u - ((float)x + 0.5f);
     float power = q0 - (A * dx * dx + B * dx * dy);
@@ -110,36 +208,18 @@ auto weight = [&](int x, float t, int& died) -> float {
     Tr[x] = done ? 0.0f : tn;
     return done ? 0.0f : al * t;
 };
-int died = 0;
-// K floats per pixel in `out` and per splat in `feats`: fixed-count loops for the splat render's colour + depth
-// (4) and with the photo texture's one or three channels (5, 7), which the compiler vectorises across the row.
-#define PM_ROW_FIXED(N)                                                     \
-    {                                                                       \
-        float fk[N];                                                        \
-        for (int k = 0; k < N; ++k) fk[k] = f[k];                           \
-        for (int x = x0; x <= x1; ++x) {                                    \
-            float w = weight(x, Tr[x], died);                               \
-            for (int k = 0; k < N; ++k) o[N * x + k] += w * fk[k];          \
-            ar[x] += w;                                                     \
-        }                                                                   \
-    }
-if (K == 4) PM_ROW_FIXED(4)
-else if (K == 5) PM_ROW_FIXED(5)
-else if (K == 7) PM_ROW_FIXED(7)
-else if (K == 8) PM_ROW_FIXED(8)
-else {
-    for (int x = x0; x <= x1; ++x) {
-        float w = weight(x, Tr[x], died);
-        if (w != 0.0f) {
-            for (int k = 0; k < K; ++k)
-                o[K * x + k] += w * f[k];
-            ar[x] += w;
-        }
+for (int x = x0; x <= x1; ++x) {
+    float w = weight(x, Tr[x], died);
+    if (w != 0.0f) {
+        for (int k = 0; k < K; ++k)
+            o[K * x + k] += w * f[k];
+        ar[x] += w;
     }
 }
-#undef PM_ROW_FIXED
 return died;
-""".replace("ALPHA_MAX", _f32(ALPHA_MAX)).replace("ALPHA_MIN", _f32(ALPHA_MIN)).replace(
+""".replace("VECTOR_KS", " ".join(f"PM_VK({k})" for k in VECTOR_K)).replace(
+    "VECTOR_ROWS", "\nelse ".join(_row_vector_k(k) for k in VECTOR_K)).replace(
+    "ALPHA_MAX", _f32(ALPHA_MAX)).replace("ALPHA_MIN", _f32(ALPHA_MIN)).replace(
     "T_DONE", _f32(T_DONE)).replace("LN_255", _f32(math.log(255.0)))
 
 
@@ -235,6 +315,7 @@ def _build(wp):
     ALPHA_MAX_ = wp.constant(ALPHA_MAX)
     T_DONE_ = wp.constant(T_DONE)
     LN_255 = wp.constant(math.log(255.0))
+    SPAN_FROM = wp.constant(2 * LANES)
 
     @wp.func
     def reaches(u: float, v: float, ca: float, cb: float, cc: float, r2: float, x0: float, x1: float,
@@ -332,20 +413,22 @@ def _build(wp):
 
     @wp.func_native(_ROW)
     def row(T: wp.array(dtype=float), out: wp.array(dtype=float), aout: wp.array(dtype=float),
-            feats: wp.array(dtype=float), K: int, m: int, base: int, x0: int, x1: int, u: float, dy: float,
-            ca: float, cb: float, cc: float, lm: float) -> int:
+            feats: wp.array(dtype=float), K: int, vec: int, m: int, base: int, x0: int, x1: int, u: float,
+            dy: float, ca: float, cb: float, cc: float, lm: float) -> int:
         ...
 
     @wp.kernel(enable_backward=False)
     def composite(start: wp.array(dtype=int), stop: wp.array(dtype=int), lists: wp.array(dtype=int),
                   uv: wp.array(dtype=wp.vec2),
                   conic: wp.array(dtype=wp.vec3), logo: wp.array(dtype=float), lo: wp.array(dtype=wp.vec2i),
-                  hi: wp.array(dtype=wp.vec2i), feats: wp.array(dtype=float), K: int, ts: int, TX: int, W: int,
+                  hi: wp.array(dtype=wp.vec2i), feats: wp.array(dtype=float), K: int, vec: int, ts: int, TX: int,
+                  W: int,
                   H: int, asked: wp.array(dtype=wp.uint8), T: wp.array(dtype=float),
                   out: wp.array(dtype=float), alpha_out: wp.array(dtype=float)):
-        # One tile: its splats front to back, each over the pixels of the tile its ellipse at alpha = 1/255 (plus
-        # the margin) holds, row by row (``row``); a pixel keeps its transmittance in T (0 once saturated, or not
-        # asked). ``feats`` and ``out`` hold K floats per splat / pixel.
+        # One tile: its splats front to back, each over the pixels of the tile its box holds (of a box over 16 px
+        # wide, its ellipse at alpha = 1/255 plus the margin), row by row (``row``); a pixel keeps its transmittance in T (0 once saturated, or not
+        # asked). ``feats`` and ``out`` hold K floats per splat / pixel; ``vec``: the row loop may use its vectors
+        # (``_ROW``).
         tile = wp.tid()
         s0 = start[tile]
         s1 = stop[tile]
@@ -376,10 +459,16 @@ def _build(wp):
             x0 = wp.max(lo[m][0], bx0)
             x1 = wp.min(hi[m][0], bx1)
             for y in range(wp.max(lo[m][1], by0), wp.min(hi[m][1], by1) + 1):
-                sp = span(cn[0], cn[1], cn[2], r2, u, v, y, x0, x1)
+                # A box up to 16 px wide (nearly every splat) is walked whole on every row: the same pixel tests
+                # decide (a pixel off the ellipse adds nothing), in one or two vectors a row, the same count on
+                # every row, which keeps the row loop predictable; a wider one (a long thin splat across the tile)
+                # walks each row's span only.
+                sp = wp.vec2i(x0, x1)
+                if x1 - x0 >= SPAN_FROM:
+                    sp = span(cn[0], cn[1], cn[2], r2, u, v, y, x0, x1)
                 if sp[0] <= sp[1]:
-                    alive -= row(T, out, alpha_out, feats, K, m, y * W, sp[0], sp[1], u, v - (float(y) + 0.5),
-                                 cn[0], cn[1], cn[2], lm)
+                    alive -= row(T, out, alpha_out, feats, K, vec, m, y * W, sp[0], sp[1], u,
+                                 v - (float(y) + 0.5), cn[0], cn[1], cn[2], lm)
 
     INF = wp.constant(math.inf)
     ewa, store = projection_funcs()
@@ -479,20 +568,24 @@ def composite_warp(proj: Projected, features: torch.Tensor, width: int, height: 
         # K floats per splat and pixel: the channels as they are for 5-7 of them (the photo texture's), else in
         # groups of four, zero-padded.
         K = C if C in (5, 7) else 4 * -(-C // 4)
-        if K == C:
-            fq = features.to(f32).contiguous()
-        else:
-            fq = torch.zeros(M, K, dtype=f32)
-            fq[:, :C] = features
-        out = torch.zeros(height * width, K, dtype=f32)
-        alpha = torch.zeros(height * width, dtype=f32)
-        trans = torch.empty(height * width, dtype=f32)
+        # Every buffer the row loop reads eight pixels (one splat's 8 floats) at a time from has LANES more at its
+        # end (``_ROW``: a row's last vector reaches up to 7 pixels past the row's end).
+        fq = torch.zeros(M * K + LANES, dtype=f32)
+        fq[:M * K].view(M, K)[:, :C] = features
+        # 0 x inf would reach the vectors' unused lanes: all finite when their sum is (one pass, no mask; a sum that
+        # overflows only sends the frame to the scalar loop).
+        vec = int(math.isfinite(float(fq.sum())))
+        n = height * width
+        out = torch.zeros((n + LANES) * K, dtype=f32)
+        alpha = torch.zeros(n + LANES, dtype=f32)
+        trans = torch.empty(n + LANES, dtype=f32)
         first, last = start[:-1], start[1:]
         wp.launch(composite, dim=TX * TY, device="cpu",
                   inputs=[view(first, int), view(last, int), view(lists, int), uv, conic, logo, lo, hi,
-                          view(fq.view(-1), float), K, ts, TX, width, height, view(asked, wp.uint8),
-                          view(trans, float), view(out.view(-1), float), view(alpha, float)])
+                          view(fq, float), K, vec, ts, TX, width, height, view(asked, wp.uint8),
+                          view(trans, float), view(out, float), view(alpha, float)])
         wp.synchronize_device("cpu")
+        out, alpha = out[:n * K].view(n, K), alpha[:n]
         if split:
             return out.view(height, width, K), alpha.view(height, width)
         img = torch.cat([out[:, :C], alpha[:, None]], 1) if K != C else torch.cat([out, alpha[:, None]], 1)
@@ -517,11 +610,29 @@ def screen_bounds(wp, fx: float, fy: float, cx: float, cy: float, width: int, he
     return lim, float(max(width, height) * 4 + 16)
 
 
+def depth_order(key: torch.Tensor) -> torch.Tensor:
+    """(M,) int64: the indices of the finite entries of the float32 ``key`` (N,) (a projection kernel's: the drawn
+    splats' z, +inf for the culled), in a stable ascending sort by key: Warp's radix sort of (key, index) pairs, the
+    same order as torch's stable argsort (keys equal: by index) in a fifth of its time (45k splats: 0.6 against
+    2.8 ms, one core, measured 2026-12-06). Culled keys (+inf) sort last and are dropped."""
+    wp = _build()[0]
+    n = int(key.shape[0])
+    if n == 0:
+        return torch.zeros(0, dtype=torch.long)
+    keys = torch.empty(2 * n, dtype=torch.float32)  # the sort's scratch: twice the length
+    vals = torch.empty(2 * n, dtype=torch.int32)
+    torch.add(key, 0.0, out=keys[:n])  # -0 -> +0: the radix sort orders -0 before +0, the comparison sort ties them
+    torch.arange(n, dtype=torch.int32, out=vals[:n])
+    wp.utils.radix_sort_pairs(wp.array(keys.numpy(), dtype=float, device="cpu", copy=False),
+                              wp.array(vals.numpy(), dtype=int, device="cpu", copy=False), n)
+    m = int(torch.searchsorted(keys[:n], torch.tensor([math.inf]), side="left"))  # sorted: the finite ones first
+    return vals[:m].long()
+
+
 def drawn(key: torch.Tensor, uv: torch.Tensor, conic: torch.Tensor, logo: torch.Tensor, lo: torch.Tensor,
           hi: torch.Tensor) -> Projected:
     """The drawn splats (finite key) of a projection kernel's outputs, front to back (a stable sort by key)."""
-    ok = (key < math.inf).nonzero().squeeze(1)
-    order = ok.index_select(0, torch.argsort(key.index_select(0, ok), stable=True))
+    order = depth_order(key)
     return Projected(index=order, uv=uv.index_select(0, order), conic=conic.index_select(0, order),
                      log_opacity=logo.index_select(0, order), pix_lo=lo.index_select(0, order).long(),
                      pix_hi=hi.index_select(0, order).long())

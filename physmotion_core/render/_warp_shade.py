@@ -81,13 +81,16 @@ auto keys = [](float t, float* w) {
     w[2] = ((a + 2.0f) * r - (a + 3.0f)) * r * r + 1.0f;
     w[3] = 1.0f - w[0] - w[1] - w[2];
 };
+typedef float pm_v4f __attribute__((ext_vector_type(4)));
 for (int bx = 0; bx < bw; ++bx) {
+    // A pixel without a photo coordinate keeps the frame's colour and coverage, which the caller put in out_rgb and
+    // out_a (the formulas below give them back exactly there: w = 0, no floor excess).
+    if (!OK[bx]) continue;
     const long p = (long)y * W + x0 + bx;
     const float a = alpha.data[p];
-    const float c0 = rgb.data[3 * p], c1 = rgb.data[3 * p + 1], c2 = rgb.data[3 * p + 2];
     float w = 0.0f;
     float smp[4] = {0.0f, 0.0f, 0.0f, 0.0f};
-    if (OK[bx]) {
+    {
         const float S = ext.data[p * C + C - 1];
         float sh = S / (a > 1e-12f ? a : 1e-12f);
         sh = sh < 0.0f ? 0.0f : (sh > 1.0f ? 1.0f : sh);
@@ -102,7 +105,25 @@ for (int bx = 0; bx < bw; ++bx) {
             float wx[4], wy[4];
             keys((float)(mx - fx), wx);
             keys((float)(my - fy), wy);
-            for (int j = 0; j < 4; ++j) {
+            if (ix >= 1 && ix + 2 < PW && iy >= 1 && iy + 2 < PH) {
+                // All 16 taps inside the photo (most pixels): each tap's 4 floats as one vector, no bounds tests.
+                pm_v4f acc = 0.0f;
+                for (int j = 0; j < 4; ++j) {
+                    const float* t = P + 4 * ((long)(iy - 1 + j) * PW + ix - 1);
+                    pm_v4f t0, t1, t2, t3;
+                    __builtin_memcpy(&t0, t, 16);
+                    __builtin_memcpy(&t1, t + 4, 16);
+                    __builtin_memcpy(&t2, t + 8, 16);
+                    __builtin_memcpy(&t3, t + 12, 16);
+                    pm_v4f row = 0.0f;
+                    row += wx[0] * t0;
+                    row += wx[1] * t1;
+                    row += wx[2] * t2;
+                    row += wx[3] * t3;
+                    acc += wy[j] * row;
+                }
+                smp[0] = acc[0]; smp[1] = acc[1]; smp[2] = acc[2]; smp[3] = acc[3];
+            } else for (int j = 0; j < 4; ++j) {
                 const int yy = iy - 1 + j;
                 if (yy < 0 || yy >= PH) continue;
                 float row[4] = {0.0f, 0.0f, 0.0f, 0.0f};
@@ -137,51 +158,96 @@ return 0;
 
 
 
+#: ``coords``' loop over one row of the box (C++): the photo coordinates of its pixels and whether they have one.
+_COORDS_ROW = r"""
+const int y = y0 + by;
+const double ry = ((double)y + 0.5 - rcy) / rfy;
+double* U = u_out.data + (size_t)by * bw;
+double* V = v_out.data + (size_t)by * bw;
+unsigned char* OK = ok.data + (size_t)by * bw;
+const float* E = ext.data + ((size_t)y * W + x0) * C;
+const float* D = depth.data + (size_t)y * W + x0;
+for (int bx = 0; bx < bw; ++bx) {
+    const float S = E[(size_t)bx * C + C - 1];
+    double uu = 0.0, vv = 0.0;
+    bool good = S > 1.0e-6f;
+    const double rx = ((double)(x0 + bx) + 0.5 - rcx) / rfx;
+    if (good) {
+        if (one != 0) {
+            const double d = (double)D[bx];
+            double X = A.data[0][0] * rx + A.data[0][1] * ry + A.data[0][2];
+            double Y = A.data[1][0] * rx + A.data[1][1] * ry + A.data[1][2];
+            double Z = A.data[2][0] * rx + A.data[2][1] * ry + A.data[2][2];
+            X = d * X + b.c[0];
+            Y = d * Y + b.c[1];
+            Z = d * Z + b.c[2];
+            if (Z > 1.0e-9) {
+                uu = pfx * X / Z + pcx;
+                vv = pfy * Y / Z + pcy;
+            } else {
+                good = false;
+            }
+        } else {
+            const double sd = (double)S;
+            uu = pfx * rx + pcx + (double)E[(size_t)bx * C] / sd;
+            vv = pfy * ry + pcy + (double)E[(size_t)bx * C + 1] / sd;
+        }
+    }
+    U[bx] = uu;
+    V[bx] = vv;
+    OK[bx] = good ? 1 : 0;
+}
+return 0;
+"""
+
+#: ``seen_rows``' loop over one row of the frame (C++): its first and last pixel with seen coverage (S > 1e-6), -1 if
+#: none.
+_SEEN_ROW = r"""
+const float* E = ext.data + (size_t)y * W * C + C - 1;
+int first = -1, last = -1;
+for (int x = 0; x < W; ++x) {
+    if (E[(size_t)x * C] > 1.0e-6f) {
+        if (first < 0) first = x;
+        last = x;
+    }
+}
+lo.data[y] = first;
+hi.data[y] = last;
+return 0;
+"""
+
+
 @built_once
 def _build(wp):
     f64 = wp.float64
+
+    @wp.func_native(_COORDS_ROW)
+    def coords_row(ext: wp.array(dtype=float), C: int, depth: wp.array(dtype=float), W: int, x0: int, y0: int,
+                   bw: int, by: int, one: int, A: wp.mat33d, b: wp.vec3d, rfx: f64, rfy: f64, rcx: f64, rcy: f64,
+                   pfx: f64, pfy: f64, pcx: f64, pcy: f64, u_out: wp.array(dtype=f64), v_out: wp.array(dtype=f64),
+                   ok: wp.array(dtype=wp.uint8)) -> int:
+        ...
 
     @wp.kernel(enable_backward=False)
     def coords(ext: wp.array(dtype=float), C: int, depth: wp.array(dtype=float), W: int, x0: int, y0: int,
                bw: int, one: int, A: wp.mat33d, b: wp.vec3d, rfx: f64, rfy: f64, rcx: f64, rcy: f64,
                pfx: f64, pfy: f64, pcx: f64, pcy: f64, u_out: wp.array(dtype=f64),
                v_out: wp.array(dtype=f64), ok: wp.array(dtype=wp.uint8)):
-        # One pixel of the box: its photo coordinate (pixel units, centres at +0.5) and whether it has one
-        # (seen splats reach it, and under the one map its surface point lies in front of the photo's camera).
-        i = wp.tid()
-        x = x0 + i % bw
-        y = y0 + i / bw
-        p = y * W + x
-        S = ext[p * C + C - 1]
-        u = f64(0.0)
-        v = f64(0.0)
-        good = S > 1.0e-6
-        rx = (f64(x) + f64(0.5) - rcx) / rfx
-        ry = (f64(y) + f64(0.5) - rcy) / rfy
-        if good:
-            if one != 0:
-                d = f64(depth[p])
-                X = A[0, 0] * rx + A[0, 1] * ry + A[0, 2]
-                Y = A[1, 0] * rx + A[1, 1] * ry + A[1, 2]
-                Z = A[2, 0] * rx + A[2, 1] * ry + A[2, 2]
-                X = d * X + b[0]
-                Y = d * Y + b[1]
-                Z = d * Z + b[2]
-                if Z > f64(1.0e-9):
-                    u = pfx * X / Z + pcx
-                    v = pfy * Y / Z + pcy
-                else:
-                    good = False
-            else:
-                s = f64(S)
-                u = pfx * rx + pcx + f64(ext[p * C]) / s
-                v = pfy * ry + pcy + f64(ext[p * C + 1]) / s
-        u_out[i] = u
-        v_out[i] = v
-        if good:
-            ok[i] = wp.uint8(1)
-        else:
-            ok[i] = wp.uint8(0)
+        # One row of the box: each pixel's photo coordinate (pixel units, centres at +0.5) and whether it has one
+        # (seen splats reach it, and under the one map its surface point lies in front of the photo's camera):
+        # ``_COORDS_ROW``.
+        coords_row(ext, C, depth, W, x0, y0, bw, wp.tid(), one, A, b, rfx, rfy, rcx, rcy, pfx, pfy, pcx, pcy, u_out,
+                   v_out, ok)
+
+    @wp.func_native(_SEEN_ROW)
+    def seen_row(ext: wp.array(dtype=float), C: int, W: int, y: int, lo: wp.array(dtype=int),
+                 hi: wp.array(dtype=int)) -> int:
+        ...
+
+    @wp.kernel(enable_backward=False)
+    def seen_rows(ext: wp.array(dtype=float), C: int, W: int, lo: wp.array(dtype=int), hi: wp.array(dtype=int)):
+        # One row of the frame: its first and last pixel that seen splats reach (``_SEEN_ROW``).
+        seen_row(ext, C, W, wp.tid(), lo, hi)
 
     @wp.func_native(_STRETCH_ROW)
     def stretch_row(u: wp.array(dtype=f64), v: wp.array(dtype=f64), ok: wp.array(dtype=wp.uint8), bw: int,
@@ -215,7 +281,22 @@ def _build(wp):
         blend_row(u, v, ok, ext, C, rgb, alpha, dist, W, x0, y0, bw, bh, by, planes, PW, PH, min_cov, in0, in1,
                   fade, out_rgb, out_a)
 
-    return wp, coords, stretch, blend
+    @wp.kernel(enable_backward=False)
+    def shift_features(means: wp.array(dtype=wp.vec3d), R: wp.mat33d, t: wp.vec3d, pfx: f64, pfy: f64, pcx: f64,
+                       pcy: f64, uv0: wp.array(dtype=wp.vec2d), seen: wp.array(dtype=f64),
+                       out: wp.array(dtype=wp.vec3)):
+        # One splat: its centre now in the render camera, the photo pixel its ray meets (the render camera is the
+        # photo's, possibly resized), the shift from there to where the photo shows the centre at rest, times the
+        # seen weight, and the weight (``photo_texture.texture_features``), in float64, stored in float32.
+        i = wp.tid()
+        p = R * means[i] + t
+        z = wp.max(p[2], f64(1.0e-9))
+        s = seen[i]
+        q = uv0[i]
+        out[i] = wp.vec3(float((q[0] - (pfx * (p[0] / z) + pcx)) * s), float((q[1] - (pfy * (p[1] / z) + pcy)) * s),
+                         float(s))
+
+    return wp, coords, stretch, blend, shift_features, seen_rows
 
 
 def available() -> bool:
@@ -247,7 +328,7 @@ def planes_array(planes: np.ndarray):
 
 def photo_coords(ext: torch.Tensor, depth: torch.Tensor, box: tuple, camera, photo_camera, one_map=None):
     """(u, v) float64 (bh*bw) and ok uint8 (bh*bw): the photo coordinates of the box's pixels (``coords``)."""
-    wp, coords, _, _ = _build()
+    wp, coords, _, _, _, _ = _build()
     y0, y1, x0, x1 = box
     bh, bw = y1 - y0, x1 - x0
     H, W, C = ext.shape
@@ -262,7 +343,7 @@ def photo_coords(ext: torch.Tensor, depth: torch.Tensor, box: tuple, camera, pho
     else:
         Aw, bv = wp.mat33d(), wp.vec3d()
     pc = photo_camera
-    wp.launch(coords, dim=bh * bw, device="cpu",
+    wp.launch(coords, dim=bh, device="cpu",
               inputs=[_arr(wp, ext, float, keep), C, _arr(wp, depth, float, keep), W, x0, y0, bw,
                       int(one_map is not None), Aw, bv, float(camera.fx), float(camera.fy), float(camera.cx),
                       float(camera.cy), float(pc.fx), float(pc.fy), float(pc.cx), float(pc.cy),
@@ -274,7 +355,7 @@ def photo_coords(ext: torch.Tensor, depth: torch.Tensor, box: tuple, camera, pho
 def stretch_fade(u, v, ok, box, lo: float, hi: float) -> torch.Tensor:
     """(bh, bw) float32: the photo's weight left by the stretch of the box's photo coordinates (``_STRETCH_ROW``:
     1 up to a magnification of ``lo``, 0 from ``hi``, linear in it between; 1 where a pixel has no coordinate)."""
-    wp, _, kernel, _ = _build()
+    wp, _, kernel, _, _, _ = _build()
     y0, y1, x0, x1 = box
     bh, bw = y1 - y0, x1 - x0
     keep: list = []
@@ -288,7 +369,7 @@ def stretch_fade(u, v, ok, box, lo: float, hi: float) -> torch.Tensor:
 
 def blend(u, v, ok, fade, ext, rgb, alpha, dist, box, planes, planes_wp, consts, out_rgb, out_a) -> None:
     """The ``blend`` loop over the box, writing ``out_rgb`` (H,W,3) and ``out_a`` (H,W) there (contiguous)."""
-    wp, _, _, kernel = _build()
+    wp, _, _, kernel, _, _ = _build()
     y0, y1, x0, x1 = box
     bh, bw = y1 - y0, x1 - x0
     H, W, C = ext.shape
@@ -303,3 +384,46 @@ def blend(u, v, ok, fade, ext, rgb, alpha, dist, box, planes, planes_wp, consts,
               outputs=[wp.array(out_rgb.numpy().reshape(-1), dtype=float, device="cpu", copy=False),
                        wp.array(out_a.numpy().reshape(-1), dtype=float, device="cpu", copy=False)])
     wp.synchronize_device("cpu")
+
+
+def texture_shift_features(means: torch.Tensor, w2c: torch.Tensor, photo_camera, uv0: torch.Tensor,
+                           seen: torch.Tensor) -> torch.Tensor:
+    """(N, 3) float32: ``photo_texture.texture_features`` of the splats at ``means`` (N, 3) for a render camera
+    ``w2c`` (4x4, OpenCV axes) that is ``photo_camera`` possibly resized: s·Δ and s, Δ = ``uv0`` (N, 2, the photo
+    pixels of the centres at rest) minus the photo pixel of each centre's ray now; computed in float64 in one loop
+    (``shift_features``) instead of a dozen whole-array tensor operations."""
+    wp, _, _, _, kernel, _ = _build()
+    n = int(means.shape[0])
+    out = torch.empty(n, 3, dtype=torch.float32)
+    if n == 0:
+        return out
+    keep: list = []
+    w = w2c.detach().double()
+    R = wp.mat33d(*[float(x) for x in w[:3, :3].reshape(-1).tolist()])
+    t = wp.vec3d(*[float(x) for x in w[:3, 3].tolist()])
+    pc = photo_camera
+    wp.launch(kernel, dim=n, device="cpu",
+              inputs=[_arr(wp, means.detach().double(), wp.vec3d, keep), R, t, float(pc.fx), float(pc.fy), float(pc.cx),
+                      float(pc.cy), _arr(wp, uv0.double(), wp.vec2d, keep), _arr(wp, seen.double(), wp.float64, keep),
+                      _arr(wp, out, wp.vec3, keep)])
+    wp.synchronize_device("cpu")
+    return out
+
+
+def seen_box(ext: torch.Tensor):
+    """The box (y0, y1, x0, x1) of the pixels of ``ext`` (H, W, C; its last channel the seen coverage S) with
+    S > 1e-6, or None when there are none: one pass over the frame's rows (``seen_rows``)."""
+    wp, _, _, _, _, kernel = _build()
+    H, W, C = ext.shape
+    keep: list = []
+    lo = torch.empty(H, dtype=torch.int32)
+    hi = torch.empty(H, dtype=torch.int32)
+    wp.launch(kernel, dim=H, device="cpu", inputs=[_arr(wp, ext, float, keep), C, W, _arr(wp, lo, wp.int32, keep),
+                                                   _arr(wp, hi, wp.int32, keep)])
+    wp.synchronize_device("cpu")
+    rows = (hi >= 0).nonzero()
+    if rows.numel() == 0:
+        return None
+    y0, y1 = int(rows[0]), int(rows[-1]) + 1
+    lo, hi = lo[y0:y1], hi[y0:y1]
+    return y0, y1, int(lo[hi >= 0].min()), int(hi.max()) + 1

@@ -187,7 +187,7 @@ def render_frames(sim: SimResult, camera: Camera, *, device: Optional[torch.devi
                     rgb[k], alpha[k], depth[k] = rgb[k - 1], alpha[k - 1], depth[k - 1]
                     done(k)
                     continue
-                g = sim.gaussians_at(k)
+                g = poser.rest_gaussians if poser is not None and k == 0 else sim.gaussians_at(k)
                 if poser is None:
                     out = rasterize(g.to(dev), camera, backend=backend)
                     rgb[k] = out.rgb.cpu()

@@ -374,12 +374,22 @@ def shade(texture: PhotoTexture, camera: Camera, rgb: torch.Tensor, alpha: torch
         out_rgb, out_a = into
         out_rgb.copy_(rgb)
         out_a.copy_(alpha)
+    if compiled is None:
+        from . import _warp_shade
+
+        compiled = _warp_shade.available()
+    # The box of the pixels the seen splats reach (S > 1e-6): every pass below works in it.
     S = extra[..., -1]
-    has = S > 1e-6
-    rows, cols = has.any(1).nonzero(), has.any(0).nonzero()
-    if rows.numel() == 0:
+    if compiled:
+        from . import _warp_shade
+
+        box = _warp_shade.seen_box(extra)
+    else:
+        has = S > 1e-6
+        rows, cols = has.any(1).nonzero(), has.any(0).nonzero()
+        box = None if rows.numel() == 0 else (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
+    if box is None:
         return out_rgb, out_a
-    box = (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
     y0, y1, x0, x1 = box
     pc = texture.camera
     photo_map = None
@@ -387,10 +397,6 @@ def shade(texture: PhotoTexture, camera: Camera, rgb: torch.Tensor, alpha: torch
         A0, b0 = one_map
         M, c = _to_photo_camera(camera, pc)
         photo_map = (M @ A0.double(), M @ b0.double() + c)
-    if compiled is None:
-        from . import _warp_shade
-
-        compiled = _warp_shade.available()
     import cv2
 
     a = alpha[y0:y1, x0:x1]
@@ -456,6 +462,7 @@ class TexturedPoser:
 
         self.sim, self.camera, self.texture = sim, camera, texture
         g0 = sim.gaussians_at(0)
+        self.rest_gaussians = g0  # frame 0 posed: the renderer draws it from here instead of posing it again
         if texture.seen is None or texture.seen.shape[0] != g0.means.shape[0]:
             texture.seen = seen_weights(g0, texture.camera, backend=backend)
         self.seen = texture.seen
@@ -463,6 +470,9 @@ class TexturedPoser:
         self.mu0 = g0.means.double()
         self.L0 = _splat_linear_part(sim, 0)
         self._bound = None
+        self._seen64 = None  # the seen weights in float64 (features), and the rest pose in the render camera
+        self._rest_cam = None  # (_one_map), made on first use
+        self._use_compiled = None  # whether features() takes the compiled loop (``_compiled``)
         # Where the photo shows each splat's centre at rest (photo pixels).
         pw = texture.camera.w2c_opencv().double()
         mc = self.mu0 @ pw[:3, :3].T + pw[:3, 3]
@@ -487,17 +497,34 @@ class TexturedPoser:
         from .. import controls as C
 
         R, t = self.w2c[:3, :3], self.w2c[:3, 3]
-        ms = g.means.double() @ R.T + t  # the centres now, render-camera coordinates
-        one = None
+        one, ms = None, None
         if C.ONE_MAP_FLOW and not self._clearly_deformed(frame):
+            ms = torch.addmm(t, g.means.double(), R.T)  # the centres now, render-camera coordinates
             one = self._one_map(frame, ms)
+        if one is None and g.means.device.type == "cpu" and self._compiled():
+            from . import _warp_shade
+
+            return _warp_shade.texture_shift_features(g.means, self.w2c, self.texture.camera, self.uv0,
+                                                      self.seen).to(g.means.dtype), None
         shift = None
         if one is None:
-            z = ms[:, 2].clamp_min(1e-9)
-            r = torch.stack([ms[:, 0] / z, ms[:, 1] / z, torch.ones_like(z)], 1)
+            if ms is None:
+                ms = torch.addmm(t, g.means.double(), R.T)
+            r = ms[:, :2] / ms[:, 2:].clamp_min(1e-9)  # the rays' x/z, y/z (their z = 1 is not needed)
             px, py = _render_to_photo_px(self.camera, self.texture.camera, r)
             shift = self.uv0 - torch.stack([px, py], 1)
-        return texture_features(self.seen.to(torch.float64), shift).to(g.means.dtype).to(g.means.device), one
+        if self._seen64 is None:
+            self._seen64 = self.seen.to(torch.float64)
+        return texture_features(self._seen64, shift).to(g.means.dtype).to(g.means.device), one
+
+    def _compiled(self) -> bool:
+        """Whether the per-splat channels are computed compiled (``_warp_shade.texture_shift_features``; the tensor
+        operations below are its twin, for a Warp that is unavailable)."""
+        if self._use_compiled is None:
+            from . import _warp_shade
+
+            self._use_compiled = _warp_shade.available()
+        return self._use_compiled
 
     def _clearly_deformed(self, frame: int) -> bool:
         """Whether the particles' deformation gradients at ``frame`` differ from one another by more than 0.1 %
@@ -523,11 +550,15 @@ class TexturedPoser:
         b_idx = self._bound
         L = C._splat_linear_part(self.sim, frame)[b_idx]
         R = self.w2c[:3, :3]
-        A_p = R @ (self.L0[b_idx] @ C._inverse(L)) @ R.T
-        A0 = A_p.mean(0)
-        dA = float((A_p - A0).flatten(1).norm(dim=1).max())
-        t = self.w2c[:3, 3]
-        m0 = self.mu0 @ R.T + t
+        if self._rest_cam is None:  # the bound particles' rest deformation and the rest centres (camera coordinates)
+            self._rest_cam = (self.L0[b_idx], torch.addmm(self.w2c[:3, 3], self.mu0, R.T))
+        L0, m0 = self._rest_cam
+        # The maps in world axes, B_p = L0 L^-1; in camera axes A_p = R B_p Rᵀ, whose mean is R B̄ Rᵀ and whose
+        # spread has the same (Frobenius) norms: the camera's rotation is applied to the mean only.
+        B_p = L0 @ C._inverse(L)
+        B0 = B_p.mean(0)
+        dA = float((B_p - B0).flatten(1).norm(dim=1).max())
+        A0 = R @ B0 @ R.T
         b = m0 - ms @ A0.T
         b0 = b.mean(0)
         db = float((b - b0).norm(dim=1).max())
