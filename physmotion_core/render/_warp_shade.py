@@ -82,6 +82,8 @@ auto keys = [](float t, float* w) {
     w[3] = 1.0f - w[0] - w[1] - w[2];
 };
 typedef float pm_v4f __attribute__((ext_vector_type(4)));
+// The interior ramp's slope, once (exactly the division's result for INTERIOR_PX's 2 px span: a power of two).
+const float inv_in = 1.0f / (in1 - in0);
 for (int bx = 0; bx < bw; ++bx) {
     // A pixel without a photo coordinate keeps the frame's colour and coverage, which the caller put in out_rgb and
     // out_a (the formulas below give them back exactly there: w = 0, no floor excess).
@@ -140,12 +142,13 @@ for (int bx = 0; bx < bw; ++bx) {
     float m_s = smp[3] < 0.0f ? 0.0f : (smp[3] > 1.0f ? 1.0f : smp[3]);
     const float keep = 1.0f - w;
     const float am = w * m_s + keep * a;
-    float ramp_in = (dr[bx] - in0) / (in1 - in0);
+    float ramp_in = (dr[bx] - in0) * inv_in;
     ramp_in = ramp_in < 0.0f ? 0.0f : (ramp_in > 1.0f ? 1.0f : ramp_in);
     const float fl = a * ramp_in;
     const float ex = fl - am > 0.0f ? fl - am : 0.0f;
     out_a.data[p] = am + ex;
-    const float g = ex / (a > 1e-6f ? a : 1e-6f);
+    float g = 0.0f;  // the floor's excess, relative: mostly none (a branch, not a division on every pixel)
+    if (__builtin_expect(ex > 0.0f, 0)) g = ex / (a > 1e-6f ? a : 1e-6f);
     for (int k = 0; k < 3; ++k) {
         float cs = smp[k] > 0.0f ? smp[k] : 0.0f;
         cs = cs < m_s ? cs : m_s;
