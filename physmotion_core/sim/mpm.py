@@ -29,6 +29,10 @@ MAX_TORQUES = 30  # torque regions are a per-particle bit mask
 # Models whose particles transfer without the affine velocity next to Coulomb-friction ground (kernels.p2g):
 # the elastic solids, which otherwise crept on a slope at 0.9 μ; flowing materials keep APIC there.
 CONTACT_PIC_MODELS = ("fixed_corotated", "neo_hookean", "fracture")
+# How long the ground's Coulomb friction keeps the budget a column left unused (kernels.static_friction), in
+# periods of the bodies' slowest vertical ringing, 4 H / c (H: the active box's height above the ground,
+# c: the stiffest wave speed); 0 = none, Coulomb's law on each substep's impulses alone (issue 37).
+FRICTION_MEMORY = 1.0
 TRANSFERS = ("apic", "pic")  # particle-grid velocity transfer: affine (APIC / MLS-MPM) or plain PIC
 SPAN_QUANTUM = 4  # grid spans are rounded out to multiples of this many nodes (fewer graph captures)
 MAX_SPAN_MARGIN = 32  # nodes of room around the particles' stencils a span may add per side (graphs)
@@ -260,8 +264,12 @@ class MPMSolver:
         threads: int = 0,
         objects: Optional[np.ndarray] = None,
         object_contact: Optional[ObjectContact] = None,
+        friction_memory: float = FRICTION_MEMORY,
     ):
         _check_materials(materials, transfer)
+        if not (math.isfinite(friction_memory) and friction_memory >= 0.0):
+            raise InputError(f"friction_memory must be a finite number >= 0; got {friction_memory}")
+        self.friction_memory = float(friction_memory)
         self.apic = 1.0 if transfer == "apic" else 0.0
         self.wp = wp = _warp()
         self.device = device
@@ -415,6 +423,9 @@ class MPMSolver:
         self.grid_v = wp.zeros((self.fields,) + tuple(dims), dtype=wp.vec3)  # one velocity field per object
         # The masses of the nodes at and below the ground plane (kernels.ground_contact), per field.
         self.ground_m = wp.zeros((self.fields, dims[0], max(self.domain.ground_node + 1, 1), dims[2]), dtype=float)
+        # Per ground column and field, the friction budget (an impulse) its substeps left unused
+        # (kernels.static_friction).
+        self.ground_credit = wp.zeros((self.fields, dims[0], dims[2]), dtype=float)
         self.layers = 1
         self._layer_lo = (0, 0, 0)
         self._layer_hi = tuple(int(d) - 1 for d in dims)
@@ -500,6 +511,8 @@ class MPMSolver:
         self._ctl[K.C_FRAME_VMAX] = vmax0
         deformable = (flags & (K.FLAG_ANCHORED | K.FLAG_RIGID)) == 0
         self._ctl[K.C_DEF_MASS] = float(mass[deformable].astype(np.float64).sum())
+        self._ctl[K.C_GROUND_Y] = float(self.domain.origin[1] + self.domain.ground_node * self.domain.dx)
+        self._ctl[K.C_GROUND_MEMORY] = self.friction_memory
         self._status = np.zeros(K.N_STATUS, np.int32)
         self._status[K.I_MAX_FRAME_SUBSTEPS] = 2 ** 31 - 1
         self.stats.assign(st)
@@ -854,7 +867,8 @@ class MPMSolver:
             for slab_dims, slab_lo, run in slabs], True))
         if self.ground is not None and span_lo[1] <= self.domain.ground_node:
             step(K.ground_contact, (dims[0], dims[2]), [self.grid_v, self.ground_m, self.grid_mv, lo, self.bc,
-                                                        self._layer_lo_w, int(anchors), alo, ahi])
+                                                        self._layer_lo_w, int(anchors), alo, ahi,
+                                                        self.ground_credit, self.dt_arr, self.ctl])
         if anchors:
             # The anchored nodes, from the sums grid_update left in layer 0 (kernels.anchor_update), over the
             # anchor's span only: elsewhere no node is held or next to a held one, and these passes change nothing.
