@@ -34,6 +34,9 @@ def device_available_bytes(device: str) -> int:
         try:
             import warp as wp
 
+            from .warp_build import quiet_warp
+
+            quiet_warp(wp)
             return int(wp.get_device(device).free_memory)
         except Exception:  # noqa: BLE001
             return 8 << 30

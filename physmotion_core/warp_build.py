@@ -13,6 +13,15 @@ from typing import Callable, TypeVar
 T = TypeVar("T")
 
 
+def quiet_warp(wp) -> None:
+    """Before Warp initialises: no banner and no per-module load lines in the user's output, warnings
+    still shown. Warp before 1.10 reads ``config.quiet``; later ones read ``config.log_level``."""
+    wp.config.quiet = True
+    level = getattr(wp, "LOG_WARNING", None)
+    if level is not None and hasattr(wp.config, "log_level"):
+        wp.config.log_level = level
+
+
 def built_once(build: Callable[..., T]) -> Callable[[], T]:
     """Decorator: ``build(wp)`` defines a module's Warp functions and kernels and returns them; the decorated
     function, called with no arguments, imports and initialises Warp and runs ``build`` on its first call, and
@@ -27,7 +36,7 @@ def built_once(build: Callable[..., T]) -> Callable[[], T]:
             if not done:
                 import warp as wp
 
-                wp.config.quiet = True
+                quiet_warp(wp)
                 wp.init()
                 done.append(build(wp))
             return done[0]

@@ -83,10 +83,9 @@ def worker_init(threads: int, gpu_slots=None, kernel_cache: Optional[str] = None
     logging.getLogger("physmotion").addHandler(logging.NullHandler())  # warnings go to the job records
     import warp
 
-    # No start-up banner from every worker (Warp >= 1.10 reads log_level, older versions quiet).
-    warp.config.quiet = True
-    if hasattr(warp, "LOG_WARNING"):
-        warp.config.log_level = warp.LOG_WARNING
+    from ..warp_build import quiet_warp
+
+    quiet_warp(warp)  # no start-up banner from every worker
     import torch  # noqa: F401 - imported here, once, with the thread settings in place
 
     torch.set_num_threads(max(1, int(threads)))

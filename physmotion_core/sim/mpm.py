@@ -64,7 +64,9 @@ MIN_SLAB_NODES = 65536  # grid spans smaller than this are updated by one thread
 def _warp():
     import warp as wp
 
-    wp.config.quiet = True
+    from ..warp_build import quiet_warp
+
+    quiet_warp(wp)
     wp.init()
     return wp
 
