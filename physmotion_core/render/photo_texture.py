@@ -501,7 +501,7 @@ class TexturedPoser:
         if C.ONE_MAP_FLOW and not self._clearly_deformed(frame):
             ms = torch.addmm(t, g.means.double(), R.T)  # the centres now, render-camera coordinates
             one = self._one_map(frame, ms)
-        if one is None and g.means.device.type == "cpu" and self._compiled():
+        if one is None and g.means.device.type == "cpu" and g.means.dtype == torch.float32 and self._compiled():
             from . import _warp_shade
 
             return _warp_shade.texture_shift_features(g.means, self.w2c, self.texture.camera, self.uv0,
