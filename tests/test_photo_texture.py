@@ -341,24 +341,6 @@ def test_compiled_texture_features_match_the_tensor_path():
     torch.testing.assert_close(got, want, atol=1e-5, rtol=1e-6)
 
 
-def test_compiled_seen_box_is_the_tensor_box():
-    """``_warp_shade.seen_box``: the box of the pixels with seen coverage S > 1e-6 (the last channel), as the tensor
-    path finds it, for scattered pixels, ones on the frame's edges, S exactly at the threshold, and none."""
-    from physmotion_core.render import _warp_shade
-
-    gen = torch.Generator().manual_seed(2)
-    for C, spots in ((1, [(5, 7), (30, 2), (12, 40)]), (3, [(0, 0)]), (3, [(44, 63), (17, 31)]), (1, [])):
-        ext = torch.rand(45, 64, C, generator=gen)
-        ext[..., -1] = 0.0
-        ext[20, 10, -1] = 1e-6  # at the threshold: not in
-        for y, x in spots:
-            ext[y, x, -1] = 0.5
-        has = ext[..., -1] > 1e-6
-        rows, cols = has.any(1).nonzero(), has.any(0).nonzero()
-        want = None if not spots else (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
-        assert _warp_shade.seen_box(ext) == want
-
-
 def test_unseen_splats_show_their_colours_low_passed():
     """The splats the photo never saw show their colours averaged over a box of cells: a colour ramp along x
     (linear) is kept inside the grid (a box filter is exact on linear functions), a per-splat checkerboard (the

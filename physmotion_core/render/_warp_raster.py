@@ -11,12 +11,13 @@ transmittance and stops at its own saturation, and the tile stops once all its p
 thin, faint shells (about 27 splats contribute to each pixel, which rarely saturates) that visits a fraction of the
 (splat, pixel) pairs the tensor tiles evaluate. A splat's box on a row (at most 16 px: one or two vectors, the same
 count on every row) costs less than the row's span: the span's square root and divisions, and a varying count of
-vectors per row, cost more than the pixels off the ellipse (0.88x the compositing time on the CPU templates,
-measured 2026-12-06). The loop over one row's pixels (``_ROW``) is C++ in explicit 8-float vectors (an inlined polynomial exp,
-no branches): the same loop in Warp's kernel language runs one pixel at a time with expf a library call, and
-compositing took 1.3-1.7x longer (the CPU templates' Wan clips, one core, measured 2026-12-03); left to the
-compiler's own vectorisation, the rows' short spans (5-8 pixels on the CPU templates) mostly ran its scalar
-remainder loop, and compositing took 1.3-1.6x longer than in explicit vectors (measured 2026-12-06).
+vectors per row, cost more than the pixels off the ellipse (0.88x the compositing time on five CPU templates,
+measured 2026-12-06). The loop over one row's pixels (``_ROW``) is C++ in explicit 8-float vectors (an inlined
+polynomial exp, no branches): the same loop in Warp's kernel language runs one pixel at a time with expf a library
+call, and compositing took 1.3-1.7x longer (the CPU templates' Wan clips, one core, measured 2026-12-03); left to
+the compiler's own vectorisation, the rows' short spans (5-8 pixels on the CPU templates) mostly ran its scalar
+remainder loop, and compositing took 1.5x longer (1.3-1.9x per frame) than in explicit vectors (measured
+2026-12-06).
 
 Same image-formation model and the same inputs as ``composite_tiles``: the projection, culling and depth
 order of ``project_gaussians``, alpha = min(0.99, o exp(-½ dᵀ conic d)) at the pixel centre, entries with
@@ -127,10 +128,10 @@ def _row_vector_k(K: int) -> str:
 #: vectorisation of the pixel loop, whose vector body needs 16 or more pixels (measured: most visits ran its scalar
 #: remainder). Here a span of up to 8 pixels is one pass, its lanes past x1 masked out of every test, so they add
 #: exactly 0 (their w is selected, not computed: T there may be any float, another tile's or unset) and write back
-#: what they read (the buffers are padded by 8 pixels, ``composite_warp``; a frame is one
-#: serial launch, so reading and rewriting a neighbouring pixel's value is safe). The polynomial exp is ``EXPO``'s,
-#: lane by lane, its polynomial evaluated by Estrin's scheme (shorter dependency chains). ``vec`` = 0 (features that are not all finite, where 0 x inf would reach the masked lanes) and
-#: other K take the scalar loop, which skips pixels that add nothing.
+#: what they read (the buffers are padded by 8 pixels, ``composite_warp``; a frame is one serial launch, so reading
+#: and rewriting a neighbouring pixel's value is safe). The exp is ``EXPO``'s, lane by lane, its polynomial evaluated
+#: by Estrin's scheme (shorter dependency chains). ``vec`` = 0 (features that are not all finite, where 0 x inf would
+#: reach the masked lanes) and other K take the scalar loop, which skips pixels that add nothing.
 _ROW = EXPO + r"""
 const float* f = feats.data + (size_t)m * K;
 float* Tr = T.data + base;
@@ -147,7 +148,15 @@ if (vec != 0 && vector_k) {
     typedef int pm_v8i __attribute__((ext_vector_type(8)));
     auto vexpo = [](pm_v8f x) -> pm_v8f {
         pm_v8f pw = x < -87.0f ? (pm_v8f)(-87.0f) : (x > 0.0f ? (pm_v8f)(0.0f) : x);
-        pm_v8f n = __builtin_elementwise_floor(pw * 1.44269504088896341f + 0.5f);
+        pm_v8f y = pw * 1.44269504088896341f + 0.5f;
+#if __has_builtin(__builtin_elementwise_floor)
+        pm_v8f n = __builtin_elementwise_floor(y);
+#else
+        // An older clang (as some Warp releases bundle): floor by truncation and a step down where that rounded up
+        // (exact here, |y| < 2^23; 5 % slower compositing).
+        pm_v8f n = __builtin_convertvector(__builtin_convertvector(y, pm_v8i), pm_v8f);
+        n += __builtin_convertvector(n > y, pm_v8f);  // a true lane compares as -1
+#endif
         pm_v8f r = (pw - n * 0.693359375f) + n * 2.12194440e-4f;
         // EXPO's polynomial by Estrin's scheme (pairs of terms, then powers of r²): a chain of 4 dependent
         // multiply-adds instead of Horner's 7, for the loop's latency; within 1.2e-7 of exp relative (EXPO: 7.7e-8;
@@ -193,7 +202,7 @@ if (vec != 0 && vector_k) {
 VECTOR_ROWS
 #undef PM_LANES
 #undef PM_ADD
-    return -__builtin_reduce_add(dead);
+    return -(dead[0] + dead[1] + dead[2] + dead[3] + dead[4] + dead[5] + dead[6] + dead[7]);
 }
 auto weight = [&](int x, float t, int& died) -> float {
     float dx = u - ((float)x + 0.5f);
@@ -422,13 +431,12 @@ def _build(wp):
                   uv: wp.array(dtype=wp.vec2),
                   conic: wp.array(dtype=wp.vec3), logo: wp.array(dtype=float), lo: wp.array(dtype=wp.vec2i),
                   hi: wp.array(dtype=wp.vec2i), feats: wp.array(dtype=float), K: int, vec: int, ts: int, TX: int,
-                  W: int,
-                  H: int, asked: wp.array(dtype=wp.uint8), T: wp.array(dtype=float),
+                  W: int, H: int, asked: wp.array(dtype=wp.uint8), T: wp.array(dtype=float),
                   out: wp.array(dtype=float), alpha_out: wp.array(dtype=float)):
         # One tile: its splats front to back, each over the pixels of the tile its box holds (of a box over 16 px
-        # wide, its ellipse at alpha = 1/255 plus the margin), row by row (``row``); a pixel keeps its transmittance in T (0 once saturated, or not
-        # asked). ``feats`` and ``out`` hold K floats per splat / pixel; ``vec``: the row loop may use its vectors
-        # (``_ROW``).
+        # wide, its ellipse at alpha = 1/255 plus the margin), row by row (``row``); a pixel keeps its
+        # transmittance in T (0 once saturated, or not asked). ``feats`` and ``out`` hold K floats per splat /
+        # pixel; ``vec``: the row loop may use its vectors (``_ROW``).
         tile = wp.tid()
         s0 = start[tile]
         s1 = stop[tile]

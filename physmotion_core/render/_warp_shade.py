@@ -203,23 +203,6 @@ for (int bx = 0; bx < bw; ++bx) {
 return 0;
 """
 
-#: ``seen_rows``' loop over one row of the frame (C++): its first and last pixel with seen coverage (S > 1e-6), -1 if
-#: none.
-_SEEN_ROW = r"""
-const float* E = ext.data + (size_t)y * W * C + C - 1;
-int first = -1, last = -1;
-for (int x = 0; x < W; ++x) {
-    if (E[(size_t)x * C] > 1.0e-6f) {
-        if (first < 0) first = x;
-        last = x;
-    }
-}
-lo.data[y] = first;
-hi.data[y] = last;
-return 0;
-"""
-
-
 @built_once
 def _build(wp):
     f64 = wp.float64
@@ -241,16 +224,6 @@ def _build(wp):
         # ``_COORDS_ROW``.
         coords_row(ext, C, depth, W, x0, y0, bw, wp.tid(), one, A, b, rfx, rfy, rcx, rcy, pfx, pfy, pcx, pcy, u_out,
                    v_out, ok)
-
-    @wp.func_native(_SEEN_ROW)
-    def seen_row(ext: wp.array(dtype=float), C: int, W: int, y: int, lo: wp.array(dtype=int),
-                 hi: wp.array(dtype=int)) -> int:
-        ...
-
-    @wp.kernel(enable_backward=False)
-    def seen_rows(ext: wp.array(dtype=float), C: int, W: int, lo: wp.array(dtype=int), hi: wp.array(dtype=int)):
-        # One row of the frame: its first and last pixel that seen splats reach (``_SEEN_ROW``).
-        seen_row(ext, C, W, wp.tid(), lo, hi)
 
     @wp.func_native(_STRETCH_ROW)
     def stretch_row(u: wp.array(dtype=f64), v: wp.array(dtype=f64), ok: wp.array(dtype=wp.uint8), bw: int,
@@ -299,7 +272,7 @@ def _build(wp):
         out[i] = wp.vec3(float((q[0] - (pfx * (p[0] / z) + pcx)) * s), float((q[1] - (pfy * (p[1] / z) + pcy)) * s),
                          float(s))
 
-    return wp, coords, stretch, blend, shift_features, seen_rows
+    return wp, coords, stretch, blend, shift_features
 
 
 def available() -> bool:
@@ -331,7 +304,7 @@ def planes_array(planes: np.ndarray):
 
 def photo_coords(ext: torch.Tensor, depth: torch.Tensor, box: tuple, camera, photo_camera, one_map=None):
     """(u, v) float64 (bh*bw) and ok uint8 (bh*bw): the photo coordinates of the box's pixels (``coords``)."""
-    wp, coords, _, _, _, _ = _build()
+    wp, coords, _, _, _ = _build()
     y0, y1, x0, x1 = box
     bh, bw = y1 - y0, x1 - x0
     H, W, C = ext.shape
@@ -358,7 +331,7 @@ def photo_coords(ext: torch.Tensor, depth: torch.Tensor, box: tuple, camera, pho
 def stretch_fade(u, v, ok, box, lo: float, hi: float) -> torch.Tensor:
     """(bh, bw) float32: the photo's weight left by the stretch of the box's photo coordinates (``_STRETCH_ROW``:
     1 up to a magnification of ``lo``, 0 from ``hi``, linear in it between; 1 where a pixel has no coordinate)."""
-    wp, _, kernel, _, _, _ = _build()
+    wp, _, kernel, _, _ = _build()
     y0, y1, x0, x1 = box
     bh, bw = y1 - y0, x1 - x0
     keep: list = []
@@ -372,7 +345,7 @@ def stretch_fade(u, v, ok, box, lo: float, hi: float) -> torch.Tensor:
 
 def blend(u, v, ok, fade, ext, rgb, alpha, dist, box, planes, planes_wp, consts, out_rgb, out_a) -> None:
     """The ``blend`` loop over the box, writing ``out_rgb`` (H,W,3) and ``out_a`` (H,W) there (contiguous)."""
-    wp, _, _, kernel, _, _ = _build()
+    wp, _, _, kernel, _ = _build()
     y0, y1, x0, x1 = box
     bh, bw = y1 - y0, x1 - x0
     H, W, C = ext.shape
@@ -395,7 +368,7 @@ def texture_shift_features(means: torch.Tensor, w2c: torch.Tensor, photo_camera,
     ``w2c`` (4x4, OpenCV axes) that is ``photo_camera`` possibly resized: s·Δ and s, Δ = ``uv0`` (N, 2, the photo
     pixels of the centres at rest) minus the photo pixel of each centre's ray now; computed in float64 in one loop
     (``shift_features``) instead of a dozen whole-array tensor operations."""
-    wp, _, _, _, kernel, _ = _build()
+    wp, _, _, _, kernel = _build()
     n = int(means.shape[0])
     out = torch.empty(n, 3, dtype=torch.float32)
     if n == 0:
@@ -411,22 +384,3 @@ def texture_shift_features(means: torch.Tensor, w2c: torch.Tensor, photo_camera,
                       _arr(wp, out, wp.vec3, keep)])
     wp.synchronize_device("cpu")
     return out
-
-
-def seen_box(ext: torch.Tensor):
-    """The box (y0, y1, x0, x1) of the pixels of ``ext`` (H, W, C; its last channel the seen coverage S) with
-    S > 1e-6, or None when there are none: one pass over the frame's rows (``seen_rows``)."""
-    wp, _, _, _, _, kernel = _build()
-    H, W, C = ext.shape
-    keep: list = []
-    lo = torch.empty(H, dtype=torch.int32)
-    hi = torch.empty(H, dtype=torch.int32)
-    wp.launch(kernel, dim=H, device="cpu", inputs=[_arr(wp, ext, float, keep), C, W, _arr(wp, lo, wp.int32, keep),
-                                                   _arr(wp, hi, wp.int32, keep)])
-    wp.synchronize_device("cpu")
-    rows = (hi >= 0).nonzero()
-    if rows.numel() == 0:
-        return None
-    y0, y1 = int(rows[0]), int(rows[-1]) + 1
-    lo, hi = lo[y0:y1], hi[y0:y1]
-    return y0, y1, int(lo[hi >= 0].min()), int(hi.max()) + 1

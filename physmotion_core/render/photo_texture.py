@@ -378,18 +378,14 @@ def shade(texture: PhotoTexture, camera: Camera, rgb: torch.Tensor, alpha: torch
         from . import _warp_shade
 
         compiled = _warp_shade.available()
-    # The box of the pixels the seen splats reach (S > 1e-6): every pass below works in it.
+    # The box of the pixels the seen splats reach (S > 1e-6): every pass below works in it. (A compiled pass over
+    # the rows took as long, 0.42 against 0.45 ms at 640x360: reading the frame's channels is the cost.)
     S = extra[..., -1]
-    if compiled:
-        from . import _warp_shade
-
-        box = _warp_shade.seen_box(extra)
-    else:
-        has = S > 1e-6
-        rows, cols = has.any(1).nonzero(), has.any(0).nonzero()
-        box = None if rows.numel() == 0 else (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
-    if box is None:
+    has = S > 1e-6
+    rows, cols = has.any(1).nonzero(), has.any(0).nonzero()
+    if rows.numel() == 0:
         return out_rgb, out_a
+    box = (int(rows[0]), int(rows[-1]) + 1, int(cols[0]), int(cols[-1]) + 1)
     y0, y1, x0, x1 = box
     pc = texture.camera
     photo_map = None
@@ -501,7 +497,7 @@ class TexturedPoser:
         if C.ONE_MAP_FLOW and not self._clearly_deformed(frame):
             ms = torch.addmm(t, g.means.double(), R.T)  # the centres now, render-camera coordinates
             one = self._one_map(frame, ms)
-        if one is None and g.means.device.type == "cpu" and self._compiled():
+        if one is None and g.means.device.type == "cpu" and g.means.dtype == torch.float32 and self._compiled():
             from . import _warp_shade
 
             return _warp_shade.texture_shift_features(g.means, self.w2c, self.texture.camera, self.uv0,
