@@ -33,6 +33,12 @@ CONTACT_PIC_MODELS = ("fixed_corotated", "neo_hookean", "fracture")
 # periods of the bodies' slowest vertical ringing, 4 H / c (H: the active box's height above the ground,
 # c: the stiffest wave speed); 0 = none, Coulomb's law on each substep's impulses alone (issue 37).
 FRICTION_MEMORY = 1.0
+# Gravity preload (MPMSolver.preload): the elastic solid models a photographed body's loaded shape is
+# restored for, the most periods of its slowest vertical ringing it may relax for, and the RMS speed
+# (a fraction of g / ω, the release ringing's speed) at which it counts as settled.
+PRELOAD_MODELS = ("fixed_corotated", "neo_hookean", "fracture")
+PRELOAD_PERIODS = 8.0
+PRELOAD_TOL = 0.01
 TRANSFERS = ("apic", "pic")  # particle-grid velocity transfer: affine (APIC / MLS-MPM) or plain PIC
 SPAN_QUANTUM = 4  # grid spans are rounded out to multiples of this many nodes (fewer graph captures)
 MAX_SPAN_MARGIN = 32  # nodes of room around the particles' stencils a span may add per side (graphs)
@@ -1093,6 +1099,80 @@ class MPMSolver:
         if self._status[K.I_OVERFLOW]:
             self._status[K.I_OVERFLOW] = 0
             self._span = None
+
+    def preload(self, height: float, wave_speed: float, max_periods: float = PRELOAD_PERIODS,
+                tol: float = PRELOAD_TOL) -> dict:
+        """Start the bodies in equilibrium under gravity (dynamic relaxation).
+
+        A photographed body already carries its weight: the photo shows its loaded shape. Released
+        stress-free instead, an elastic body sags and rings (its base unloading once a period, which
+        lets it creep on a slope at friction below the limit). Here, before the first frame, the scene
+        relaxes under gravity alone with its velocities damped at the critical rate of its slowest
+        vertical mode (a quarter-wave column of ``height`` m and bar speed ``wave_speed`` m/s: ω =
+        π c / 2 H, damping exp(-2 ω dt) per substep), until its mass-weighted RMS speed falls below
+        ``tol`` · g / ω (after at least one period) or ``max_periods`` periods of 4 H / c have passed.
+        Then the deformation gradients (the internal stress) are KEPT while the positions return to
+        the photo's, the velocities, affine velocities, float32 carry of F, plastic / damage state and
+        the ground friction's credit return to their start, and the clock, work and substep counters
+        restart at 0. For small strains that state is in equilibrium to first order.
+
+        Returns what it did: ``substeps``, ``seconds`` (wall), ``sim_time`` (s relaxed), ``periods``,
+        ``rms`` (m/s at the end), ``settled`` and ``sag`` (the largest particle displacement, m, the
+        relaxation showed before the positions were restored). The F it kept is ``self.F_preload``."""
+        g = float(np.linalg.norm(self.gravity))
+        if not (height > 0 and wave_speed > 0 and g > 0 and self.n):
+            raise InputError("preload needs a body of positive height and wave speed under gravity")
+        if self.n_bodies:
+            raise InputError("preload is for deformable bodies; this scene has rigid ones")
+        t0 = time.perf_counter()
+        period = 4.0 * height / wave_speed
+        omega = 2.0 * math.pi / period
+        target = tol * g / omega
+        x0 = self.x.numpy().copy()
+        plastic0 = self.plastic.numpy().copy()
+        m = self.mass_np.astype(np.float64)
+        m_sum = max(float(m.sum()), 1e-30)
+        wp = self.wp
+        t, steps, rms, settled = 0.0, 0, math.inf, False
+        dt_cap = float(self._ctl[K.C_DT_CAP])
+        while t < max_periods * period:
+            dt = min(self.stable_dt(), dt_cap, max_periods * period - t + 1e-12)
+            self.substep(dt)
+            t += dt
+            steps += 1
+            keep = math.exp(-2.0 * omega * dt)
+            v = self.v.numpy() * np.float32(keep)
+            self.v.assign(wp.array(v, dtype=wp.vec3, device=self.device))
+            self.C.assign(wp.array(self.C.numpy() * np.float32(keep), dtype=wp.mat33, device=self.device))
+            rms = math.sqrt(float((m * (v.astype(np.float64) ** 2).sum(1)).sum()) / m_sum)
+            if t >= period and rms < target:
+                settled = True
+                break
+        sag = float(np.linalg.norm(self.x.numpy() - x0, axis=1).max())
+        self.F_preload = self.F.numpy().copy()
+        with wp.ScopedDevice(self.device):
+            self.x.assign(wp.array(x0, dtype=wp.vec3))
+            self.v.zero_()
+            self.C.zero_()
+            self.F_err.zero_()
+            self.plastic.assign(wp.array(plastic0, dtype=float))
+            self.ground_credit.zero_()
+        for i in (K.C_T, K.C_WORK, K.C_FRAME_VMAX, K.C_FRAME_RMS, K.C_DT_MAX):
+            self._ctl[i] = 0.0
+        self._ctl[K.C_DT_MIN] = math.inf
+        self._status[K.I_SUBSTEPS] = 0
+        self._status[K.I_FRAME_SUBSTEPS] = 0
+        st = self._stats
+        st[K.S_VMAX] = 0.0
+        st[K.S_BOX_MIN:K.S_BOX_MIN + 3], st[K.S_BOX_MAX:K.S_BOX_MAX + 3] = x0.min(axis=0), x0.max(axis=0)
+        self.stats.assign(st)
+        self._box = (x0.min(axis=0).astype(np.float64), x0.max(axis=0).astype(np.float64))
+        self._span = None
+        self._aspan = None
+        self._push()
+        self.preload_info = {"substeps": steps, "seconds": time.perf_counter() - t0, "sim_time": t,
+                             "periods": t / period, "rms": rms, "settled": settled, "sag": sag}
+        return self.preload_info
 
     # -- read-back ------------------------------------------------------------------------------
     def positions(self) -> np.ndarray:

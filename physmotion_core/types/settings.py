@@ -43,6 +43,9 @@ class SimSettings:
     #                                        and a frame that needs more stops the run with an explanation
     graph: str = "auto"  # capture each launch of substeps as a graph: "auto" (on CUDA with conditional graph
     #                      nodes, CUDA 12.4+), "on" (also on the CPU: Warp replays it there), "off"
+    preload: bool = True  # start elastic solids (fixed_corotated, neo_hookean, fracture) that rest on the ground
+    #                       in equilibrium under gravity: their photographed shape is the loaded one (see
+    #                       MPMSolver.preload; skipped, at no cost, where it does not apply)
     cpu_threads: int = 0  # threads for the CPU kernels; 0 = every core (PHYSMOTION_CPU_THREADS overrides 0).
     #                       The result does not depend on it (the work is split by particle count)
 
