@@ -56,7 +56,7 @@ def block_travel(cells_tall: int, dx: float = 0.01, memory: float = 1.0, kick: f
 
 def user_block_travel(size=(0.3, 0.3, 0.15), E: float = 2e5, frac: float = 0.9, preload: bool = True,
                       grid_res: int = 24, mu: float = 0.5, t_end: float = 1.0, fps: float = 10.0,
-                      points: int = 13) -> dict:
+                      points: int = 13, margin: float = 2.0) -> dict:
     """A jelly block (the preset with this E) at the user's scale through simulate(): Gaussians on a lattice
     filling size (x × height × z, m), released at rest on the slope (tilted gravity, Coulomb μ) at tan θ =
     frac μ, grid_res cells across its largest extent. Travel (m) of its particles' mean and of its bottom
@@ -79,7 +79,7 @@ def user_block_travel(size=(0.3, 0.3, 0.15), E: float = 2e5, frac: float = 0.9, 
     t0 = time.perf_counter()
     res = simulate(gs, material_preset("jelly", E=E),
                    Conditions([Gravity((G * math.sin(th), -G * math.cos(th), 0.0)), Ground(0.0, "friction", mu)]),
-                   SimSettings(frames=frames, fps=fps, grid_res=grid_res, domain_margin=2.0, rest_speed=0.0,
+                   SimSettings(frames=frames, fps=fps, grid_res=grid_res, domain_margin=margin, rest_speed=0.0,
                                device="cpu", preload=preload), record_all=True)
     x = res.x.numpy().astype(np.float64)
     base = x[0][:, 1] < x[0][:, 1].min() + 0.5 * res.stats["particle_spacing"]
