@@ -39,6 +39,7 @@ FRICTION_MEMORY = 1.0
 PRELOAD_MODELS = ("fixed_corotated", "neo_hookean", "fracture")
 PRELOAD_PERIODS = 8.0
 PRELOAD_TOL = 0.01
+PRELOAD_MAX_SAG = 0.1  # a relaxation that moves a particle by more than this fraction of the height is given up
 TRANSFERS = ("apic", "pic")  # particle-grid velocity transfer: affine (APIC / MLS-MPM) or plain PIC
 SPAN_QUANTUM = 4  # grid spans are rounded out to multiples of this many nodes (fewer graph captures)
 MAX_SPAN_MARGIN = 32  # nodes of room around the particles' stencils a span may add per side (graphs)
@@ -1101,7 +1102,7 @@ class MPMSolver:
             self._span = None
 
     def preload(self, height: float, wave_speed: float, max_periods: float = PRELOAD_PERIODS,
-                tol: float = PRELOAD_TOL) -> dict:
+                tol: float = PRELOAD_TOL, max_sag: float = PRELOAD_MAX_SAG) -> dict:
         """Start the bodies in equilibrium under gravity (dynamic relaxation).
 
         A photographed body already carries its weight: the photo shows its loaded shape. Released
@@ -1116,9 +1117,15 @@ class MPMSolver:
         the ground friction's credit return to their start, and the clock, work and substep counters
         restart at 0. For small strains that state is in equilibrium to first order.
 
-        Returns what it did: ``substeps``, ``seconds`` (wall), ``sim_time`` (s relaxed), ``periods``,
-        ``rms`` (m/s at the end), ``settled`` and ``sag`` (the largest particle displacement, m, the
-        relaxation showed before the positions were restored). The F it kept is ``self.F_preload``."""
+        A scene with no equilibrium near the photo (a soft tall body that tips or slides away under its
+        own weight: some particle moves by more than ``max_sag`` · ``height``) or that has not settled
+        after ``max_periods`` is given up as soon as that shows: F returns to the identity too, and the
+        run starts stress-free as without the preload (``applied`` False).
+
+        Returns what it did: ``applied``, ``substeps``, ``seconds`` (wall), ``sim_time`` (s relaxed),
+        ``periods``, ``rms`` (m/s at the end), ``settled`` and ``sag`` (the largest particle displacement,
+        m, the relaxation showed before the positions were restored). The F it kept is ``self.F_preload``
+        (None when given up)."""
         g = float(np.linalg.norm(self.gravity))
         if not (height > 0 and wave_speed > 0 and g > 0 and self.n):
             raise InputError("preload needs a body of positive height and wave speed under gravity")
@@ -1133,7 +1140,7 @@ class MPMSolver:
         m = self.mass_np.astype(np.float64)
         m_sum = max(float(m.sum()), 1e-30)
         wp = self.wp
-        t, steps, rms, settled = 0.0, 0, math.inf, False
+        t, steps, rms, settled, sag = 0.0, 0, math.inf, False, 0.0
         dt_cap = float(self._ctl[K.C_DT_CAP])
         while t < max_periods * period:
             dt = min(self.stable_dt(), dt_cap, max_periods * period - t + 1e-12)
@@ -1145,12 +1152,19 @@ class MPMSolver:
             self.v.assign(wp.array(v, dtype=wp.vec3, device=self.device))
             self.C.assign(wp.array(self.C.numpy() * np.float32(keep), dtype=wp.mat33, device=self.device))
             rms = math.sqrt(float((m * (v.astype(np.float64) ** 2).sum(1)).sum()) / m_sum)
+            sag = max(sag, float(np.sqrt(((self.x.numpy() - x0) ** 2).sum(1).max())))
+            if sag > max_sag * height:
+                break
             if t >= period and rms < target:
                 settled = True
                 break
-        sag = float(np.linalg.norm(self.x.numpy() - x0, axis=1).max())
-        self.F_preload = self.F.numpy().copy()
+        applied = settled and sag <= max_sag * height
+        self.F_preload = self.F.numpy().copy() if applied else None
         with wp.ScopedDevice(self.device):
+            if not applied:
+                self.F.assign(wp.array(np.tile(np.eye(3, dtype=np.float32), (self.n, 1, 1)), dtype=wp.mat33))
+                self.tau.zero_()
+                self.rot.assign(wp.array(np.tile(np.array([0, 0, 0, 1], np.float32), (self.n, 1)), dtype=wp.quat))
             self.x.assign(wp.array(x0, dtype=wp.vec3))
             self.v.zero_()
             self.C.zero_()
@@ -1164,13 +1178,15 @@ class MPMSolver:
         self._status[K.I_FRAME_SUBSTEPS] = 0
         st = self._stats
         st[K.S_VMAX] = 0.0
+        if not applied:
+            st[K.S_C2] = self._c0 ** 2
         st[K.S_BOX_MIN:K.S_BOX_MIN + 3], st[K.S_BOX_MAX:K.S_BOX_MAX + 3] = x0.min(axis=0), x0.max(axis=0)
         self.stats.assign(st)
         self._box = (x0.min(axis=0).astype(np.float64), x0.max(axis=0).astype(np.float64))
         self._span = None
         self._aspan = None
         self._push()
-        self.preload_info = {"substeps": steps, "seconds": time.perf_counter() - t0, "sim_time": t,
+        self.preload_info = {"applied": applied, "substeps": steps, "seconds": time.perf_counter() - t0, "sim_time": t,
                              "periods": t / period, "rms": rms, "settled": settled, "sag": sag}
         return self.preload_info
 

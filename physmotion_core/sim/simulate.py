@@ -388,10 +388,14 @@ def simulate(
                       max_frame_substeps=settings.max_substeps_per_frame)
     plan = preload_plan(settings, conditions, parts, materials, init, res.dx)
     preload = solver.preload(*plan) if plan is not None else None
-    if preload is not None:
-        log.info("preload: the bodies settled under gravity in %d substeps (%.2f s, %.1f periods, sag %.3g m%s)",
-                 preload["substeps"], preload["seconds"], preload["periods"], preload["sag"],
-                 "" if preload["settled"] else ", not fully settled")
+    if preload is not None and preload["applied"]:
+        log.info("preload: the bodies settled under gravity in %d substeps (%.2f s, %.1f periods, sag %.3g m)",
+                 preload["substeps"], preload["seconds"], preload["periods"], preload["sag"])
+    elif preload is not None:
+        log.warning("preload given up after %d substeps (%.2f s): under gravity the bodies %s; they start "
+                    "stress-free", preload["substeps"], preload["seconds"],
+                    f"moved {preload['sag']:.3g} m (they tip or slide)" if not preload["settled"]
+                    and preload["sag"] > 0.1 * plan[0] else "did not settle")
     if on_start is not None:
         from ..feedback import BodyFacts
 
