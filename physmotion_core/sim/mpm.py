@@ -40,6 +40,7 @@ PRELOAD_MODELS = ("fixed_corotated", "neo_hookean", "fracture")
 PRELOAD_PERIODS = 8.0
 PRELOAD_TOL = 0.01
 PRELOAD_MAX_SAG = 0.1  # a relaxation that moves a particle by more than this fraction of the height is given up
+PRELOAD_MAX_STRAIN = 0.1  # ... and one whose 99th percentile of the largest principal strain exceeds this
 TRANSFERS = ("apic", "pic")  # particle-grid velocity transfer: affine (APIC / MLS-MPM) or plain PIC
 SPAN_QUANTUM = 4  # grid spans are rounded out to multiples of this many nodes (fewer graph captures)
 MAX_SPAN_MARGIN = 32  # nodes of room around the particles' stencils a span may add per side (graphs)
@@ -1102,15 +1103,17 @@ class MPMSolver:
             self._span = None
 
     def preload(self, height: float, wave_speed: float, max_periods: float = PRELOAD_PERIODS,
-                tol: float = PRELOAD_TOL, max_sag: float = PRELOAD_MAX_SAG) -> dict:
+                tol: float = PRELOAD_TOL, max_sag: float = PRELOAD_MAX_SAG,
+                max_strain: float = PRELOAD_MAX_STRAIN) -> dict:
         """Start the bodies in equilibrium under gravity (dynamic relaxation).
 
         A photographed body already carries its weight: the photo shows its loaded shape. Released
         stress-free instead, an elastic body sags and rings (its base unloading once a period, which
         lets it creep on a slope at friction below the limit). Here, before the first frame, the scene
         relaxes under gravity alone with its velocities damped at the critical rate of its slowest
-        vertical mode (a quarter-wave column of ``height`` m and bar speed ``wave_speed`` m/s: ω =
-        π c / 2 H, damping exp(-2 ω dt) per substep), until its mass-weighted RMS speed falls below
+        mode (a quarter-wave column of ``height`` m and wave speed ``wave_speed`` m/s, simulate() passes
+        the slowest shear wave speed: ω = π c / 2 H, damping exp(-2 ω dt) per substep), until its
+        mass-weighted RMS speed falls below
         ``tol`` · g / ω (after at least one period) or ``max_periods`` periods of 4 H / c have passed.
         Then the deformation gradients (the internal stress) are KEPT while the positions return to
         the photo's, the velocities, affine velocities, float32 carry of F, plastic / damage state and
@@ -1119,12 +1122,15 @@ class MPMSolver:
 
         A scene with no equilibrium near the photo (a soft tall body that tips or slides away under its
         own weight: some particle moves by more than ``max_sag`` · ``height``) or that has not settled
-        after ``max_periods`` is given up as soon as that shows: F returns to the identity too, and the
-        run starts stress-free as without the preload (``applied`` False).
+        after ``max_periods`` is given up as soon as that shows; so is one whose strains are not small (the
+        99th percentile over the particles of the largest principal Green strain above ``max_strain``),
+        where the photo's positions with the relaxed stress are far from equilibrium (a soft cup with thin
+        parts, strained 20-35 %, toppled from that state). Given up, F returns to the identity too, and
+        the run starts stress-free as without the preload (``applied`` False).
 
         Returns what it did: ``applied``, ``substeps``, ``seconds`` (wall), ``sim_time`` (s relaxed),
-        ``periods``, ``rms`` (m/s at the end), ``settled`` and ``sag`` (the largest particle displacement,
-        m, the relaxation showed before the positions were restored). The F it kept is ``self.F_preload``
+        ``periods``, ``rms`` (m/s at the end), ``settled``, ``sag`` (the largest particle displacement,
+        m, the relaxation showed before the positions were restored) and ``strain`` (the percentile above). The F it kept is ``self.F_preload``
         (None when given up)."""
         g = float(np.linalg.norm(self.gravity))
         if not (height > 0 and wave_speed > 0 and g > 0 and self.n):
@@ -1155,10 +1161,13 @@ class MPMSolver:
             sag = max(sag, float(np.sqrt(((self.x.numpy() - x0) ** 2).sum(1).max())))
             if sag > max_sag * height:
                 break
+            if steps % 16 == 0 and self._strain99() > 1.25 * max_strain:  # the ringing overshoots ~10 % at most
+                break
             if t >= period and rms < target:
                 settled = True
                 break
-        applied = settled and sag <= max_sag * height
+        strain = self._strain99()
+        applied = settled and sag <= max_sag * height and strain <= max_strain
         self.F_preload = self.F.numpy().copy() if applied else None
         with wp.ScopedDevice(self.device):
             if not applied:
@@ -1187,8 +1196,14 @@ class MPMSolver:
         self._aspan = None
         self._push()
         self.preload_info = {"applied": applied, "substeps": steps, "seconds": time.perf_counter() - t0, "sim_time": t,
-                             "periods": t / period, "rms": rms, "settled": settled, "sag": sag}
+                             "periods": t / period, "rms": rms, "settled": settled, "sag": sag, "strain": strain}
         return self.preload_info
+
+    def _strain99(self) -> float:
+        """The 99th percentile over the particles of the largest principal Green strain |½ (FᵀF − 1)|."""
+        F = self.F.numpy().astype(np.float64)
+        green = 0.5 * (np.einsum("pji,pjk->pik", F, F) - np.eye(3))
+        return float(np.percentile(np.abs(np.linalg.eigvalsh(green)).max(1), 99)) if len(F) else 0.0
 
     # -- read-back ------------------------------------------------------------------------------
     def positions(self) -> np.ndarray:

@@ -21,7 +21,7 @@ from ..types.material import Material
 from ..types.results import SimResult
 from ..types.settings import SimSettings
 from .fill import FilledObjects, fill_objects
-from .mpm import MAX_TORQUES, PRELOAD_MODELS, Domain, MPMSolver, cpu_chunks, estimate_bytes, resolve_device
+from .mpm import MAX_TORQUES, PRELOAD_MAX_STRAIN, PRELOAD_MODELS, Domain, MPMSolver, cpu_chunks, estimate_bytes, resolve_device
 from .regions import select
 from .schedule import LoadSchedule
 
@@ -394,8 +394,9 @@ def simulate(
     elif preload is not None:
         log.warning("preload given up after %d substeps (%.2f s): under gravity the bodies %s; they start "
                     "stress-free", preload["substeps"], preload["seconds"],
-                    f"moved {preload['sag']:.3g} m (they tip or slide)" if not preload["settled"]
-                    and preload["sag"] > 0.1 * plan[0] else "did not settle")
+                    f"moved {preload['sag']:.3g} m (they tip or slide)" if preload["sag"] > 0.1 * plan[0]
+                    else f"strain by {preload['strain']:.0%} (too far from the photo for its stress to hold it)"
+                    if preload["strain"] > PRELOAD_MAX_STRAIN else "did not settle")
     if on_start is not None:
         from ..feedback import BodyFacts
 
