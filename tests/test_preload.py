@@ -97,18 +97,20 @@ def test_preload_is_skipped_where_it_does_not_apply(case):
     assert res.stats["preload"] is None
 
 
-def test_preload_is_given_up_for_a_body_that_tips_under_its_own_weight():
+def test_preload_is_given_up_for_a_soft_tall_body_far_from_equilibrium():
     # A soft (E = 2e4 Pa) jelly 0.2 m wide and 0.3 m tall on a μ = 0.5 slope at 0.9 μ has no equilibrium near
-    # its photo: damped, it still tips and slides (0.56 m in 3.6 s of relaxation, measured). Restoring the
-    # photo's positions with that stress would be meaningless, so the preload is given up as soon as a
-    # particle has moved by a tenth of the height: the run starts stress-free (F = I at frame 0 and the
-    # same first frames as with preload=False), after a few hundred substeps at most.
+    # its photo: damped, it still tips and slides (0.56 m in 3.6 s of relaxation at grid_res 24, measured),
+    # straining well beyond small strains on the way. Restoring the photo's positions with that stress would
+    # be meaningless, so the preload is given up as soon as that shows (a particle moved by a tenth of the
+    # height, or the 99th-percentile strain passed 1.25 x 10 %, checked every 16 substeps): the run starts
+    # stress-free (the same frames as with preload=False), after a few hundred substeps at most.
     th = math.radians(24.2)
     blk = lattice((-0.1, 0.0, -0.075), (0.1, 0.3, 0.075), (7, 10, 5))
     conds = [Gravity((9.81 * math.sin(th), -9.81 * math.cos(th), 0.0)), Ground(0.0, "friction", 0.5)]
     mat = material_preset("jelly", E=2.0e4)
     on = _run(blk, mat, conds, True, frames=3, fps=10)
     pre = on.stats["preload"]
-    assert pre is not None and not pre["applied"] and pre["sag"] > 0.03, pre
+    assert pre is not None and not pre["applied"] and pre["substeps"] < 300, pre
+    assert pre["sag"] > 0.1 * 0.3 or pre["strain"] > 0.1, pre
     off = _run(blk, mat, conds, False, frames=3, fps=10)
     assert np.allclose(on.x.numpy(), off.x.numpy(), atol=1e-6)
