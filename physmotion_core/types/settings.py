@@ -73,6 +73,8 @@ class SimSettings:
             raise InputError(f"min_substeps must be an integer in [1, 100000]; got {self.min_substeps}")
         if self.quality not in QUALITY:
             raise InputError(f"quality must be one of {tuple(QUALITY)}; got '{self.quality}'")
+        if not isinstance(self.preload, bool):
+            raise InputError(f"preload must be True or False; got {self.preload!r}")
         if self.transfer not in ("apic", "pic"):
             raise InputError(f"transfer must be 'apic' or 'pic'; got '{self.transfer}'")
         if not (math.isfinite(self.fixed_dt) and 0.0 <= self.fixed_dt <= 0.1):
