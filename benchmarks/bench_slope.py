@@ -12,8 +12,13 @@ the weight), the tangential motion from a shear column of modulus G whose base n
 force that stops it is within μ N(t), else slides under μ N; optional stiffness-proportional damping of
 ratio ζ at the bar's fundamental. It is what an ideal elastic body does when released stress-free.
 
-Numbers are in docs/accuracy.md, "Friction on a slope", "Tall bodies". Usage:
-    .venv/bin/python -m benchmarks.bench_slope [--dx 0.01] [--heights 5 7 10 15 20] [--kick 0.05]
+With ``--preload`` each block also runs started in equilibrium under gravity (MPMSolver.preload, the
+default of simulate()); ``--user X HEIGHT Z E`` runs a jelly block of that size through simulate() at
+grid_res 24, without and with the preload (``user_block_travel``).
+
+Numbers are in docs/accuracy.md, "Friction on a slope", "Tall bodies", "Starting in equilibrium". Usage:
+    .venv/bin/python -m benchmarks.bench_slope [--dx 0.01] [--heights 5 7 10 15 20] [--kick 0.05] [--preload]
+    .venv/bin/python -m benchmarks.bench_slope --user 0.3 0.3 0.15 2e5 [--frac 0.9]
     .venv/bin/python -m benchmarks.bench_slope --column 0.05 0.1 0.2 [--zeta 0.05]
 """
 
