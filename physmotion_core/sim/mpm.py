@@ -33,6 +33,14 @@ CONTACT_PIC_MODELS = ("fixed_corotated", "neo_hookean", "fracture")
 # periods of the bodies' slowest vertical ringing, 4 H / c (H: the active box's height above the ground,
 # c: the stiffest wave speed); 0 = none, Coulomb's law on each substep's impulses alone (issue 37).
 FRICTION_MEMORY = 1.0
+# Gravity preload (MPMSolver.preload): the elastic solid models a photographed body's loaded shape is
+# restored for, the most periods of its slowest vertical ringing it may relax for, and the RMS speed
+# (a fraction of g / ω, the release ringing's speed) at which it counts as settled.
+PRELOAD_MODELS = ("fixed_corotated", "neo_hookean", "fracture")
+PRELOAD_PERIODS = 8.0
+PRELOAD_TOL = 0.01
+PRELOAD_MAX_SAG = 0.1  # a relaxation that moves a particle by more than this fraction of the height is given up
+PRELOAD_MAX_STRAIN = 0.1  # ... and one whose 99th percentile of the largest principal strain exceeds this
 TRANSFERS = ("apic", "pic")  # particle-grid velocity transfer: affine (APIC / MLS-MPM) or plain PIC
 SPAN_QUANTUM = 4  # grid spans are rounded out to multiples of this many nodes (fewer graph captures)
 MAX_SPAN_MARGIN = 32  # nodes of room around the particles' stencils a span may add per side (graphs)
@@ -1095,6 +1103,109 @@ class MPMSolver:
         if self._status[K.I_OVERFLOW]:
             self._status[K.I_OVERFLOW] = 0
             self._span = None
+
+    def preload(self, height: float, wave_speed: float, max_periods: float = PRELOAD_PERIODS,
+                tol: float = PRELOAD_TOL, max_sag: float = PRELOAD_MAX_SAG,
+                max_strain: float = PRELOAD_MAX_STRAIN) -> dict:
+        """Start the bodies in equilibrium under gravity (dynamic relaxation).
+
+        A photographed body already carries its weight: the photo shows its loaded shape. Released
+        stress-free instead, an elastic body sags and rings (its base unloading once a period, which
+        lets it creep on a slope at friction below the limit). Here, before the first frame, the scene
+        relaxes under gravity alone with its velocities damped at the critical rate of its slowest
+        mode (a quarter-wave column of ``height`` m and wave speed ``wave_speed`` m/s, simulate() passes
+        the slowest shear wave speed: ω = π c / 2 H, damping exp(-2 ω dt) per substep), until its
+        mass-weighted RMS speed falls below
+        ``tol`` · g / ω (after at least one period) or ``max_periods`` periods of 4 H / c have passed.
+        Then the deformation gradients (the internal stress) are KEPT while the positions return to
+        the photo's, the velocities, affine velocities, float32 carry of F, plastic / damage state and
+        the ground friction's credit return to their start, and the clock, work and substep counters
+        restart at 0. For small strains that state is in equilibrium to first order.
+
+        A scene with no equilibrium near the photo (a soft tall body that tips or slides away under its
+        own weight: some particle moves by more than ``max_sag`` · ``height``) or that has not settled
+        after ``max_periods`` is given up as soon as that shows; so is one whose strains are not small (the
+        99th percentile over the particles of the largest principal Green strain above ``max_strain``),
+        where the photo's positions with the relaxed stress are far from equilibrium (a soft cup with thin
+        parts, strained 20-35 %, toppled from that state). Given up, F returns to the identity too, and
+        the run starts stress-free as without the preload (``applied`` False).
+
+        Returns what it did: ``applied``, ``substeps``, ``seconds`` (wall), ``sim_time`` (s relaxed),
+        ``periods``, ``rms`` (m/s at the end), ``settled``, ``sag`` (the largest particle displacement,
+        m, the relaxation showed before the positions were restored) and ``strain`` (the percentile above). The F it kept is ``self.F_preload``
+        (None when given up)."""
+        g = float(np.linalg.norm(self.gravity))
+        if not (height > 0 and wave_speed > 0 and g > 0 and self.n):
+            raise InputError("preload needs a body of positive height and wave speed under gravity")
+        if self.n_bodies:
+            raise InputError("preload is for deformable bodies; this scene has rigid ones")
+        t0 = time.perf_counter()
+        period = 4.0 * height / wave_speed
+        omega = 2.0 * math.pi / period
+        target = tol * g / omega
+        x0 = self.x.numpy().copy()
+        plastic0 = self.plastic.numpy().copy()
+        m = self.mass_np.astype(np.float64)
+        m_sum = max(float(m.sum()), 1e-30)
+        wp = self.wp
+        t, steps, rms, settled, sag = 0.0, 0, math.inf, False, 0.0
+        dt_cap = float(self._ctl[K.C_DT_CAP])
+        while t < max_periods * period:
+            dt = min(self.stable_dt(), dt_cap, max_periods * period - t + 1e-12)
+            self.substep(dt)
+            t += dt
+            steps += 1
+            keep = math.exp(-2.0 * omega * dt)
+            v = self.v.numpy() * np.float32(keep)
+            self.v.assign(wp.array(v, dtype=wp.vec3, device=self.device))
+            self.C.assign(wp.array(self.C.numpy() * np.float32(keep), dtype=wp.mat33, device=self.device))
+            rms = math.sqrt(float((m * (v.astype(np.float64) ** 2).sum(1)).sum()) / m_sum)
+            sag = max(sag, float(np.sqrt(((self.x.numpy() - x0) ** 2).sum(1).max())))
+            if sag > max_sag * height:
+                break
+            if steps % 16 == 0 and self._strain99() > 1.25 * max_strain:  # the ringing overshoots ~10 % at most
+                break
+            if t >= period and rms < target:
+                settled = True
+                break
+        strain = self._strain99()
+        applied = settled and sag <= max_sag * height and strain <= max_strain
+        self.F_preload = self.F.numpy().copy() if applied else None
+        with wp.ScopedDevice(self.device):
+            if not applied:
+                self.F.assign(wp.array(np.tile(np.eye(3, dtype=np.float32), (self.n, 1, 1)), dtype=wp.mat33))
+                self.tau.zero_()
+                self.rot.assign(wp.array(np.tile(np.array([0, 0, 0, 1], np.float32), (self.n, 1)), dtype=wp.quat))
+            self.x.assign(wp.array(x0, dtype=wp.vec3))
+            self.v.zero_()
+            self.C.zero_()
+            self.F_err.zero_()
+            self.plastic.assign(wp.array(plastic0, dtype=float))
+            self.ground_credit.zero_()
+        for i in (K.C_T, K.C_WORK, K.C_FRAME_VMAX, K.C_FRAME_RMS, K.C_DT_MAX):
+            self._ctl[i] = 0.0
+        self._ctl[K.C_DT_MIN] = math.inf
+        self._status[K.I_SUBSTEPS] = 0
+        self._status[K.I_FRAME_SUBSTEPS] = 0
+        st = self._stats
+        st[K.S_VMAX] = 0.0
+        if not applied:
+            st[K.S_C2] = self._c0 ** 2
+        st[K.S_BOX_MIN:K.S_BOX_MIN + 3], st[K.S_BOX_MAX:K.S_BOX_MAX + 3] = x0.min(axis=0), x0.max(axis=0)
+        self.stats.assign(st)
+        self._box = (x0.min(axis=0).astype(np.float64), x0.max(axis=0).astype(np.float64))
+        self._span = None
+        self._aspan = None
+        self._push()
+        self.preload_info = {"applied": applied, "substeps": steps, "seconds": time.perf_counter() - t0, "sim_time": t,
+                             "periods": t / period, "rms": rms, "settled": settled, "sag": sag, "strain": strain}
+        return self.preload_info
+
+    def _strain99(self) -> float:
+        """The 99th percentile over the particles of the largest principal Green strain |½ (FᵀF − 1)|."""
+        F = self.F.numpy().astype(np.float64)
+        green = 0.5 * (np.einsum("pji,pjk->pik", F, F) - np.eye(3))
+        return float(np.percentile(np.abs(np.linalg.eigvalsh(green)).max(1), 99)) if len(F) else 0.0
 
     # -- read-back ------------------------------------------------------------------------------
     def positions(self) -> np.ndarray:

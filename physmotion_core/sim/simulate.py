@@ -21,7 +21,7 @@ from ..types.material import Material
 from ..types.results import SimResult
 from ..types.settings import SimSettings
 from .fill import FilledObjects, fill_objects
-from .mpm import MAX_TORQUES, Domain, MPMSolver, cpu_chunks, estimate_bytes, resolve_device
+from .mpm import MAX_TORQUES, PRELOAD_MAX_STRAIN, PRELOAD_MODELS, Domain, MPMSolver, cpu_chunks, estimate_bytes, resolve_device
 from .regions import select
 from .schedule import LoadSchedule
 
@@ -205,6 +205,32 @@ def initial_state(conditions: Conditions, parts: FilledObjects, materials: Seque
     return InitialState(v0, C0, anchor_sel, body, torque_mask)
 
 
+def preload_plan(settings: SimSettings, conditions: Conditions, parts: FilledObjects, materials: Sequence[Material],
+                 init: InitialState, dx: float) -> Optional[tuple[float, float]]:
+    """Whether the scene starts in equilibrium under gravity (``MPMSolver.preload``), and if so the
+    (height m, shear wave speed m/s) that set its slowest ringing: the tallest body's height above the
+    ground and the slowest shear speed. It applies when ``settings.preload`` is on, gravity pulls
+    towards a ground, every object is an elastic solid (PRELOAD_MODELS) whose lowest particle lies
+    within a cell of the ground, and nothing moves, is anchored or rigid at the start. Otherwise None
+    (no cost): sand, snow, clay, fluids and plastic bodies flow to their own rest, rigid bodies carry
+    no stress, a body in the air or thrown starts unloaded, and anchored scenes are not handled."""
+    ground = conditions.ground()
+    g = np.asarray(conditions.gravity(), np.float64)
+    if not settings.preload or ground is None or not g[1] < 0 or len(parts.x) == 0:
+        return None
+    if np.any(init.body >= 0) or any(sel.any() for sel in init.anchor_sel) or init.C0 is not None \
+            or np.any(init.v0 != 0):
+        return None
+    height, speed = 0.0, math.inf
+    for o, mat in enumerate(materials):
+        y = parts.x[parts.particle_object == o, 1]
+        if mat.model not in PRELOAD_MODELS or len(y) == 0 or y.min() - ground.height > dx:
+            return None
+        height = max(height, float(y.max() - ground.height))
+        speed = min(speed, math.sqrt(mat.mu / mat.density))
+    return (height, speed) if height > 0 and speed > 0 else None
+
+
 class _Recorder:
     """The recorded particles' positions, deformation gradients and plastic state per frame, and
     the energy per frame."""
@@ -220,6 +246,9 @@ class _Recorder:
         self.F[0] = torch.eye(3)
         self.plastic[0] = torch.from_numpy(solver.plastic_state()[recorded])
         self.energy = {"kinetic": [], "potential": [], "work": []}
+        # With a gravity preload the photo is the loaded state: frames carry F relative to it.
+        pre = getattr(solver, "F_preload", None)
+        self.F_rest_inv = None if pre is None else np.linalg.inv(pre[recorded].astype(np.float64))
 
     def record_energy(self) -> None:
         kin, pot = self.solver.energy()
@@ -231,7 +260,10 @@ class _Recorder:
         """Frame k is the solver's state now."""
         s, rec = self.solver, self.recorded
         self.x[k] = torch.from_numpy(s.positions()[rec])
-        self.F[k] = torch.from_numpy(s.deformation()[rec])
+        F = s.deformation()[rec]
+        if self.F_rest_inv is not None:
+            F = np.matmul(F.astype(np.float64), self.F_rest_inv).astype(np.float32)
+        self.F[k] = torch.from_numpy(F)
         self.plastic[k] = torch.from_numpy(s.plastic_state()[rec])
         self.record_energy()
 
@@ -354,6 +386,17 @@ def simulate(
                 float(np.linalg.norm(np.asarray(init.v0), axis=1).max()) if init.v0 is not None and len(x0) else 0.0)
     solver.set_limits(max_dt=min(frame_dt / settings.min_substeps, settings.fixed_dt or math.inf),
                       max_frame_substeps=settings.max_substeps_per_frame)
+    plan = preload_plan(settings, conditions, parts, materials, init, res.dx)
+    preload = solver.preload(*plan) if plan is not None else None
+    if preload is not None and preload["applied"]:
+        log.info("preload: the bodies settled under gravity in %d substeps (%.2f s, %.1f periods, sag %.3g m)",
+                 preload["substeps"], preload["seconds"], preload["periods"], preload["sag"])
+    elif preload is not None:
+        log.warning("preload given up after %d substeps (%.2f s): under gravity the bodies %s; they start "
+                    "stress-free", preload["substeps"], preload["seconds"],
+                    f"moved {preload['sag']:.3g} m (they tip or slide)" if preload["sag"] > 0.1 * plan[0]
+                    else f"strain by {preload['strain']:.0%} (too far from the photo for its stress to hold it)"
+                    if preload["strain"] > PRELOAD_MAX_STRAIN else "did not settle")
     if on_start is not None:
         from ..feedback import BodyFacts
 
@@ -362,6 +405,7 @@ def simulate(
     rec, rest_from, loop_s = run_frames(solver, schedule, settings, recorded, x0, progress)
     wall = time.perf_counter() - t_start
     stats = _run_stats(solver, settings, res, domain, len(objects), rest_from, wall, loop_s, rec.energy)
+    stats["preload"] = preload
     log.info("simulated %d frames: %d particles, %d substeps, %.1fs (%d thread%s)", settings.frames, x0.shape[0],
              solver.substeps, wall, solver.threads, "" if solver.threads == 1 else "s")
     return _result(gaussians, parts, recorded, materials, rec, frame_dt, stats)

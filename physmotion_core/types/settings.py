@@ -43,6 +43,9 @@ class SimSettings:
     #                                        and a frame that needs more stops the run with an explanation
     graph: str = "auto"  # capture each launch of substeps as a graph: "auto" (on CUDA with conditional graph
     #                      nodes, CUDA 12.4+), "on" (also on the CPU: Warp replays it there), "off"
+    preload: bool = True  # start elastic solids (fixed_corotated, neo_hookean, fracture) that rest on the ground
+    #                       in equilibrium under gravity: their photographed shape is the loaded one (see
+    #                       MPMSolver.preload; skipped, at no cost, where it does not apply)
     cpu_threads: int = 0  # threads for the CPU kernels; 0 = every core (PHYSMOTION_CPU_THREADS overrides 0).
     #                       The result does not depend on it (the work is split by particle count)
 
@@ -70,6 +73,8 @@ class SimSettings:
             raise InputError(f"min_substeps must be an integer in [1, 100000]; got {self.min_substeps}")
         if self.quality not in QUALITY:
             raise InputError(f"quality must be one of {tuple(QUALITY)}; got '{self.quality}'")
+        if not isinstance(self.preload, bool):
+            raise InputError(f"preload must be True or False; got {self.preload!r}")
         if self.transfer not in ("apic", "pic"):
             raise InputError(f"transfer must be 'apic' or 'pic'; got '{self.transfer}'")
         if not (math.isfinite(self.fixed_dt) and 0.0 <= self.fixed_dt <= 0.1):
