@@ -114,3 +114,22 @@ def test_preload_is_given_up_for_a_soft_tall_body_far_from_equilibrium():
     assert pre["sag"] > 0.1 * 0.3 or pre["strain"] > 0.1, pre
     off = _run(blk, mat, conds, False, frames=3, fps=10)
     assert np.allclose(on.x.numpy(), off.x.numpy(), atol=1e-6)
+
+
+def test_soft_jelly_block_with_preload_holds_on_a_slope_at_0_9_mu():
+    # The jelly preset's own stiffness (E = 2e4 Pa): a 0.2 x 0.1 x 0.05 m block, 10 cells tall at grid_res 20,
+    # on a μ = 0.5 slope at 24.2° (0.9 μ). Stress-free it slumps, rings and slides (the check below shows it);
+    # started in equilibrium it must travel under half a cell in 1 s, like the stiff block.
+    th = math.radians(24.2)
+    blk = lattice((-0.1, 0.0, -0.025), (0.1, 0.1, 0.025), (17, 9, 5))
+    conds = [Gravity((9.81 * math.sin(th), -9.81 * math.cos(th), 0.0)), Ground(0.0, "friction", 0.5)]
+    travel = {}
+    for preload in (True, False):
+        res = _run(blk, material_preset("jelly"), conds, preload, grid_res=20)
+        dx = res.stats["dx"]
+        x = res.x.numpy().astype(np.float64)
+        travel[preload] = float(abs(x[-1, :, 0].mean() - x[0, :, 0].mean()))
+        if preload:
+            assert res.stats["preload"]["applied"], res.stats["preload"]
+    assert travel[True] < 0.5 * dx, (travel, dx)
+    assert travel[False] > 0.5 * dx, (travel, dx)  # without the preload this block does not hold

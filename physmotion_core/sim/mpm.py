@@ -40,7 +40,9 @@ PRELOAD_MODELS = ("fixed_corotated", "neo_hookean", "fracture")
 PRELOAD_PERIODS = 8.0
 PRELOAD_TOL = 0.01
 PRELOAD_MAX_SAG = 0.1  # a relaxation that moves a particle by more than this fraction of the height is given up
-PRELOAD_MAX_STRAIN = 0.1  # ... and one whose 99th percentile of the largest principal strain exceeds this
+PRELOAD_MAX_STRAIN = 0.15  # ... and one whose 99th percentile of the largest principal strain exceeds this
+#   (0.15: the soft preset's 0.3 x 0.15 x 0.15 m block, 11 %, holds preloaded at 0.9 μ, 3.7 mm in 1 s against
+#   51.2 mm stress-free; the coffee-cup jelly, 19 %, toppled from its preloaded state and is given up)
 TRANSFERS = ("apic", "pic")  # particle-grid velocity transfer: affine (APIC / MLS-MPM) or plain PIC
 SPAN_QUANTUM = 4  # grid spans are rounded out to multiples of this many nodes (fewer graph captures)
 MAX_SPAN_MARGIN = 32  # nodes of room around the particles' stencils a span may add per side (graphs)
