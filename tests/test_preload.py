@@ -133,3 +133,39 @@ def test_soft_jelly_block_with_preload_holds_on_a_slope_at_0_9_mu():
             assert res.stats["preload"]["applied"], res.stats["preload"]
     assert travel[True] < 0.5 * dx, (travel, dx)
     assert travel[False] > 0.5 * dx, (travel, dx)  # without the preload this block does not hold
+
+
+def test_the_preload_reports_progress_so_a_cancel_can_stop_it():
+    # The relaxation runs before the first frame (up to 8 periods, seconds on a large body): it calls the
+    # progress callback, where a host's cancel check lives (ComfyUI's Cancel raises there), so a cancel
+    # stops it instead of waiting for the frames.
+    from physmotion_core.sim import mpm
+
+    class Cancelled(Exception):
+        pass
+
+    state = {"in_preload": False, "raised_in_preload": False}
+    orig = mpm.MPMSolver.preload
+
+    def preload(self, *a, **k):
+        state["in_preload"] = True
+        try:
+            return orig(self, *a, **k)
+        finally:
+            state["in_preload"] = False
+
+    def progress(done, total, preview=None):
+        if state["in_preload"]:
+            state["raised_in_preload"] = True
+            raise Cancelled()
+
+    blk = lattice((-0.05, 0.0, -0.05), (0.05, 0.1, 0.05), (9, 9, 9))
+    mpm.MPMSolver.preload = preload
+    try:
+        with pytest.raises(Cancelled):
+            simulate(blk, material_preset("jelly", E=2.0e4), Conditions([Ground(0.0, "friction", 0.5)]),
+                     SimSettings(frames=11, fps=10, grid_res=10, domain_margin=2.0, rest_speed=0.0, device="cpu"),
+                     progress=progress)
+    finally:
+        mpm.MPMSolver.preload = orig
+    assert state["raised_in_preload"]

@@ -10,7 +10,7 @@ import time
 import weakref
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Optional, Sequence
+from typing import Callable, Optional, Sequence
 
 import numpy as np
 
@@ -1108,7 +1108,7 @@ class MPMSolver:
 
     def preload(self, height: float, wave_speed: float, max_periods: float = PRELOAD_PERIODS,
                 tol: float = PRELOAD_TOL, max_sag: float = PRELOAD_MAX_SAG,
-                max_strain: float = PRELOAD_MAX_STRAIN) -> dict:
+                max_strain: float = PRELOAD_MAX_STRAIN, on_step: Optional[Callable[[], None]] = None) -> dict:
         """Start the bodies in equilibrium under gravity (dynamic relaxation).
 
         A photographed body already carries its weight: the photo shows its loaded shape. Released
@@ -1135,7 +1135,8 @@ class MPMSolver:
         Returns what it did: ``applied``, ``substeps``, ``seconds`` (wall), ``sim_time`` (s relaxed),
         ``periods``, ``rms`` (m/s at the end), ``settled``, ``sag`` (the largest particle displacement,
         m, the relaxation showed before the positions were restored) and ``strain`` (the percentile above). The F it kept is ``self.F_preload``
-        (None when given up)."""
+        (None when given up). ``on_step``, if given, is called every 16 substeps (progress, and a host's cancel
+        check, which may raise)."""
         g = float(np.linalg.norm(self.gravity))
         if not (height > 0 and wave_speed > 0 and g > 0 and self.n):
             raise InputError("preload needs a body of positive height and wave speed under gravity")
@@ -1165,8 +1166,11 @@ class MPMSolver:
             sag = max(sag, float(np.sqrt(((self.x.numpy() - x0) ** 2).sum(1).max())))
             if sag > max_sag * height:
                 break
-            if steps % 16 == 0 and self._strain99() > 1.25 * max_strain:  # the ringing overshoots ~10 % at most
-                break
+            if steps % 16 == 0:
+                if on_step is not None:
+                    on_step()  # progress and the host's cancel check (a node's Cancel interrupts here)
+                if self._strain99() > 1.25 * max_strain:  # the ringing overshoots ~10 % at most
+                    break
             if t >= period and rms < target:
                 settled = True
                 break

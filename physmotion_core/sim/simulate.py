@@ -387,7 +387,8 @@ def simulate(
     solver.set_limits(max_dt=min(frame_dt / settings.min_substeps, settings.fixed_dt or math.inf),
                       max_frame_substeps=settings.max_substeps_per_frame)
     plan = preload_plan(settings, conditions, parts, materials, init, res.dx)
-    preload = solver.preload(*plan) if plan is not None else None
+    pre_tick = Throttle(progress, 0.2)
+    preload = solver.preload(*plan, on_step=lambda: pre_tick(0, settings.frames - 1)) if plan is not None else None
     if preload is not None and preload["applied"]:
         log.info("preload: the bodies settled under gravity in %d substeps (%.2f s, %.1f periods, sag %.3g m)",
                  preload["substeps"], preload["seconds"], preload["periods"], preload["sag"])
