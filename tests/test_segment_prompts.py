@@ -340,3 +340,52 @@ def test_a_box_window_keeps_prompts_and_errors():
     assert (a == b).all()
     with pytest.raises(InputError, match="outside the box"):
         grabcut(img, box=box, points=[(250, 100)])
+
+
+def _lugged_clock(seed=3):
+    """A white face in a pale grey rim with four dark blue lugs (N, E, S, W) on a mid-grey wall, and
+    far from it a large patch of the rim's pale grey. A click's search finds the face and the lugs
+    (so its box is the whole clock) but, learning the background from the whole photo, gives the
+    pale rim between the lugs to the background."""
+    rng = np.random.default_rng(seed)
+    H, W = 200, 320
+    img = np.full((H, W, 3), 0.45, np.float32)
+    yy, xx = np.mgrid[:H, :W]
+    r = np.hypot(xx - 100, yy - 100)
+    ang = np.degrees(np.arctan2(yy - 100, xx - 100)) % 90
+    face, disk = r <= 30, r <= 42
+    img[disk] = 0.68
+    img[disk & ~face & ((ang < 12) | (ang > 78))] = (0.15, 0.25, 0.6)
+    img[face] = 0.95
+    img[:, 230:] = 0.68
+    return np.clip(img + rng.normal(0, 0.015, img.shape), 0, 1).astype(np.float32), disk
+
+
+@pytest.mark.parametrize("click", [(100, 100), (90, 110), (100, 80)])
+def test_a_click_is_cut_again_as_a_box_around_its_object(click):
+    from physmotion_core.segment import classic as C
+
+    img, disk = _lugged_clock()
+    iou = lambda m: (m & disk).sum() / (m | disk).sum()  # noqa: E731
+    # The click's last cut is a box prompt (window, tightness) in the found object's box: the pale rim
+    # is the object's, as the ring around the box says. Without it (the search's pick) the rim went:
+    # IoU 0.64 on these clicks.
+    assert iou(grabcut(img, points=[click])) > 0.97
+    assert iou(segment(img, points=[click]).mask.numpy() > 0.5) > 0.97
+    recut = []
+    orig = C.grabcut
+
+    def spy(*a, **k):
+        if k.get("_click") == "whole" and k.get("box") is not None and k.get("_window", True):
+            recut.append(k["box"])
+        return orig(*a, **k)
+
+    C.grabcut = spy
+    try:
+        C.grabcut(img, points=[click])
+    finally:
+        C.grabcut = orig
+    assert len(recut) == 1
+    x0, y0, x1, y1 = recut[0]
+    # the box of the face and lugs (58..142), grown by CLICK_RECUT_GROW (5 %) + 2 px
+    assert 50 <= x0 <= 58 and 50 <= y0 <= 58 and 142 <= x1 <= 150 and 142 <= y1 <= 150, recut[0]

@@ -618,6 +618,8 @@ CLICK_SEARCH_MAX_SIDE = 640
 GROW_START = 0.12
 GROW_FACTOR = 0.6
 GROW_PASSES = 6
+#: The click's last cut is a box prompt in its object's box grown by this fraction per side.
+CLICK_RECUT_GROW = 0.04
 
 
 def _grown_click(img: np.ndarray, pts: np.ndarray, labels: np.ndarray, iters: int, max_side) -> np.ndarray:
@@ -676,7 +678,7 @@ def _click_prompted(img: np.ndarray, pts: np.ndarray, labels: np.ndarray, iters:
                               _click="whole")
         grown = _grown_click(img, pts, labels, iters, search)
         whole = pending.result()
-    best, best_key = whole, None
+    best, best_key, best_clean = whole, None, None
     for k, cand in enumerate((whole, grown)):
         if not cand.any():
             continue
@@ -684,18 +686,24 @@ def _click_prompted(img: np.ndarray, pts: np.ndarray, labels: np.ndarray, iters:
         rep = check_mask(cleaned, object_points=[tuple(p) for p in fg_pts], image=img)
         key = (rep.ok, float(cleaned.mean()) if rep.ok else -k)
         if best_key is None or key > best_key:
-            best, best_key = cand, key
-    H, W = img.shape[:2]
-    if max(H, W) <= search or not best.any():
+            best, best_key, best_clean = cand, key, cleaned
+    if best_clean is None or not best_clean.any():
         return best
-    # The search ran small; the chosen object is cut once more at full size in its box, grown by a
-    # tenth (the box is not tight, so no tightness seeds; and on the whole photo: a box prompt's window
-    # (``_box_window``) here turned the cell's click from IoU 1.00 into 0.98 and helped none).
-    x0, y0, x1, y1 = mask_box(best)
-    gx, gy = 0.1 * (x1 - x0) + 2, 0.1 * (y1 - y0) + 2
+    # The chosen object is cut once more, at full size, as a box prompt: its box (the cleaned clicked
+    # part's, grown by CLICK_RECUT_GROW) with the tightness prior and on the box's window
+    # (``_box_window``), so the background model learns what borders the object and not the far
+    # side of the photo. On the benchmark photos (docs/quality.md) this took the blurred clock's
+    # click from IoU 0.74 to 0.85 and the cat's from 0.96 to 0.97, and cost the cameraman's 0.89 ->
+    # 0.88 and the cell's 1.00 -> 0.99; the same on five clicks per photo.
+    H, W = img.shape[:2]
+    x0, y0, x1, y1 = mask_box(best_clean)
+    # every object click inside the box (a click GrabCut did not find is not on the mask)
+    x0, y0 = min(x0, int(fg_pts[:, 0].min())), min(y0, int(fg_pts[:, 1].min()))
+    x1, y1 = max(x1, int(fg_pts[:, 0].max()) + 1), max(y1, int(fg_pts[:, 1].max()) + 1)
+    gx, gy = CLICK_RECUT_GROW * (x1 - x0) + 2, CLICK_RECUT_GROW * (y1 - y0) + 2
     box = [max(0, int(x0 - gx)), max(0, int(y0 - gy)), min(W, int(math.ceil(x1 + gx))), min(H, int(math.ceil(y1 + gy)))]
     return grabcut(img, box=box, points=pts, point_labels=labels, iters=iters, max_side=max_side, _click="whole",
-                   _tight=False, _window=False)
+                   _tight=True, _window=True)
 
 
 def _drop_clicked_background(fg: np.ndarray, fg_pts: np.ndarray, bg_pts: np.ndarray, radius: int) -> np.ndarray:
