@@ -389,3 +389,33 @@ def test_a_click_is_cut_again_as_a_box_around_its_object(click):
     x0, y0, x1, y1 = recut[0]
     # the box of the face and lugs (58..142), grown by CLICK_RECUT_GROW (5 %) + 2 px
     assert 50 <= x0 <= 58 and 50 <= y0 <= 58 and 142 <= x1 <= 150 and 142 <= y1 <= 150, recut[0]
+
+
+def _shape(kind: str, seed: int = 0):
+    """A flat orange object that is not star-shaped from its click (a ring clicked on its side, an L clicked
+    at the end of an arm, a C) on a grey-green ground: the object, its mask and the click."""
+    rng = np.random.default_rng(seed)
+    H, W = 240, 320
+    img = np.full((H, W, 3), (0.55, 0.6, 0.5), np.float32)
+    yy, xx = np.mgrid[:H, :W]
+    r = np.hypot(xx - 160, yy - 120)
+    if kind == "ring":
+        obj, click = (r <= 80) & (r >= 40), (100, 120)
+    elif kind == "L":
+        obj = ((xx >= 80) & (xx < 120) & (yy >= 30) & (yy < 210)) | ((xx >= 80) & (xx < 260) & (yy >= 170) & (yy < 210))
+        click = (100, 50)
+    else:
+        obj = (r <= 80) & (r >= 45) & (np.abs(np.degrees(np.arctan2(yy - 120, xx - 160))) > 40)
+        click = (98, 120)
+    img[obj] = (0.8, 0.35, 0.2)
+    return np.clip(img + rng.normal(0, 0.03, img.shape), 0, 1).astype(np.float32), obj, click
+
+
+@pytest.mark.parametrize("kind", ["ring", "L", "C"])
+def test_a_click_finds_bent_and_holed_objects_whole(kind):
+    # Parts of the object that the click cannot see along a straight line inside it (the ring's far side, the
+    # L's other arm) are still the object's: a star-shape prior (docs/quality.md, dropped) cut these to IoU
+    # 0.53-0.68.
+    img, obj, click = _shape(kind)
+    m = segment(img, points=[click]).mask.numpy() > 0.5
+    assert (m & obj).sum() / (m | obj).sum() > 0.95
