@@ -693,8 +693,8 @@ def _click_prompted(img: np.ndarray, pts: np.ndarray, labels: np.ndarray, iters:
     # part's, grown by CLICK_RECUT_GROW) with the tightness prior and on the box's window
     # (``_box_window``), so the background model learns what borders the object and not the far
     # side of the photo. On the benchmark photos (docs/quality.md) this took the blurred clock's
-    # click from IoU 0.74 to 0.85 and the cat's from 0.96 to 0.97, and cost the cameraman's 0.89 ->
-    # 0.88 and the cell's 1.00 -> 0.99; the same on five clicks per photo.
+    # click from IoU 0.74 to 0.86 and the cameraman's from 0.89 to 0.91, and cost the astronaut's
+    # 0.67 -> 0.62 and the cell's 1.00 -> 0.99 (5 of 8 at 0.75 instead of 4, on five clicks per photo).
     H, W = img.shape[:2]
     x0, y0, x1, y1 = mask_box(best_clean)
     # every object click inside the box (a click GrabCut did not find is not on the mask)
