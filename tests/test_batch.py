@@ -201,6 +201,48 @@ def test_ray_sweep_gives_byte_identical_videos(sweep):
             assert a["error"]["message"] == b["error"]["message"]
 
 
+def test_a_worker_that_dies_before_the_next_submit_does_not_stop_the_batch(tmp_path):
+    """The race CI hit: a worker dies, another job finishes first, and the runner submits the next job
+    to the broken pool before any wait() has seen the death. The submit must restart the pool, report
+    the dropped job at the next wait(), and run the new job on the new pool."""
+    from physmotion_core.batch.executors import LocalExecutor
+
+    ex = LocalExecutor(tmp_path, workers=1, threads=1)
+    ex.start()
+    try:
+        # a job in flight when the worker dies: it sleeps inside the worker (no physics, no torch)
+        old = dict(ex._pool._processes)
+        busy = {"id": "busy", "settings": {}, "attempt": 1, "physics_version": "x"}
+        fut = ex._pool.submit(time.sleep, 30)
+        ex._inflight[fut] = busy
+        (tmp_path / "busy").mkdir()
+        deadline = time.monotonic() + 60
+        while not old and time.monotonic() < deadline:
+            time.sleep(0.1)
+            old = dict(ex._pool._processes)
+        pid = next(iter(old))
+        ex._procs.update(old)  # as submit() records them
+        (tmp_path / "busy" / ".running").write_text(f"{pid} 1")
+        time.sleep(0.5)
+        os.kill(pid, signal.SIGKILL)
+        while not ex._pool._broken and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert ex._pool._broken, "the pool did not notice its worker died"
+        # a job whose worker refuses it at once (another physics version): a quick, real result
+        ex.submit({"id": "next", "settings": {}, "attempt": 1, "physics_version": "not-this-one"})
+        seen = {}
+        while len(seen) < 2 and time.monotonic() < deadline:
+            for kind, task, value in ex.wait(timeout=1.0):
+                seen[task["id"]] = (kind, value)
+        assert seen["busy"][0] == "infra" and "SIGKILL" in seen["busy"][1], seen
+        kind, record = seen["next"]
+        assert kind == "result" and record["status"] == "failed", seen
+        assert record["error"]["type"] == "EnvironmentMismatch", record
+        assert record["pid"] not in old, "the new job ran on the dead pool's worker"
+    finally:
+        ex.stop(abort=True)
+
+
 def test_rerun_does_no_work(sweep):
     videos = {r["id"]: sweep.out / r["video"] for r in _rows(sweep.out) if r["status"] == "done"}
     stamps = {i: p.stat().st_mtime_ns for i, p in videos.items()}

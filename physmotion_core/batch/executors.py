@@ -47,6 +47,7 @@ class LocalExecutor:
         self._pool: Optional[cf.ProcessPoolExecutor] = None
         self._inflight: dict = {}
         self._procs: dict = {}
+        self._pending: list = []  # outcomes found while submitting, handed back by the next wait()
 
     def _new_pool(self) -> cf.ProcessPoolExecutor:
         ctx = mp.get_context("spawn")
@@ -72,15 +73,33 @@ class LocalExecutor:
         return self._pool.submit(J.warm_kernels, device).result()
 
     def submit(self, task: dict) -> None:
-        fut = self._pool.submit(J.local_task, task, str(self.out / task["id"]))
+        try:
+            fut = self._pool.submit(J.local_task, task, str(self.out / task["id"]))
+        except cf.process.BrokenProcessPool:
+            # A worker died since the last wait() (another job finished first and freed this slot): the
+            # pool fails every job it held. Sort them out now, hand the outcomes to the next wait(), and
+            # give this task to a new pool.
+            cf.wait(list(self._inflight), timeout=30)
+            outcomes, _ = self._harvest([f for f in list(self._inflight) if f.done()])
+            self._pending.extend(outcomes)
+            self._pending.extend(self._recover())
+            fut = self._pool.submit(J.local_task, task, str(self.out / task["id"]))
         self._inflight[fut] = task
         self._procs.update(getattr(self._pool, "_processes", None) or {})
 
     def wait(self, timeout: float) -> list:
+        pending, self._pending = self._pending, []
         if not self._inflight:
-            return []
-        done, _ = cf.wait(list(self._inflight), timeout=timeout, return_when=cf.FIRST_COMPLETED)
+            return pending
+        done, _ = cf.wait(list(self._inflight), timeout=0 if pending else timeout, return_when=cf.FIRST_COMPLETED)
         self._procs.update(getattr(self._pool, "_processes", None) or {})
+        outcomes, broken = self._harvest(done)
+        if broken:
+            outcomes.extend(self._recover())
+        return pending + outcomes
+
+    def _harvest(self, done) -> tuple:
+        """Outcomes of finished futures; those the broken pool dropped stay in flight for _recover."""
         outcomes, broken = [], False
         for fut in done:
             task = self._inflight.pop(fut)
@@ -91,9 +110,7 @@ class LocalExecutor:
                 self._inflight[fut] = task  # sorted out below, with the rest of the pool's jobs
             except Exception as exc:  # noqa: BLE001 - e.g. a result that could not be sent back
                 outcomes.append(("infra", task, f"{type(exc).__name__}: {exc}"))
-        if broken:
-            outcomes.extend(self._recover())
-        return outcomes
+        return outcomes, broken
 
     def _recover(self) -> list:
         """A worker died, so the pool is broken and every job on it was dropped. The job whose
