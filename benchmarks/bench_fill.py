@@ -2,6 +2,7 @@
 
     python -m benchmarks.bench_fill            # the table in docs/quality.md ("Background fill") + a sheet
     python -m benchmarks.bench_fill --quick    # fewer cases, nothing written
+    python -m benchmarks.bench_fill --large    # the pipeline's fill of a 4k photo: time (docs/benchmarks.md)
 
 Holes: the hand-made reference masks of benchmarks/data/segment (a rocket, a cup, a cat, a person, a
 motorcycle), cropped to the object, scaled to 6-14 % of another photo's area, placed at fixed spots of it and
@@ -80,10 +81,41 @@ def score(out: np.ndarray, truth: np.ndarray, hole: np.ndarray) -> tuple[float, 
                                                                                data_range=1.0))
 
 
+LARGE_W, LARGE_H, LARGE_R, LARGE_ROUNDS = 3840, 2160, 700, 3
+
+
+def large(rounds: int = LARGE_ROUNDS) -> None:
+    """The pipeline's fill (``inpaint_background``, its defaults) of a 1400 px disk in a 3840x2160 ramp: the
+    time a 4k photo's background fill takes (it was a timed unit test, tests/test_segment.py, whose
+    behaviour checks stay there)."""
+    import torch
+
+    from physmotion_core.report import machine_description, update_section
+    from physmotion_core.segment.classic import inpaint_background
+
+    yy, xx = np.mgrid[0:LARGE_H, 0:LARGE_W].astype(np.float32)
+    img = np.stack([xx / LARGE_W, yy / LARGE_H, 0.5 + 0 * xx], -1).astype(np.float32)
+    hole = (xx - LARGE_W / 2) ** 2 + (yy - LARGE_H / 2) ** 2 <= LARGE_R**2
+    times = []
+    for _ in range(rounds):
+        t = time.perf_counter()
+        inpaint_background(torch.from_numpy(img), torch.from_numpy(hole))
+        times.append(time.perf_counter() - t)
+    line = (f"`python -m benchmarks.bench_fill --large` ({datetime.date.today()}, {machine_description()}): the "
+            f"pipeline's background fill of a {2 * LARGE_R} px hole in a {LARGE_W}x{LARGE_H} photo takes "
+            f"{min(times):.2f} s (best of {rounds}; all: {', '.join(f'{t:.2f}' for t in times)} s).")
+    print(line)
+    update_section("benchmarks.md", "fill-4k", "## Background fill of a 4k photo\n\n" + line + "\n")
+
+
 def main(argv=None) -> None:
     ap = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     ap.add_argument("--quick", action="store_true")
+    ap.add_argument("--large", action="store_true", help="only time the fill of a 4k photo")
     args = ap.parse_args(argv)
+    if args.large:
+        large()
+        return
     cases = CASES[:3] if args.quick else CASES
     rows, sums, sheet = [], {m: [] for m in METHODS}, []
     for photo, mask_of, frac, cx, cy in cases:

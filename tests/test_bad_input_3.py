@@ -411,7 +411,7 @@ def test_a_yaml_alias_bomb_is_refused_before_it_is_expanded(tmp_path):
     t0 = time.monotonic()
     with pytest.raises(SpecError, match=r"more than 100,000 values once its aliases .* are expanded"):
         load_spec(tmp_path / "bomb.yaml")
-    assert time.monotonic() - t0 < 1.0
+    assert time.monotonic() - t0 < 5.0  # refused without writing out its 10^9 values
     (tmp_path / "rec.yaml").write_text("batch: {images: [a.png]}\ndefaults: &d {forces: [*d]}\n")
     with pytest.raises(SpecError, match="recursive alias"):
         load_spec(tmp_path / "rec.yaml")
@@ -446,7 +446,7 @@ def test_a_million_job_grid_is_refused_at_once_unless_confirmed(tmp_path, capsys
     with pytest.raises(SpecError, match=r"expands to 1,000,000 jobs \(E \(100\) x nu \(100\) x seed \(100\).*"
                                         r"limit of 10,000 .* --max-jobs 1000000"):
         load_spec(spec)
-    assert time.monotonic() - t0 < 1.0
+    assert time.monotonic() - t0 < 5.0  # refused before expanding (a million jobs take far longer)
     code = main(["batch", str(spec), "-o", str(tmp_path / "out"), "-q"])
     err = capsys.readouterr().err
     assert code == 2 and "--max-jobs 1000000" in err and "Traceback" not in err

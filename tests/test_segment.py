@@ -1,6 +1,5 @@
 """Model-free segmentation (alpha / mask / GrabCut), background inpainting and image I/O."""
 
-import time
 
 import cv2
 import numpy as np
@@ -216,14 +215,12 @@ def test_segment_background_has_no_object_halo():
     assert default_dilate_px(h, w) >= 3
 
 
-def test_inpainting_a_4k_image_stays_fast():
+def test_inpainting_a_4k_image_fills_the_hole_smoothly_and_leaves_the_rest():
+    # its time is measured by `python -m benchmarks.bench_fill --large` (docs/benchmarks.md)
     h, w = 2160, 3840
     img = _gradient_image(h, w)
     disk = _disk(h, w, w / 2, h / 2, 700)
-    t0 = time.perf_counter()
     out = inpaint_background(torch.from_numpy(img), torch.from_numpy(disk))
-    elapsed = time.perf_counter() - t0
-    assert elapsed < 10.0, f"4k inpainting took {elapsed:.1f} s"
     far = ~(cv2.dilate(disk.astype(np.uint8), np.ones((61, 61), np.uint8)) > 0)
     assert torch.equal(out[torch.from_numpy(far)], torch.from_numpy(img)[torch.from_numpy(far)])
     # The ramp across this 1400 px hole is 0.26; a smooth fill stays within 0.05 of it on average.
