@@ -84,7 +84,8 @@ class PhysMotionSegment:
         seg = segment(img, mask=m, method="mask" if m is not None else "grabcut", grabcut_iters=int(grabcut_iterations),
                       box=box_t, points=pts or None, point_labels=labels or None)
         prompted = m is not None or bool(obj_pts) or box_t is not None
-        return checked_segmentation(seg, prompted, obj_pts, bg_pts, box_t)
+        return checked_segmentation(seg, prompted, obj_pts, bg_pts, box_t,
+                                    source="mask" if m is not None else "grabcut")
 
 
 def parse_grabcut_prompts(object_points: str, background_points: str, box: str, width: int, height: int):
@@ -111,10 +112,11 @@ def parse_grabcut_prompts(object_points: str, background_points: str, box: str, 
     return obj, list(dict.fromkeys(neg)), the_box
 
 
-def checked_segmentation(seg, prompted: bool, obj_pts=(), bg_pts=(), box=None) -> dict:
+def checked_segmentation(seg, prompted: bool, obj_pts=(), bg_pts=(), box=None, source: str = "grabcut") -> dict:
     """The Segment nodes' result: the mask's plausibility check (refused when nobody said which object,
-    warned otherwise), the overlay as an IMAGE output and as the node's preview."""
-    from physmotion_core.segment.check import NODE_HOW_TO_FIX, check_mask, enforce_plausible
+    warned otherwise, with what to change for the prompt given), the overlay as an IMAGE output and as
+    the node's preview. ``source``: "grabcut", "sam" or "mask" (a connected MASK)."""
+    from physmotion_core.segment.check import NODE_HOW_TO_FIX, check_mask, enforce_plausible, retry_hint
     from physmotion_core.segment.overlay import mask_overlay
 
     report = check_mask(seg.mask, object_points=obj_pts, background_points=bg_pts, image=seg.image)
@@ -125,8 +127,10 @@ def checked_segmentation(seg, prompted: bool, obj_pts=(), bg_pts=(), box=None) -
         shown = preview["images"][0]["filename"] if preview.get("images") else None
         from ._util import temp_directory
 
+        hint = "" if source == "mask" else retry_hint(points=bool(obj_pts), box=box is not None,
+                                                      model=source == "sam", node=True)
         enforce_plausible(report, prompted=prompted, overlay=(temp_directory() / shown) if shown else None,
-                          how_to_fix=NODE_HOW_TO_FIX)
+                          how_to_fix=NODE_HOW_TO_FIX, hint=hint)
     log.info("mask: %s", "; ".join(report.summary_lines()))
     if not prompted:
         log.warning("the object was picked automatically (no point, box or mask): check the overlay in the Segment "
@@ -223,13 +227,13 @@ class PhysMotionSAMSegment:
         m = first_mask(mask)
         if m is not None and float(m.max() - m.min()) >= 0.5:
             seg = segment(img, mask=m, method="mask")
-            out = checked_segmentation(seg, True, obj, neg, box)
+            out = checked_segmentation(seg, True, obj, neg, box, source="mask")
             out["result"] = out["result"][:3] + (seg.mask[None], out["result"][3])
             return out
         with models_on_device(sam, what="SAM Segment"):
             res = sam_segment(sam, img, prompts, clean=bool(clean))
         seg = res.segmentation
-        out = checked_segmentation(seg, bool(prompts), obj, neg, box)
+        out = checked_segmentation(seg, bool(prompts), obj, neg, box, source="sam")
         out["result"] = out["result"][:3] + (res.masks, out["result"][3])
         return out
 

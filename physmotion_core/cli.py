@@ -133,7 +133,7 @@ def _segment_cmd(args) -> int:
     from .fsutil import check_outputs, protect_inputs
     from .image_io import load_image
     from .pipeline import DEFAULT_MAX_SIDE, _resize, available_models, segment_photo
-    from .segment.check import check_mask
+    from .segment.check import check_mask, retry_hint
     from .segment.overlay import mask_overlay, write_overlay
 
     check_outputs({"-o/--output": args.output}, inputs=[args.image, args.mask])
@@ -177,6 +177,10 @@ def _segment_cmd(args) -> int:
     if not report.ok:
         print("generate would " + ("warn about this mask" if prompted else
                                    "refuse this mask: give --object-point U,V, --box X0,Y0,X1,Y1 or --mask FILE"))
+        hint = "" if how in ("alpha", "mask") else retry_hint(points=bool(pr["object_points"]), box=box is not None,
+                                                              model=how == "sam")
+        if hint:
+            print(hint)
     return 0
 
 

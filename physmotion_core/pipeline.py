@@ -300,7 +300,7 @@ def prepare(
     """Everything before the simulation (see ``generate``); returns a ``Prepared``."""
     from .image_io import load_image
     from .lift import silhouette_lift
-    from .segment.check import CLI_HOW_TO_FIX, check_mask, enforce_plausible
+    from .segment.check import CLI_HOW_TO_FIX, check_mask, enforce_plausible, retry_hint
 
     def stage(name: str) -> Optional[ProgressFn]:
         return progress(name) if progress is not None else None
@@ -419,7 +419,9 @@ def prepare(
     say(f"mask ({stages['segment']}): " + "; ".join(mask_report.summary_lines()))
     if overlay_path is not None:
         say(f"mask overlay: {overlay_path}")
-    enforce_plausible(mask_report, prompted=given, overlay=overlay_path, how_to_fix=CLI_HOW_TO_FIX)
+    enforce_plausible(mask_report, prompted=given, overlay=overlay_path, how_to_fix=CLI_HOW_TO_FIX,
+                      hint="" if stages["segment"] in ("alpha", "mask") else
+                      retry_hint(points=bool(obj_pts), box=box is not None, model=stages["segment"] == "sam"))
     if not given:
         # Without weights the automatic pick is a guess that passes the checks above on most wrong
         # objects but not all (docs/quality.md): always say so, and where to look.

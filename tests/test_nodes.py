@@ -355,7 +355,9 @@ def test_segment_node_bad_prompts_say_what_to_write(kw, words):
         seg.run(image, "auto", "auto", 5, **kw)
 
 
-def test_segment_node_refuses_an_implausible_automatic_mask_and_names_the_overlay(monkeypatch):
+def test_segment_node_refuses_an_implausible_automatic_mask_and_names_the_overlay(monkeypatch, caplog):
+    import logging
+
     import numpy as np
 
     import physmotion_core.segment as segpkg
@@ -375,6 +377,21 @@ def test_segment_node_refuses_an_implausible_automatic_mask_and_names_the_overla
     msg = str(exc.value)
     assert "PhysMotion_segment" in msg and ".png" in msg  # the overlay file in the temp folder
     assert "object_points" in msg and "MASK" in msg
-    # The same mask with a prompt is only warned about.
-    out = seg.run(image, "auto", "auto", 5, box="0, 0, 160, 96")
-    assert out["result"][1].shape == (1, 96, 160)
+    # The same mask with a prompt is only warned about, with what to change for that prompt.
+    def hints():
+        return [r.getMessage() for r in caplog.records if "If the outline is not the object" in r.getMessage()]
+
+    with caplog.at_level(logging.WARNING, logger="physmotion"):
+        out = seg.run(image, "auto", "auto", 5, box="0, 0, 160, 96")
+        assert out["result"][1].shape == (1, 96, 160)
+        (h,) = hints()
+        assert "move the box's sides" in h and "background_points" in h and "PhysMotion_segment" in h
+        caplog.clear()
+        seg.run(image, "auto", "auto", 5, object_points="45, 48")
+        (h,) = hints()
+        assert "drag a box around the whole object" in h and "surer prompt" in h
+        caplog.clear()
+        m = np.ones((96, 160), np.float32)
+        m[30:70, 40:90] = 0
+        seg.run(image, "mask", "auto", 5, mask=torch.from_numpy(m)[None])  # the user's own mask: no advice
+        assert any("edges of the frame" in r.getMessage() for r in caplog.records) and hints() == []

@@ -88,6 +88,41 @@ def test_the_same_mask_with_a_prompt_only_warns(monkeypatch, tmp_path, caplog):
     assert not prep.mask_report.ok
     assert caplog.records, "a prompted implausible mask must be warned about"
     assert not any("picked automatically" in r.getMessage() for r in caplog.records)
+    hint = [r.getMessage() for r in caplog.records if "If the outline is not the object" in r.getMessage()]
+    assert len(hint) == 1 and "move the --box sides" in hint[0] and "--background-point" in hint[0]
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="physmotion"):  # a click: the advice is a box
+        generate(img, settings=FAST, preview=True, object_points=[(20, 20)], output=tmp_path / "c.mp4",
+                 report=lambda s: None)
+    hint = [r.getMessage() for r in caplog.records if "If the outline is not the object" in r.getMessage()]
+    assert len(hint) == 1 and "--box X0,Y0,X1,Y1" in hint[0] and str(tmp_path / "c.mask.png") in hint[0]
+
+
+def test_the_segment_command_writes_the_overlay_and_says_what_generate_would_do(monkeypatch, tmp_path, capsys):
+    import cv2
+
+    from physmotion_core.cli import main
+
+    img, disk = photo()
+    path = tmp_path / "disk.png"
+    cv2.imwrite(str(path), cv2.cvtColor((img * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR))
+    # the real segmentation, clicked on the disk: plausible, the overlay beside the fill
+    assert main(["segment", str(path), "--object-point", "64,50", "-o", str(tmp_path / "ok.png"),
+                 "--models", "none"]) == 0
+    out = capsys.readouterr().out
+    assert "looks plausible" in out and "generate would" not in out
+    ov = cv2.imread(str(tmp_path / "ok.png"))
+    assert ov.shape[:2] == (H, 2 * W)  # the photo with the outline | the filled background
+    # a wrong mask: unprompted it would be refused, prompted only warned, with what to change
+    _implausible_segmentation(monkeypatch)
+    assert main(["segment", str(path), "-o", str(tmp_path / "a.png")]) == 0
+    out = capsys.readouterr().out
+    assert "generate would refuse this mask" in out and "If the outline" not in out
+    assert main(["segment", str(path), "--object-point", "64,50", "-o", str(tmp_path / "c.png")]) == 0
+    out = capsys.readouterr().out
+    assert "generate would warn about this mask" in out and "draw a box around the whole object with --box" in out
+    assert main(["segment", str(path), "--box", "30,20,100,80", "-o", str(tmp_path / "b.png")]) == 0
+    assert "move the --box sides" in capsys.readouterr().out
 
 
 def test_prompts_reach_grabcut_in_the_scaled_photo(monkeypatch):

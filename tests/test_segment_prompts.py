@@ -13,6 +13,7 @@ from physmotion_core.segment import (
     NODE_HOW_TO_FIX,
     check_mask,
     enforce_plausible,
+    retry_hint,
     grabcut,
     mask_overlay,
     segment,
@@ -191,6 +192,22 @@ def test_enforce_plausible_raises_unprompted_and_warns_prompted(caplog, tmp_path
     with caplog.at_level(logging.WARNING, logger="physmotion"):
         enforce_plausible(bad, prompted=True)
     assert sum("3 edges" in r.getMessage() for r in caplog.records) == 1
+    assert not any("If the outline" in r.getMessage() for r in caplog.records)  # no hint given, none logged
+    caplog.clear()
+    with caplog.at_level(logging.WARNING, logger="physmotion"):
+        enforce_plausible(bad, prompted=True, overlay=tmp_path / "o.png", hint=retry_hint(points=True, box=False))
+    last = caplog.records[-1].getMessage()
+    assert "o.png" in last and "--box X0,Y0,X1,Y1" in last and "--mask FILE" in last
+    # the hint follows the prompt: a box is refined, a click gets a box, SAM's click is not blamed on
+    # GrabCut, a given mask gets no advice
+    assert "move the --box sides" in retry_hint(points=True, box=True)
+    assert "surer prompt" not in retry_hint(points=True, box=False, model=True)
+    assert "--box" in retry_hint(points=True, box=False, model=True)
+    assert "drag a box" in retry_hint(points=True, box=False, node=True)
+    assert retry_hint(points=False, box=False) == ""
+    with pytest.raises(InputError) as e:  # unprompted: refused, and the hint is not what is said
+        enforce_plausible(bad, prompted=False, hint="HINT")
+    assert "HINT" not in str(e.value)
     enforce_plausible(check_mask(blob()), prompted=False)  # plausible: nothing happens
     assert "--mask FILE" in CLI_HOW_TO_FIX and "--background-point" in CLI_HOW_TO_FIX
 

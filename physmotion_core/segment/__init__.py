@@ -5,7 +5,7 @@ by an automatic box. A learned segmenter (SAM) produces a mask and hands it to `
 ``method="mask"``.
 """
 
-from .check import CLI_HOW_TO_FIX, NODE_HOW_TO_FIX, MaskReport, check_mask, enforce_plausible
+from .check import CLI_HOW_TO_FIX, NODE_HOW_TO_FIX, MaskReport, check_mask, enforce_plausible, retry_hint
 from .classic import (
     Segmentation,
     auto_box,
@@ -29,6 +29,7 @@ __all__ = [
     "check_mask",
     "check_points",
     "enforce_plausible",
+    "retry_hint",
     "mask_overlay",
     "write_overlay",
     "clean_mask",

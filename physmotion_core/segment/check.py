@@ -58,6 +58,29 @@ NODE_HOW_TO_FIX = (
     "mask, a loaded alpha).")
 
 
+def retry_hint(*, points: bool, box: bool, model: bool = False, node: bool = False) -> str:
+    """What to change when a prompted mask fails the checks, for the prompt the user gave: clicks alone,
+    or a box (with or without clicks). Empty for a given mask (the user drew it: the warnings say what
+    looks wrong and that is all). ``model``: the mask came from SAM, not GrabCut."""
+    if box:
+        if node:
+            return ("If the outline is not the object you mean: move the box's sides to just around the object, "
+                    "add object_points on parts it missed and background_points on what it took wrongly, or "
+                    "connect a MASK from another node.")
+        return ("If the outline is not the object you mean: move the --box sides to just around the object, add "
+                "--object-point U,V on parts it missed and --background-point U,V on what it took wrongly, or "
+                "give --mask FILE.")
+    if points:
+        why = ("" if model else " Without a segmentation model one click can take too little or too much of "
+               "the photo; a box is the surer prompt (docs/quality.md).")
+        if node:
+            return ("If the outline is not the object you mean: drag a box around the whole object in the node "
+                    "(the box and your clicks are used together)." + why + " Or connect a MASK from another node.")
+        return ("If the outline is not the object you mean: draw a box around the whole object with --box "
+                "X0,Y0,X1,Y1 (with or without the clicks)." + why + " Or give --mask FILE.")
+    return ""
+
+
 @dataclass
 class MaskReport:
     """What ``check_mask`` found. ``problems`` empty means the mask looks like one object."""
@@ -246,19 +269,23 @@ def check_mask(mask, *, object_points=(), background_points=(), force_points=(),
 
 
 def enforce_plausible(report: MaskReport, *, prompted: bool, overlay=None,
-                      how_to_fix: str = CLI_HOW_TO_FIX) -> None:
+                      how_to_fix: str = CLI_HOW_TO_FIX, hint: str = "") -> None:
     """Refuse an implausible automatic mask; only warn about a prompted one.
 
     ``prompted``: the user gave points, a box or a mask, so the mask is what they asked for; the
     problems are logged as warnings (logger "physmotion") and the run goes on. Otherwise the
     problems raise InputError naming the overlay image (``overlay``: a path, if one was written)
-    and ``how_to_fix`` (``CLI_HOW_TO_FIX`` or ``NODE_HOW_TO_FIX``).
+    and ``how_to_fix`` (``CLI_HOW_TO_FIX`` or ``NODE_HOW_TO_FIX``). ``hint`` (``retry_hint``), for a
+    prompted mask: what to change, logged after the problems with the overlay to look at.
     """
     if report.ok:
         return
     if prompted:
         for p in report.problems:
             log.warning("segmentation: %s", p)
+        if hint:
+            where = f"Look at {overlay}. " if overlay is not None else ""
+            log.warning("segmentation: %s%s", where, hint)
         return
     lines = ["The automatic segmentation does not look like one object:"]
     lines += [f"  - {p}" for p in report.problems]
