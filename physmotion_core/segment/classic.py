@@ -12,6 +12,7 @@ from __future__ import annotations
 
 import logging
 import math
+import threading
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Optional, Sequence
@@ -665,38 +666,66 @@ def _click_prompted(img: np.ndarray, pts: np.ndarray, labels: np.ndarray, iters:
     (``_grown_click``), each cleaned and checked (``check.check_mask`` with the photo and the clicks);
     the larger plausible one wins (the whole-image pass errs by swallowing the surroundings, which the
     check catches; the grown box errs by shrinking onto a part, which it does not), and when neither is
-    plausible the whole-image one. Measured on the benchmark photos (docs/quality.md)."""
-    from .check import check_mask
-
+    plausible the whole-image one. The winner is cut once more as a box prompt (``_click_recut``).
+    Measured on the benchmark photos (docs/quality.md)."""
     fg_pts = pts[labels == 1]
     search = min(CLICK_SEARCH_MAX_SIDE, GRABCUT_MAX_SIDE if max_side is None else int(max_side))
+    grown_done = threading.Event()
+
+    def whole_pass():
+        whole = grabcut(img, points=pts, point_labels=labels, iters=iters, max_side=search, _click="whole")
+        cleaned, ok = _clean_and_check(img, whole, fg_pts) if whole.any() else (None, False)
+        # While the grown box is still growing, this thread would idle: cut the whole-image candidate
+        # again already if it is plausible (then it wins unless the grown one is plausible and larger).
+        recut = (_click_recut(img, cleaned, pts, labels, iters, max_side)
+                 if ok and cleaned.any() and not grown_done.is_set() else None)
+        return whole, cleaned, ok, recut
+
     # The two candidates are independent: the whole-image pass runs on a second thread while this one
     # grows the box (OpenCV releases the GIL inside grabCut and its RNG is per thread, and each pass
-    # seeds it, so the masks are the same as one after the other).
+    # seeds it, so the masks are the same as one after the other, and a re-cut is the same on either
+    # thread).
     with ThreadPoolExecutor(1, thread_name_prefix="physmotion-click") as pool:
-        pending = pool.submit(grabcut, img, points=pts, point_labels=labels, iters=iters, max_side=search,
-                              _click="whole")
-        grown = _grown_click(img, pts, labels, iters, search)
-        whole = pending.result()
-    best, best_key, best_clean = whole, None, None
+        pending = pool.submit(whole_pass)
+        try:
+            grown = _grown_click(img, pts, labels, iters, search)
+        finally:
+            grown_done.set()
+        whole, whole_clean, whole_ok, whole_recut = pending.result()
+    best, best_key, best_clean, won = whole, None, None, 0
     for k, cand in enumerate((whole, grown)):
         if not cand.any():
             continue
-        cleaned = _keep_clicked(clean_mask(cand).numpy() > 0.5, cand, fg_pts)
-        rep = check_mask(cleaned, object_points=[tuple(p) for p in fg_pts], image=img)
-        key = (rep.ok, float(cleaned.mean()) if rep.ok else -k)
+        cleaned, ok = (whole_clean, whole_ok) if k == 0 else _clean_and_check(img, cand, fg_pts)
+        key = (ok, float(cleaned.mean()) if ok else -k)
         if best_key is None or key > best_key:
-            best, best_key, best_clean = cand, key, cleaned
+            best, best_key, best_clean, won = cand, key, cleaned, k
     if best_clean is None or not best_clean.any():
         return best
-    # The chosen object is cut once more, at full size, as a box prompt: its box (the cleaned clicked
-    # part's, grown by CLICK_RECUT_GROW) with the tightness prior and on the box's window
-    # (``_box_window``), so the background model learns what borders the object and not the far
-    # side of the photo. On the benchmark photos (docs/quality.md) this took the blurred clock's
-    # click from IoU 0.74 to 0.86 and the cameraman's from 0.89 to 0.91, and cost the astronaut's
-    # 0.67 -> 0.62 and the cell's 1.00 -> 0.99 (5 of 8 at 0.75 instead of 4, on five clicks per photo).
+    if won == 0 and whole_recut is not None:
+        return whole_recut
+    return _click_recut(img, best_clean, pts, labels, iters, max_side)
+
+
+def _clean_and_check(img: np.ndarray, cand: np.ndarray, fg_pts: np.ndarray) -> tuple[np.ndarray, bool]:
+    """A click candidate cleaned and cut down to its clicked part, and whether it passes ``check_mask``."""
+    from .check import check_mask
+
+    cleaned = _keep_clicked(clean_mask(cand).numpy() > 0.5, cand, fg_pts)
+    return cleaned, check_mask(cleaned, object_points=[tuple(p) for p in fg_pts], image=img).ok
+
+
+def _click_recut(img: np.ndarray, clean: np.ndarray, pts: np.ndarray, labels: np.ndarray, iters: int,
+                 max_side) -> np.ndarray:
+    """The chosen click candidate cut once more, at full size, as a box prompt: its box (the cleaned
+    clicked part's, grown by CLICK_RECUT_GROW) with the tightness prior and on the box's window
+    (``_box_window``), so the background model learns what borders the object and not the far side of
+    the photo. On the benchmark photos (docs/quality.md) this took the blurred clock's click from IoU
+    0.74 to 0.86 and the cameraman's from 0.89 to 0.91, and cost the astronaut's 0.67 -> 0.62 and the
+    cell's 1.00 -> 0.99 (5 of 8 at 0.75 instead of 4, on five clicks per photo)."""
+    fg_pts = pts[labels == 1]
     H, W = img.shape[:2]
-    x0, y0, x1, y1 = mask_box(best_clean)
+    x0, y0, x1, y1 = mask_box(clean)
     # every object click inside the box (a click GrabCut did not find is not on the mask)
     x0, y0 = min(x0, int(fg_pts[:, 0].min())), min(y0, int(fg_pts[:, 1].min()))
     x1, y1 = max(x1, int(fg_pts[:, 0].max()) + 1), max(y1, int(fg_pts[:, 1].max()) + 1)
