@@ -31,7 +31,9 @@ METHODS = ("auto", "alpha", "mask", "grabcut")
 # stays within a pixel or two of a full-size cut). GrabCut costs ~1 s per 600x400 image at 5
 # iterations on one core and grows with the pixel count. At 640 px (tried) a 3 % downscale of the
 # grey cell photo turned a box result of IoU 1.00 into 0.56: GrabCut's colour models are that
-# sensitive on low-contrast photos, so photos up to 1024 px are cut at full size.
+# sensitive on low-contrast photos, so photos up to 1024 px are cut at full size (above COARSE_TRIGGER
+# coarse to fine: the full-size pass decides a band around a COARSE_SIDE outline; the cell at 1024 px
+# keeps its 0.98).
 GRABCUT_MAX_SIDE = 1024
 # GrabCut's colour models start from k-means with OpenCV's global random generator: seeded before
 # every call so the same image and prompts always give the same mask.
@@ -500,6 +502,56 @@ def _grabcut_in_window(img: np.ndarray, window, box, pts: np.ndarray, labels: np
     return out
 
 
+#: Coarse to fine: a GrabCut whose working size is above COARSE_TRIGGER px on its long side runs at
+#: COARSE_SIDE first, then at its working size again only in a band around that outline (BAND_FRACTION
+#: of the short side each way), REFINE_ITERS iterations. GrabCut's max-flow is what costs, and on a
+#: low-contrast photo it grows fast with the pixel count: at 1024 px one iteration took 2.2 s on the cat
+#: photo. Measured on the eight benchmark photos enlarged to 1024 px (docs/quality.md): automatic
+#: 1.7-13.7 s -> 1.1-4.2 s, box 0.4-18.4 s -> 0.4-4.0 s, the same count of good masks. 0 turns it off.
+COARSE_SIDE = 512
+COARSE_TRIGGER = 700
+BAND_FRACTION = 0.02
+REFINE_ITERS = 2
+
+
+def _refine_band(img: np.ndarray, coarse: np.ndarray, box, pts: np.ndarray, labels: np.ndarray,
+                 work_side: int) -> np.ndarray:
+    """The fine pass of a coarse-to-fine GrabCut: at the working size, pixels farther than the band from
+    the coarse outline keep the coarse answer for certain; those in the band are "probably" it, and
+    GrabCut (new colour models, the clicks and the box as given) decides them."""
+    H, W = img.shape[:2]
+    small, scale = _resize_to_max_side(img, work_side)
+    h, w = small.shape[:2]
+    cm = cv2.resize(coarse.astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST) > 0
+    r = max(2, int(round(BAND_FRACTION * min(h, w))))
+    k = _ellipse(r)
+    band = (cv2.dilate(cm.astype(np.uint8), k) > 0) & ~(cv2.erode(cm.astype(np.uint8), k) > 0)
+    gc = np.where(cm, cv2.GC_FGD, cv2.GC_BGD).astype(np.uint8)
+    gc[band & cm] = cv2.GC_PR_FGD
+    gc[band & ~cm] = cv2.GC_PR_BGD
+    if box is not None:
+        x0, y0, x1, y1 = _check_box(box, W, H)
+        outside = np.ones((h, w), bool)
+        outside[int(y0 * scale):int(math.ceil(y1 * scale)), int(x0 * scale):int(math.ceil(x1 * scale))] = False
+        gc[outside] = cv2.GC_BGD
+    sp = np.clip(np.floor(pts * scale), 0, [w - 1, h - 1]) if len(pts) else pts
+    fg_pts, bg_pts = sp[labels == 1], sp[labels == 0]
+    radius = seed_radius(h, w)
+    _paint_seeds(gc, fg_pts, bg_pts, radius)
+    bgr = np.ascontiguousarray(_to_u8(small)[:, :, ::-1])
+    bgd = np.zeros((1, 65), np.float64)
+    fgd = np.zeros((1, 65), np.float64)
+    cv2.setRNGSeed(GRABCUT_SEED)
+    cv2.grabCut(bgr, gc, None, bgd, fgd, REFINE_ITERS, cv2.GC_INIT_WITH_MASK)
+    fg = ((gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)).astype(np.uint8)
+    if len(bg_pts):
+        fg = _drop_clicked_background(fg, fg_pts, bg_pts, radius)
+    fg = fg.astype(np.float32)
+    if scale < 1.0:
+        fg = cv2.resize(fg, (W, H), interpolation=cv2.INTER_LINEAR)
+    return fg > 0.5
+
+
 def _paint_seeds(gc: np.ndarray, fg_pts: np.ndarray, bg_pts: np.ndarray, radius: int) -> None:
     for pts, value in ((bg_pts, cv2.GC_BGD), (fg_pts, cv2.GC_FGD)):
         for x, y in pts:
@@ -522,7 +574,8 @@ def grabcut(image, *, box=None, init_mask=None, points=None, point_labels=None, 
       with neither box nor mask: a first pass over nearly the whole image finds the clicked
       region, whose box (grown by a quarter) bounds the real pass (see ``_point_box``).
     - nothing: the box is ``auto_box``.
-    Runs at ``max_side`` at most; the result is upsampled smoothly.
+    Runs at ``max_side`` at most (coarse to fine above ``COARSE_TRIGGER`` px: ``_refine_band``); the
+    result is upsampled smoothly.
     """
     img = as_image_array(image)
     H, W = img.shape[:2]
@@ -535,7 +588,14 @@ def grabcut(image, *, box=None, init_mask=None, points=None, point_labels=None, 
         window = _box_window(_check_box(box, W, H), W, H)
         if window is not None:
             return _grabcut_in_window(img, window, box, pts, labels, iters, max_side, _click, _tight)
-    small, scale = _resize_to_max_side(img, GRABCUT_MAX_SIDE if max_side is None else int(max_side))
+    work_side = GRABCUT_MAX_SIDE if max_side is None else int(max_side)
+    if COARSE_SIDE and min(work_side, max(H, W)) > COARSE_TRIGGER:
+        coarse = grabcut(img, box=box, init_mask=init_mask, points=points, point_labels=point_labels, iters=iters,
+                         max_side=COARSE_SIDE, _click=_click, _tight=_tight, _window=False)
+        if coarse.any() and not coarse.all():
+            return _refine_band(img, coarse, box, pts, labels, work_side)
+        return coarse
+    small, scale = _resize_to_max_side(img, work_side)
     h, w = small.shape[:2]
     sp = np.clip(np.floor(pts * scale), 0, [w - 1, h - 1]) if len(pts) else pts
     fg_pts, bg_pts = sp[labels == 1], sp[labels == 0]
