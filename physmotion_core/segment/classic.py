@@ -530,10 +530,7 @@ def _refine_band(img: np.ndarray, coarse: np.ndarray, box, pts: np.ndarray, labe
     gc[band & cm] = cv2.GC_PR_FGD
     gc[band & ~cm] = cv2.GC_PR_BGD
     if box is not None:
-        x0, y0, x1, y1 = _check_box(box, W, H)
-        outside = np.ones((h, w), bool)
-        outside[int(y0 * scale):int(math.ceil(y1 * scale)), int(x0 * scale):int(math.ceil(x1 * scale))] = False
-        gc[outside] = cv2.GC_BGD
+        gc[_outside_box(box, W, H, scale, (h, w))] = cv2.GC_BGD
     sp = np.clip(np.floor(pts * scale), 0, [w - 1, h - 1]) if len(pts) else pts
     fg_pts, bg_pts = sp[labels == 1], sp[labels == 0]
     radius = seed_radius(h, w)
@@ -543,12 +540,27 @@ def _refine_band(img: np.ndarray, coarse: np.ndarray, box, pts: np.ndarray, labe
     fgd = np.zeros((1, 65), np.float64)
     cv2.setRNGSeed(GRABCUT_SEED)
     cv2.grabCut(bgr, gc, None, bgd, fgd, REFINE_ITERS, cv2.GC_INIT_WITH_MASK)
+    return _labels_to_mask(gc, fg_pts, bg_pts, radius, (H, W))
+
+
+def _outside_box(box, W: int, H: int, scale: float, shape: tuple[int, int]) -> np.ndarray:
+    """The pixels of the working-size image (``shape``, the photo scaled by ``scale``) outside ``box``."""
+    x0, y0, x1, y1 = _check_box(box, W, H)
+    outside = np.ones(shape, bool)
+    outside[int(y0 * scale):int(math.ceil(y1 * scale)), int(x0 * scale):int(math.ceil(x1 * scale))] = False
+    return outside
+
+
+def _labels_to_mask(gc: np.ndarray, fg_pts: np.ndarray, bg_pts: np.ndarray, radius: int,
+                    size: tuple[int, int]) -> np.ndarray:
+    """GrabCut's labels as the object mask at the photo's ``size`` (H, W): a separate part touching a
+    background click dropped (``_drop_clicked_background``), upsampled smoothly."""
     fg = ((gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)).astype(np.uint8)
     if len(bg_pts):
         fg = _drop_clicked_background(fg, fg_pts, bg_pts, radius)
     fg = fg.astype(np.float32)
-    if scale < 1.0:
-        fg = cv2.resize(fg, (W, H), interpolation=cv2.INTER_LINEAR)
+    if fg.shape != tuple(size):
+        fg = cv2.resize(fg, (size[1], size[0]), interpolation=cv2.INTER_LINEAR)
     return fg > 0.5
 
 
@@ -617,10 +629,7 @@ def grabcut(image, *, box=None, init_mask=None, points=None, point_labels=None, 
         gc[ms] = cv2.GC_PR_FGD
         gc[far] = cv2.GC_BGD
         if box is not None:  # outside a given box is certainly background
-            x0, y0, x1, y1 = _check_box(box, W, H)
-            outside = np.ones((h, w), bool)
-            outside[int(y0 * scale):int(math.ceil(y1 * scale)), int(x0 * scale):int(math.ceil(x1 * scale))] = False
-            gc[outside] = cv2.GC_BGD
+            gc[_outside_box(box, W, H, scale, (h, w))] = cv2.GC_BGD
         _paint_seeds(gc, fg_pts, bg_pts, radius)
         if not ((gc == cv2.GC_PR_FGD) | (gc == cv2.GC_FGD)).any():
             raise InputError("The mask given to GrabCut vanished at the working resolution; it is "
@@ -662,13 +671,7 @@ def grabcut(image, *, box=None, init_mask=None, points=None, point_labels=None, 
             cv2.grabCut(bgr, gc, rect, bgd, fgd, int(iters), cv2.GC_INIT_WITH_RECT)
             if box is not None and _tight:
                 _tighten_to_box(bgr, gc, bgd, fgd, (sx0, sy0, sx1, sy1), iters)
-    fg = ((gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)).astype(np.uint8)
-    if len(bg_pts):
-        fg = _drop_clicked_background(fg, fg_pts, bg_pts, radius)
-    fg = fg.astype(np.float32)
-    if scale < 1.0:
-        fg = cv2.resize(fg, (W, H), interpolation=cv2.INTER_LINEAR)
-    return fg > 0.5
+    return _labels_to_mask(gc, fg_pts, bg_pts, radius, (H, W))
 
 
 #: Clicks without a box look for their object at this long side at most (two candidates, several
