@@ -520,6 +520,19 @@ def test_a_large_photo_is_cut_coarse_to_fine_as_well_as_at_full_size(monkeypatch
     assert not fine and np.array_equal(a, C.grabcut(small, box=(50, 50, 150, 150)))
 
 
+def test_a_coarse_cut_that_leaves_no_background_at_the_fine_size_stands_as_it_is():
+    """A coarse mask whose only background pixel vanishes when scaled to the working size would leave
+    GrabCut's background model without samples (OpenCV asserts): the coarse cut is kept instead."""
+    from physmotion_core.segment import classic as C
+
+    rng = np.random.default_rng(0)
+    img = rng.random((1000, 1200, 3)).astype(np.float32)
+    coarse = np.ones((1000, 1200), bool)
+    coarse[501, 601] = False  # gone at 512 px (nearest neighbour keeps every 2.34th pixel)
+    out = C._refine_band(img, coarse, None, np.zeros((0, 2)), np.zeros(0, int), 512)
+    assert out is coarse
+
+
 def _shape(kind: str, seed: int = 0):
     """A flat orange object that is not star-shaped from its click (a ring clicked on its side, an L clicked
     at the end of an arm, a C) on a grey-green ground: the object, its mask and the click."""

@@ -512,6 +512,7 @@ COARSE_SIDE = 512
 COARSE_TRIGGER = 700
 BAND_FRACTION = 0.02
 REFINE_ITERS = 2
+MIN_REFINE_SAMPLES = 64
 
 
 def _refine_band(img: np.ndarray, coarse: np.ndarray, box, pts: np.ndarray, labels: np.ndarray,
@@ -535,6 +536,9 @@ def _refine_band(img: np.ndarray, coarse: np.ndarray, box, pts: np.ndarray, labe
     fg_pts, bg_pts = sp[labels == 1], sp[labels == 0]
     radius = seed_radius(h, w)
     _paint_seeds(gc, fg_pts, bg_pts, radius)
+    is_fg = (gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)
+    if min(int(is_fg.sum()), int((~is_fg).sum())) < MIN_REFINE_SAMPLES:
+        return coarse  # too few pixels on one side for GrabCut's colour models: the coarse cut stands
     bgr = np.ascontiguousarray(_to_u8(small)[:, :, ::-1])
     bgd = np.zeros((1, 65), np.float64)
     fgd = np.zeros((1, 65), np.float64)
