@@ -6,7 +6,7 @@ import torch
 
 from physmotion_core.errors import InputError
 
-from ._util import CATEGORY, first_image, first_mask, log, preview_images
+from ._util import CATEGORY, first_image, first_mask, log, preview_images, progress_callback
 
 
 class PhysMotionSegment:
@@ -82,7 +82,7 @@ class PhysMotionSegment:
         pts = obj_pts + bg_pts
         labels = [1] * len(obj_pts) + [0] * len(bg_pts)
         seg = segment(img, mask=m, method="mask" if m is not None else "grabcut", grabcut_iters=int(grabcut_iterations),
-                      box=box_t, points=pts or None, point_labels=labels or None)
+                      box=box_t, points=pts or None, point_labels=labels or None, progress=progress_callback())
         prompted = m is not None or bool(obj_pts) or box_t is not None
         return checked_segmentation(seg, prompted, obj_pts, bg_pts, box_t,
                                     source="mask" if m is not None else "grabcut")

@@ -106,6 +106,7 @@ def _build_parser() -> argparse.ArgumentParser:
     _add_prompt_args(sg)
     sg.add_argument("--max-side", type=int, default=None, help="as generate's --max-side (default 1024)")
     sg.add_argument("--models", default="auto", choices=["auto", "none"], help="as generate's --models")
+    sg.add_argument("-q", "--quiet", action="store_true", help="no progress bar")
     _add_check_parsers(sub)
     from .batch.cli import add_parser as _add_batch_parser
 
@@ -163,8 +164,11 @@ def _segment_cmd(args) -> int:
     import time
 
     t0 = time.perf_counter()
+    from .progress import TextBar
+
     seg, how = segment_photo(rgb, alpha=alpha, mask=mask, box=box, object_points=scale_pts[0],
-                             background_points=scale_pts[1], sam_name=sam)
+                             background_points=scale_pts[1], sam_name=sam,
+                             progress=None if args.quiet else TextBar("segment"))
     seconds = time.perf_counter() - t0
     report = check_mask(seg.mask, object_points=scale_pts[0], background_points=scale_pts[1], image=seg.image)
     with protect_inputs(args.image, args.mask):

@@ -225,11 +225,12 @@ def _check_regions_reach(conditions: Conditions, mask: torch.Tensor, back: float
 
 
 def segment_photo(rgb: torch.Tensor, *, alpha=None, mask=None, box=None, object_points=(), background_points=(),
-                  sam_name: Optional[str] = None, device=None) -> tuple[object, str]:
+                  sam_name: Optional[str] = None, device=None, progress=None) -> tuple[object, str]:
     """The object's segmentation and which path made it ("alpha", "mask", "sam", "grabcut"):
     an alpha channel or a mask is taken as given; else SAM when ``sam_name`` names its weights (the
     prompts, or its most salient object without any); else GrabCut seeded by the box and points (or
-    the automatic box). Points and the box are pixels of ``rgb``."""
+    the automatic box). Points and the box are pixels of ``rgb``. ``progress`` follows GrabCut (its
+    iterations; it raises to cancel)."""
     from .segment import segment
 
     prompted = bool(object_points) or box is not None
@@ -258,7 +259,7 @@ def segment_photo(rgb: torch.Tensor, *, alpha=None, mask=None, box=None, object_
             del sam
     pts = list(object_points) + list(background_points)
     labels = [1] * len(object_points) + [0] * len(background_points)
-    seg = segment(rgb, box=box, points=pts or None, point_labels=labels or None)
+    seg = segment(rgb, box=box, points=pts or None, point_labels=labels or None, progress=progress)
     return seg, "grabcut"
 
 
@@ -397,7 +398,8 @@ def prepare(
     if alpha is not None and float(alpha.min()) >= 1.0 - 0.5 / 255.0:
         alpha = None  # fully opaque: it says nothing about the object
     seg, stages["segment"] = segment_photo(rgb, alpha=alpha, mask=mask, box=box, object_points=obj_pts,
-                                           background_points=bg_pts, sam_name=found["sam"], device=device)
+                                           background_points=bg_pts, sam_name=found["sam"], device=device,
+                                           progress=stage("segment") if alpha is None and mask is None else None)
     timings["segment_s"] = time.perf_counter() - t0
 
     _check_regions_reach(conditions, seg.mask, back=W0 / W)

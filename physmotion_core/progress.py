@@ -54,8 +54,9 @@ def scaled(progress: Optional[ProgressFn], start: int, span: int, total: int) ->
 class TextBar:
     """A plain text progress bar on stderr for the CLI (no extra dependency)."""
 
-    def __init__(self, label: str, stream=sys.stderr, width: int = 30):
-        self.label, self.stream, self.width = label, stream, width
+    def __init__(self, label: str, stream=None, width: int = 30):
+        # sys.stderr as it is now, not at import (a redirected or captured stream gets the bar)
+        self.label, self.stream, self.width = label, sys.stderr if stream is None else stream, width
         self._start = time.monotonic()
         self._last_len = 0
 

@@ -395,3 +395,22 @@ def test_segment_node_refuses_an_implausible_automatic_mask_and_names_the_overla
         m[30:70, 40:90] = 0
         seg.run(image, "mask", "auto", 5, mask=torch.from_numpy(m)[None])  # the user's own mask: no advice
         assert any("edges of the frame" in r.getMessage() for r in caplog.records) and hints() == []
+
+
+def test_segment_node_shows_grabcuts_progress_and_honours_cancel(monkeypatch):
+    """The no-model Segment node drives ComfyUI's progress bar through GrabCut (a click at 1024 px takes
+    seconds) and Cancel stops it (a stand-in comfy package: tests/fake_comfy.py)."""
+    from fake_comfy import InterruptProcessingException, install_fake_comfy
+
+    state = install_fake_comfy(monkeypatch)
+    seg = node_classes()["PhysMotionSegment"]()
+    image, red, blue = _two_objects()
+    m = seg.run(image, "auto", "auto", 5, object_points="115, 48")["result"][1][0].numpy() > 0.5
+    assert (m & blue).sum() / (m | blue).sum() > 0.85
+    values = [v for v, _ in state.updates]
+    assert len(values) >= 6 and values == sorted(values) and state.updates[-1] == (100, 100)
+    state.updates.clear()
+    state.cancel_after = state.checks + 3
+    with pytest.raises(InterruptProcessingException):
+        seg.run(image, "auto", "auto", 5, object_points="45, 48")
+    assert state.checks == state.cancel_after + 1 and state.updates[-1][0] < 100

@@ -109,8 +109,10 @@ def test_the_segment_command_writes_the_overlay_and_says_what_generate_would_do(
     # the real segmentation, clicked on the disk: plausible, the overlay beside the fill
     assert main(["segment", str(path), "--object-point", "64,50", "-o", str(tmp_path / "ok.png"),
                  "--models", "none"]) == 0
-    out = capsys.readouterr().out
-    assert "looks plausible" in out and "generate would" not in out
+    cap = capsys.readouterr()
+    assert "looks plausible" in cap.out and "generate would" not in cap.out
+    bar = cap.err.strip().split("\r")  # GrabCut's progress bar on stderr, ending full
+    assert len(bar) >= 5 and bar[-1].startswith("segment") and "100.0%" in bar[-1] and "100.0%" not in bar[-2]
     ov = cv2.imread(str(tmp_path / "ok.png"))
     assert ov.shape[:2] == (H, 2 * W)  # the photo with the outline | the filled background
     # a wrong mask: unprompted it would be refused, prompted only warned, with what to change
@@ -121,8 +123,9 @@ def test_the_segment_command_writes_the_overlay_and_says_what_generate_would_do(
     assert main(["segment", str(path), "--object-point", "64,50", "-o", str(tmp_path / "c.png")]) == 0
     out = capsys.readouterr().out
     assert "generate would warn about this mask" in out and "draw a box around the whole object with --box" in out
-    assert main(["segment", str(path), "--box", "30,20,100,80", "-o", str(tmp_path / "b.png")]) == 0
-    assert "move the --box sides" in capsys.readouterr().out
+    assert main(["segment", str(path), "--box", "30,20,100,80", "-o", str(tmp_path / "b.png"), "-q"]) == 0
+    cap = capsys.readouterr()
+    assert "move the --box sides" in cap.out and "segment" not in cap.err  # -q: no bar
 
 
 def test_prompts_reach_grabcut_in_the_scaled_photo(monkeypatch):

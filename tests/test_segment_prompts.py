@@ -561,3 +561,88 @@ def test_a_click_finds_bent_and_holed_objects_whole(kind):
     img, obj, click = _shape(kind)
     m = segment(img, points=[click]).mask.numpy() > 0.5
     assert (m & obj).sum() / (m | obj).sum() > 0.95
+
+
+# ---- progress and Cancel ----------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("mode", [cv2.GC_INIT_WITH_RECT, cv2.GC_INIT_WITH_MASK, cv2.GC_EVAL])
+def test_grabcut_one_iteration_at_a_time_is_the_same_cut_bit_for_bit(mode):
+    """``_grabcut_run`` calls OpenCV once per iteration (to report progress and honour Cancel between
+    them); labels and colour models equal one call with all the iterations."""
+    from physmotion_core.segment import classic as C
+
+    img = cv2.resize(_big_flower()[0], (320, 240), interpolation=cv2.INTER_AREA)
+    bgr = np.ascontiguousarray((img * 255).astype(np.uint8)[:, :, ::-1])
+    rect = (30, 40, 220, 190)
+    start = np.zeros(bgr.shape[:2], np.uint8)
+    start[:] = cv2.GC_BGD
+    start[40:190, 30:220] = cv2.GC_PR_FGD
+    models = [np.zeros((1, 65), np.float64) for _ in range(2)]
+    if mode == cv2.GC_EVAL:  # from the models and labels a first cut left
+        cv2.setRNGSeed(C.GRABCUT_SEED)
+        cv2.grabCut(bgr, start, None, models[0], models[1], 1, cv2.GC_INIT_WITH_MASK)
+    a, ab, af = start.copy(), models[0].copy(), models[1].copy()
+    cv2.setRNGSeed(C.GRABCUT_SEED)
+    cv2.grabCut(bgr, a, rect if mode == cv2.GC_INIT_WITH_RECT else None, ab, af, 4, mode)
+    b, bb, bf = start.copy(), models[0].copy(), models[1].copy()
+    ticks = []
+    with C._ticking(lambda: ticks.append(1)):
+        C._grabcut_run(bgr, b, rect if mode == cv2.GC_INIT_WITH_RECT else None, bb, bf, 4, mode)
+    assert len(ticks) == 4
+    assert np.array_equal(a, b) and np.array_equal(ab, bb) and np.array_equal(af, bf)
+    assert (a & 1).any() and not np.array_equal(a, start)  # it did cut
+
+
+@pytest.mark.parametrize("prompt", [{"points": [(100, 100)]}, {"box": (50, 50, 152, 152)}, {}])
+def test_segment_reports_progress_during_grabcut_and_ends_at_its_total(prompt):
+    img, disk = _lugged_clock()
+    calls = []
+    seg = segment(img, progress=lambda d, t: calls.append((d, t)), **prompt)
+    plain = segment(img, **prompt)
+    assert torch_equal(seg.mask, plain.mask)  # progress changes nothing
+    done = [d for d, _ in calls]
+    assert len(calls) >= 6 and len({t for _, t in calls}) == 1
+    assert done == sorted(done) and calls[-1] == (100, 100) and done[-2] < 100
+
+
+def torch_equal(a, b):
+    return bool((a == b).all())
+
+
+def test_cancel_during_a_click_stops_both_of_its_threads(monkeypatch):
+    """A click cuts on two threads; a progress callback that raises (ComfyUI's Cancel) stops the calling
+    thread at once and the second one before its next GrabCut iteration: the error comes out, no thread of
+    the click is left running, and at most the one iteration already under way on the second thread runs."""
+    import threading
+
+    from physmotion_core.segment import classic as C
+
+    class Stop(Exception):
+        pass
+
+    img = cv2.resize(_big_flower()[0], (400, 300), interpolation=cv2.INTER_AREA)
+    starts, state = [], {"raised": None}
+    real = cv2.grabCut
+
+    def counted(*a):
+        starts.append(threading.current_thread().name)
+        return real(*a)
+
+    monkeypatch.setattr(cv2, "grabCut", counted)
+
+    def cancel(done, total):
+        if done >= 2:
+            state["raised"] = len(starts)
+            raise Stop()
+
+    with pytest.raises(Stop):
+        segment(img, points=[(160, 150)], progress=cancel)
+    assert state["raised"] is not None
+    after = starts[state["raised"]:]
+    assert len(after) <= 1 and all(n.startswith("physmotion-click") for n in after)
+    assert not [t for t in threading.enumerate() if t.name.startswith("physmotion-click")]
+    # and the same click without Cancel needs many more
+    starts.clear()
+    segment(img, points=[(160, 150)])
+    assert len(starts) > state["raised"] + 10

@@ -14,6 +14,7 @@ import logging
 import math
 import threading
 from concurrent.futures import ThreadPoolExecutor
+from contextlib import contextmanager
 from dataclasses import dataclass
 from typing import Optional, Sequence
 
@@ -22,6 +23,7 @@ import numpy as np
 import torch
 
 from ..errors import InputError
+from ..progress import report, scaled
 
 log = logging.getLogger(__name__)
 
@@ -41,6 +43,57 @@ GRABCUT_SEED = 12345
 # The inpainting runs at most at this long side and only the inpainted region is upsampled, so a
 # 4k photo costs about what a 1k photo does.
 INPAINT_MAX_SIDE = 1024
+
+# Each thread's "one GrabCut iteration is done" hook (``_ticking``): the calling thread's reports
+# progress and raises to cancel; a click's second thread's only stops when the first one was cancelled.
+_TICK = threading.local()
+
+
+class _Cancelled(Exception):
+    """A click's second thread stops: the first thread was cancelled or failed."""
+
+
+@contextmanager
+def _ticking(fn):
+    """Run the block with ``fn()`` called between this thread's GrabCut iterations."""
+    before = getattr(_TICK, "fn", None)
+    _TICK.fn = fn
+    try:
+        yield
+    finally:
+        _TICK.fn = before
+
+
+def _grabcut_run(bgr: np.ndarray, gc: np.ndarray, rect, bgd: np.ndarray, fgd: np.ndarray, iters: int,
+                 mode: int) -> None:
+    """``cv2.grabCut`` seeded (``GRABCUT_SEED``), one iteration per call, with this thread's hook
+    (``_ticking``) before each: a long cut reports progress and can be cancelled between iterations (a
+    1024 px cut's iteration takes up to a second or two). The colour models carry over from call to call
+    in ``bgd``/``fgd``, so the labels and models are the same bit for bit as one call with ``iters``
+    (checked on every GrabCut of the benchmark photos' clicks, boxes and automatic picks)."""
+    cv2.setRNGSeed(GRABCUT_SEED)
+    for i in range(int(iters)):
+        fn = getattr(_TICK, "fn", None)
+        if fn is not None:
+            fn()
+        cv2.grabCut(bgr, gc, rect if i == 0 else None, bgd, fgd, 1, mode if i == 0 else cv2.GC_EVAL)
+
+
+class _CutProgress:
+    """The calling thread's GrabCut iterations as ``progress(done, total)`` against an estimate of
+    how many there will be: called before each iteration (so a cancelling callback stops the cut before
+    more work), it never reports the end; the caller does once the result is there."""
+
+    def __init__(self, progress, total: int):
+        self.progress, self.total, self.done = progress, max(2, int(total)), 0
+
+    def __call__(self) -> None:
+        report(self.progress, self.done, self.total)
+        self.done = min(self.done + 1, self.total - 1)
+
+    def skip_to(self, done: int) -> None:
+        """Fewer iterations than estimated were needed for a stage: jump to where its end was expected."""
+        self.done = max(self.done, min(int(done), self.total - 1))
 
 
 @dataclass
@@ -371,8 +424,7 @@ def _point_box(small: np.ndarray, fg_pts: np.ndarray, bg_pts: np.ndarray) -> tup
     gc[:frame], gc[-frame:], gc[:, :frame], gc[:, -frame:] = cv2.GC_BGD, cv2.GC_BGD, cv2.GC_BGD, cv2.GC_BGD
     _paint_seeds(gc, fp, bp, seed_radius(th, tw))
     bgd, fgd = np.zeros((1, 65), np.float64), np.zeros((1, 65), np.float64)
-    cv2.setRNGSeed(GRABCUT_SEED)
-    cv2.grabCut(bgr, gc, None, bgd, fgd, 3, cv2.GC_INIT_WITH_MASK)
+    _grabcut_run(bgr, gc, None, bgd, fgd, 3, cv2.GC_INIT_WITH_MASK)
     fg = ((gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)).astype(np.uint8)
     n, cc = cv2.connectedComponents(fg, connectivity=8)
     ids = sorted({int(cc[int(y), int(x)]) for x, y in fp} - {0})
@@ -447,8 +499,7 @@ def _tighten_to_box(bgr: np.ndarray, gc: np.ndarray, bgd: np.ndarray, fgd: np.nd
             gc[r, x0 + int(np.argmax(llr[r - y0]))] = cv2.GC_FGD
         for c in empty_cols:
             gc[y0 + int(np.argmax(llr[:, c - x0])), c] = cv2.GC_FGD
-        cv2.setRNGSeed(GRABCUT_SEED)
-        cv2.grabCut(bgr, gc, None, bgd, fgd, max(1, int(iters) // 2), cv2.GC_EVAL)
+        _grabcut_run(bgr, gc, None, bgd, fgd, max(1, int(iters) // 2), cv2.GC_EVAL)
 
 
 #: A box prompt's GrabCut runs on the box grown by this fraction of its size on each side (not on
@@ -542,8 +593,7 @@ def _refine_band(img: np.ndarray, coarse: np.ndarray, box, pts: np.ndarray, labe
     bgr = np.ascontiguousarray(_to_u8(small)[:, :, ::-1])
     bgd = np.zeros((1, 65), np.float64)
     fgd = np.zeros((1, 65), np.float64)
-    cv2.setRNGSeed(GRABCUT_SEED)
-    cv2.grabCut(bgr, gc, None, bgd, fgd, REFINE_ITERS, cv2.GC_INIT_WITH_MASK)
+    _grabcut_run(bgr, gc, None, bgd, fgd, REFINE_ITERS, cv2.GC_INIT_WITH_MASK)
     return _labels_to_mask(gc, fg_pts, bg_pts, radius, (H, W))
 
 
@@ -575,8 +625,8 @@ def _paint_seeds(gc: np.ndarray, fg_pts: np.ndarray, bg_pts: np.ndarray, radius:
 
 
 def grabcut(image, *, box=None, init_mask=None, points=None, point_labels=None, iters: int = 5,
-            max_side: Optional[int] = None, _click: str = "choose", _tight: bool = True,
-            _window: bool = True) -> np.ndarray:
+            max_side: Optional[int] = None, progress=None, _click: str = "choose", _tight: bool = True,
+            _window: bool = True, _ticker: Optional[_CutProgress] = None) -> np.ndarray:
     """GrabCut foreground (bool (H,W)) of an image, seeded by a box, a rough mask and/or clicks.
 
     - ``box`` (x0, y0, x1, y1): everything outside it is certainly background, and GrabCut learns
@@ -591,15 +641,28 @@ def grabcut(image, *, box=None, init_mask=None, points=None, point_labels=None, 
       region, whose box (grown by a quarter) bounds the real pass (see ``_point_box``).
     - nothing: the box is ``auto_box``.
     Runs at ``max_side`` at most (coarse to fine above ``COARSE_TRIGGER`` px: ``_refine_band``); the
-    result is upsampled smoothly.
+    result is upsampled smoothly. ``progress(done, total)`` (``progress.ProgressFn``) is called before
+    every GrabCut iteration, the last time with ``done == total`` once the mask is there; it raises to
+    cancel (ComfyUI's interrupt in the nodes).
     """
     img = as_image_array(image)
     H, W = img.shape[:2]
     if not (1 <= int(iters) <= 50):
         raise InputError(f"grabcut_iters must be between 1 and 50; got {iters}")
     pts, labels = check_points(points, point_labels, width=W, height=H)
-    if _click == "choose" and box is None and init_mask is None and bool((labels == 1).any()):
-        return _click_prompted(img, pts, labels, int(iters), max_side)
+    click = _click == "choose" and box is None and init_mask is None and bool((labels == 1).any())
+    if progress is not None:
+        # the iterations of one cut (with the tightness prior's and a coarse to fine cut's), and for a
+        # click the growing box's passes before it (``_click_prompted``)
+        n = int(iters) + 2 * max(1, int(iters) // 2) + REFINE_ITERS + (GROW_PASSES * int(iters) if click else 0)
+        ticker = _CutProgress(progress, n + 1)
+        with _ticking(ticker):
+            m = grabcut(img, box=box, init_mask=init_mask, points=points, point_labels=point_labels, iters=iters,
+                        max_side=max_side, _click=_click, _tight=_tight, _window=_window, _ticker=ticker)
+        report(progress, ticker.total, ticker.total)
+        return m
+    if click:
+        return _click_prompted(img, pts, labels, int(iters), max_side, _ticker)
     if box is not None and init_mask is None and _window:
         window = _box_window(_check_box(box, W, H), W, H)
         if window is not None:
@@ -638,8 +701,7 @@ def grabcut(image, *, box=None, init_mask=None, points=None, point_labels=None, 
         if not ((gc == cv2.GC_PR_FGD) | (gc == cv2.GC_FGD)).any():
             raise InputError("The mask given to GrabCut vanished at the working resolution; it is "
                              "too small")
-        cv2.setRNGSeed(GRABCUT_SEED)
-        cv2.grabCut(bgr, gc, None, bgd, fgd, int(iters), cv2.GC_INIT_WITH_MASK)
+        _grabcut_run(bgr, gc, None, bgd, fgd, iters, cv2.GC_INIT_WITH_MASK)
     else:
         if box is not None:
             x0, y0, x1, y1 = _check_box(box, W, H)
@@ -665,14 +727,12 @@ def grabcut(image, *, box=None, init_mask=None, points=None, point_labels=None, 
             _paint_seeds(gc, fg_pts, bg_pts, radius)
             if not ((gc == cv2.GC_PR_FGD) | (gc == cv2.GC_FGD)).any():
                 raise InputError("the background points cover the whole box: nothing is left for the object")
-            cv2.setRNGSeed(GRABCUT_SEED)
-            cv2.grabCut(bgr, gc, None, bgd, fgd, int(iters), cv2.GC_INIT_WITH_MASK)
+            _grabcut_run(bgr, gc, None, bgd, fgd, iters, cv2.GC_INIT_WITH_MASK)
             if box is not None and _tight:
                 _tighten_to_box(bgr, gc, bgd, fgd, (sx0, sy0, sx1, sy1), iters)
         else:
             rect = (sx0, sy0, max(1, sx1 - sx0), max(1, sy1 - sy0))
-            cv2.setRNGSeed(GRABCUT_SEED)
-            cv2.grabCut(bgr, gc, rect, bgd, fgd, int(iters), cv2.GC_INIT_WITH_RECT)
+            _grabcut_run(bgr, gc, rect, bgd, fgd, iters, cv2.GC_INIT_WITH_RECT)
             if box is not None and _tight:
                 _tighten_to_box(bgr, gc, bgd, fgd, (sx0, sy0, sx1, sy1), iters)
     return _labels_to_mask(gc, fg_pts, bg_pts, radius, (H, W))
@@ -728,7 +788,8 @@ def _grown_click(img: np.ndarray, pts: np.ndarray, labels: np.ndarray, iters: in
     return comp
 
 
-def _click_prompted(img: np.ndarray, pts: np.ndarray, labels: np.ndarray, iters: int, max_side) -> np.ndarray:
+def _click_prompted(img: np.ndarray, pts: np.ndarray, labels: np.ndarray, iters: int, max_side,
+                    ticker: Optional[_CutProgress] = None) -> np.ndarray:
     """Clicks without a box: two candidates, the whole-image pass (``_point_box``) and the grown box
     (``_grown_click``), each cleaned and checked (``check.check_mask`` with the photo and the clicks);
     the larger plausible one wins (the whole-image pass errs by swallowing the surroundings, which the
@@ -737,15 +798,20 @@ def _click_prompted(img: np.ndarray, pts: np.ndarray, labels: np.ndarray, iters:
     Measured on the benchmark photos (docs/quality.md)."""
     fg_pts = pts[labels == 1]
     search = min(CLICK_SEARCH_MAX_SIDE, GRABCUT_MAX_SIDE if max_side is None else int(max_side))
-    grown_done = threading.Event()
+    grown_done, cancelled = threading.Event(), threading.Event()
+
+    def stop_if_cancelled() -> None:
+        if cancelled.is_set():
+            raise _Cancelled()
 
     def whole_pass():
-        whole = grabcut(img, points=pts, point_labels=labels, iters=iters, max_side=search, _click="whole")
-        cleaned, ok = _clean_and_check(img, whole, fg_pts) if whole.any() else (None, False)
-        # While the grown box is still growing, this thread would idle: cut the whole-image candidate
-        # again already if it is plausible (then it wins unless the grown one is plausible and larger).
-        recut = (_click_recut(img, cleaned, pts, labels, iters, max_side)
-                 if ok and cleaned.any() and not grown_done.is_set() else None)
+        with _ticking(stop_if_cancelled):
+            whole = grabcut(img, points=pts, point_labels=labels, iters=iters, max_side=search, _click="whole")
+            cleaned, ok = _clean_and_check(img, whole, fg_pts) if whole.any() else (None, False)
+            # While the grown box is still growing, this thread would idle: cut the whole-image candidate
+            # again already if it is plausible (then it wins unless the grown one is plausible and larger).
+            recut = (_click_recut(img, cleaned, pts, labels, iters, max_side)
+                     if ok and cleaned.any() and not grown_done.is_set() else None)
         return whole, cleaned, ok, recut
 
     # The two candidates are independent: the whole-image pass runs on a second thread while this one
@@ -756,8 +822,13 @@ def _click_prompted(img: np.ndarray, pts: np.ndarray, labels: np.ndarray, iters:
         pending = pool.submit(whole_pass)
         try:
             grown = _grown_click(img, pts, labels, iters, search)
+        except BaseException:
+            cancelled.set()  # the second thread stops at its next GrabCut iteration
+            raise
         finally:
             grown_done.set()
+        if ticker is not None:
+            ticker.skip_to(GROW_PASSES * iters)
         whole, whole_clean, whole_ok, whole_recut = pending.result()
     best, best_key, best_clean, won = whole, None, None, 0
     for k, cand in enumerate((whole, grown)):
@@ -992,7 +1063,7 @@ def segment(image, *, alpha=None, mask=None, box: Optional[Sequence[float]] = No
             points=None, point_labels=None,
             method: str = "auto", grabcut_iters: int = 5, inpaint_radius: float = 5.0,
             dilate_px: Optional[int] = None, clean: Optional[bool] = None,
-            inpaint_method: str = "harmonic") -> Segmentation:
+            inpaint_method: str = "harmonic", progress=None) -> Segmentation:
     """Cut the object out of ``image`` (H,W,3) and inpaint the background behind it.
 
     method:
@@ -1005,7 +1076,8 @@ def segment(image, *, alpha=None, mask=None, box: Optional[Sequence[float]] = No
     ``clean`` runs ``clean_mask`` on the result (default: only for GrabCut, whose raw output has
     specks and holes; an alpha or a mask the user drew is taken as given). ``dilate_px``
     (default ``default_dilate_px``) grows the inpainted region past the object's edge so no halo
-    of object colour remains in the background.
+    of object colour remains in the background. ``progress(done, total)`` is called during GrabCut
+    (before each of its iterations) and once at the end; it raises to cancel.
     """
     img = as_image_array(image)
     H, W = img.shape[:2]
@@ -1037,7 +1109,7 @@ def segment(image, *, alpha=None, mask=None, box: Optional[Sequence[float]] = No
         what = "mask"
     else:
         m = grabcut(img, box=box, init_mask=mask_arr, points=points, point_labels=point_labels,
-                    iters=grabcut_iters)
+                    iters=grabcut_iters, progress=scaled(progress, 0, 95, 100))
         what = "GrabCut result"
     raw = m
     if clean if clean is not None else method == "grabcut":
@@ -1060,6 +1132,7 @@ def segment(image, *, alpha=None, mask=None, box: Optional[Sequence[float]] = No
                                     method=inpaint_method)
     image_t = torch.from_numpy(img)
     mask_t = torch.from_numpy(mf)
+    report(progress, 100, 100)
     return Segmentation(
         image=image_t,
         mask=mask_t,
