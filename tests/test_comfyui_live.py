@@ -201,3 +201,42 @@ def test_wan_control_nodes_get_the_prompt_and_run_alone_and_together(comfy_serve
         assert Image.open(tmp_path / "p.png").size == (160, 96)
         if "92" in nodes:
             assert outputs["92"]["animated"] == [True]
+
+
+def test_the_segment_nodes_click_shows_progress_and_cancel_stops_it(comfy_server):
+    """A click on a 1024 px photo cuts for seconds: the Segment node's progress reaches the websocket, and
+    Cancel (POST /interrupt) stops the cut at GrabCut's next iteration on both of its threads."""
+    import cv2
+
+    img = cv2.imread(str(ROOT / "photos" / "coffee.png"))
+    big = cv2.resize(img, (1024, round(img.shape[0] * 1024 / img.shape[1])), interpolation=cv2.INTER_CUBIC)
+    cv2.imwrite(str(comfy_server.base / "input" / "coffee_1024.png"), big)
+    s = 1024 / img.shape[1]
+
+    def prompt(iterations):
+        return {"1": {"class_type": "LoadImage", "inputs": {"image": "coffee_1024.png"}},
+                "2": {"class_type": "PhysMotionSegment",
+                      "inputs": {"image": ["1", 0], "method": "grabcut", "mask_polarity": "auto",
+                                 "grabcut_iterations": iterations, "object_points": f"{300 * s:.0f}, {235 * s:.0f}",
+                                 "background_points": "", "box": "", "mask": ["1", 1]}},
+                "3": {"class_type": "PreviewImage", "inputs": {"images": ["2", 3]}}}
+
+    client = ComfyClient(comfy_server.url)
+    client.connect()
+    events = []
+    client.wait(client.queue(prompt(5)), lambda k, d: events.append((k, d)), timeout=600)
+    values = [d["value"] for k, d in events if k == "progress" and d.get("node") == "2"]
+    assert len(values) >= 10 and values == sorted(values) and values[-1] == 100, values
+    # again (6 iterations: not cached), cancelled once its progress shows the cut is under way
+    sent = {}
+
+    def on_event(kind, data):
+        if kind == "progress" and data.get("node") == "2" and "t" not in sent and data["value"] >= 5:
+            sent["t"] = time.monotonic()
+            threading.Thread(target=client.interrupt, daemon=True).start()
+
+    with pytest.raises(ComfyError, match="cancelled"):
+        client.wait(client.queue(prompt(6)), on_event, timeout=600)
+    latency = time.monotonic() - sent["t"]
+    print(f"Segment node: Cancel took {latency:.2f} s")
+    assert latency < 3.0, f"Cancel took {latency:.2f}s"
