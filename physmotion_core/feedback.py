@@ -6,9 +6,12 @@ push beats static friction μ·m·g, whether it can tip the object over its base
 quasi-static tipping condition about the edge it pushes towards), and whether the estimated travel
 leaves the frame. These are estimates for a body that stays in one piece; they say what to change when
 a push is far too weak or far too strong, so that nobody waits minutes for a video in which nothing
-moves, or in which the object flies off screen.
+moves, or in which the object flies off screen. A mask in separate pieces lifts to separate bodies
+(``pieces``): each piece that nothing holds up is named (it falls), and a push on one piece is
+estimated on that piece.
 
-After simulating: a warning when nothing moved visibly, and when the object left the frame.
+After simulating: a warning when nothing moved visibly, and when the object, or a separate piece of
+it, left the frame.
 """
 
 from __future__ import annotations
@@ -32,10 +35,13 @@ LEFT_FRACTION = 0.5
 
 @dataclass
 class BodyFacts:
-    """The filled object: particle rest positions (P, 3) and masses (P,) in SI units."""
+    """The filled object: particle rest positions (P, 3) and masses (P,) in SI units, and the simulation's
+    grid cell size ``dx`` (m) for finding the object's separate pieces (``pieces``); 0 when unknown or when
+    the scene has several objects, which are meant to be apart: then the whole counts as one piece."""
 
     x: np.ndarray
     mass: np.ndarray
+    dx: float = 0.0
 
     @property
     def total_mass(self) -> float:
@@ -58,7 +64,113 @@ def body_facts(gaussians, material: Material, settings, ground: Optional[Ground]
     obj_ids, objects = _object_ids(gaussians)
     parts = fill_objects(gaussians, obj_ids, objects, res.spacing, res.dx, settings.max_particles, settings.seed,
                          ground)
-    return BodyFacts(parts.x, (parts.volume * float(material.density)).astype(np.float64))
+    return BodyFacts(parts.x, (parts.volume * float(material.density)).astype(np.float64),
+                     float(res.dx) if len(objects) == 1 else 0.0)
+
+
+#: A separate piece is reported (before: it falls; after: it left the frame) from this share of the mass.
+PIECE_MIN_SHARE = 0.02
+
+
+def piece_labels(x: np.ndarray, dx: float) -> np.ndarray:
+    """(P,) the separate body each particle belongs to, 0..n-1 from the most particles down; all zeros
+    when ``dx`` (the grid cell, which says the object is one to be looked at) is 0.
+
+    The simulator fills an object with particles on a lattice (``sim.fill``: voxel centres, jittered by a
+    tenth of the spacing), and particles in face-, edge- or corner-neighbouring voxels are one body here;
+    a gap of one empty voxel separates two. A mask in pieces (a head that the collar left out, so that
+    only the photo joins it to the suit) lifts to bodies that nothing binds together: MPM couples them
+    only where they press on each other, and a push or gravity parts them. The lattice's spacing is
+    measured from the particles (the median distance to the nearest one)."""
+    from scipy import ndimage
+    from scipy.spatial import cKDTree
+
+    x = np.asarray(x, np.float64)
+    if len(x) < 2 or not dx > 0:
+        return np.zeros(len(x), np.int64)
+    d, _ = cKDTree(x).query(x, k=2)
+    spacing = float(np.median(d[:, 1]))
+    if not spacing > 0:
+        return np.zeros(len(x), np.int64)
+    idx = np.rint((x - x.min(0)) / spacing).astype(np.int64)
+    occ = np.zeros(tuple(idx.max(0) + 1), bool)
+    occ[tuple(idx.T)] = True
+    lab, n = ndimage.label(occ, structure=np.ones((3, 3, 3), bool))
+    raw = lab[tuple(idx.T)] - 1
+    order = np.argsort(-np.bincount(raw, minlength=n), kind="stable")
+    rank = np.empty(n, np.int64)
+    rank[order] = np.arange(n)
+    return rank[raw]
+
+
+@dataclass
+class Piece:
+    """A separate body of the object: its particles (``sel``), mass, and what holds it up."""
+
+    sel: np.ndarray
+    mass: float
+    share: float
+    held: bool  # a hold (the frame's edge, an anchor) reaches it
+    grounded: bool  # it stands on the ground
+    resting: bool  # it lies on a piece that is held up
+
+    @property
+    def supported(self) -> bool:
+        return self.held or self.grounded or self.resting
+
+
+def pieces(facts: BodyFacts, conditions: Conditions, camera: Optional[Camera] = None) -> list[Piece]:
+    """The object's separate bodies (``piece_labels``), heaviest first, and for each whether an anchor
+    holds it, it stands on the ground (its lowest particle within two cells of it), or it lies on a piece
+    that is held up (a particle of that piece at most two cells under one of its own, within a cell
+    sideways)."""
+    from scipy import ndimage
+
+    labels = piece_labels(facts.x, facts.dx)
+    n = int(labels.max()) + 1 if len(labels) else 0
+    total = max(facts.total_mass, 1e-30)
+    held_sel = np.zeros(len(facts.x), bool)
+    for a in conditions.of(Anchor):
+        held_sel |= _region_sel(a, facts, camera)
+    ground = conditions.ground()
+    out = []
+    for k in range(n):
+        sel = labels == k
+        m = float(facts.mass[sel].sum())
+        grounded = ground is not None and float(facts.x[sel, 1].min()) <= float(ground.height) + 2 * facts.dx
+        out.append(Piece(sel, m, m / total, bool(held_sel[sel].any()), bool(grounded), False))
+    if n > 1:
+        idx = np.floor((facts.x - facts.x.min(0)) / facts.dx).astype(np.int64)
+        shape = tuple(idx.max(0) + 4)
+        # the cells a held-up piece carries: up to two cells above it, one to each side
+        reach = np.zeros((3, 3, 3), bool)
+        reach[:, 1:, :] = True
+        origin = (0, -1, 0)  # with this origin the structure covers 1..2 cells upwards (y grows up)
+        changed = True
+        while changed:
+            changed = False
+            occ = np.zeros(shape, bool)
+            for p in out:
+                if p.supported:
+                    occ[tuple(idx[p.sel].T)] = True
+            carried = ndimage.binary_dilation(occ, structure=reach, origin=origin)
+            for p in out:
+                if not p.supported and carried[tuple(idx[p.sel].T)].any():
+                    p.resting, changed = True, True
+    return out
+
+
+def _where(sel: np.ndarray, facts: BodyFacts, camera: Optional[Camera]) -> str:
+    """Where a piece is in the photo: the box in pixels of its camera-facing quarter (the surface the photo
+    shows: the far side of a body close to the camera projects well inside it), or nothing without a
+    camera."""
+    if camera is None or not sel.any():
+        return ""
+    uv, z = camera.project(torch.from_numpy(facts.x[sel].astype(np.float32)))
+    z = z.numpy()
+    front = z <= z.min() + 0.25 * (z.max() - z.min())
+    u, v = uv[front, 0].numpy(), uv[front, 1].numpy()
+    return f" at x {u.min():.0f}..{u.max():.0f}, y {v.min():.0f}..{v.max():.0f} px"
 
 
 def _fmt_mass(m: float) -> str:
@@ -97,9 +209,65 @@ def frame_room(facts: BodyFacts, camera: Optional[Camera]) -> Optional[tuple[flo
     return float(u.min()) * m_per_px, float(camera.width - u.max()) * m_per_px
 
 
+def _push_line(k: int, F: np.ndarray, fmag: float, dt: float, body: BodyFacts, g: float, ground: Optional[Ground],
+               anchored: bool, camera: Optional[Camera], clip_s: float, t1: float, f, what: str) -> str:
+    """What push ``k`` does to ``body`` (the whole object, or the pieces it touches)."""
+    m = body.total_mass
+    base_y = float(body.x[:, 1].min())
+    base = body.x[body.x[:, 1] <= base_y + 0.05 * max(1e-9, float(np.ptp(body.x[:, 1])))]
+    com = body.com
+    room = frame_room(body, camera)
+    friction_limit = None
+    if ground is not None and not anchored:
+        friction_limit = {"sticky": math.inf, "slip": 0.0}.get(ground.contact, float(ground.friction) * m * g)
+    dv = fmag * dt / m
+    head = f"force {k}: {fmag:.3g} N for {dt:.3g} s on {_fmt_mass(m)}{what}: Δv ≈ {dv:.3g} m/s if nothing held it"
+    notes = []
+    if anchored:
+        notes.append("the object is held, so the push bends or shears it rather than moving it away")
+    fh = float(math.hypot(F[0], F[2]))
+    if ground is not None and not anchored and fh > 1e-12:
+        if math.isinf(friction_limit):
+            notes.append("the ground is sticky: it will not slide")
+        elif fh <= friction_limit:
+            notes.append(f"static friction holds up to μ·m·g = {friction_limit:.3g} N, more than its {fh:.3g} N "
+                         f"sideways: it will not slide (push harder than {friction_limit:.3g} N or lower the "
+                         "friction to make it slide)")
+        else:
+            notes.append(f"it beats static friction (μ·m·g = {friction_limit:.3g} N): it slides")
+        sel = _region_sel(f, body, camera)
+        h = float(body.x[sel, 1].mean()) - base_y
+        d = F[[0, 2]] / fh
+        b = float((base[:, [0, 2]] @ d).max() - com[[0, 2]] @ d) if len(base) else 0.0
+        need = m * g * max(b, 0.0) / max(h, 1e-9)
+        if fh * h > m * g * max(b, 0.0):
+            notes.append(f"it can tip over (F·h = {fh * h:.3g} N·m > m·g·b = {m * g * max(b, 0):.3g} N·m)")
+        elif fh > 0.3 * need:
+            notes.append(f"it rocks but does not tip (tipping needs about {need:.3g} N at that height)")
+    if F[1] > m * g and not anchored:
+        notes.append(f"it lifts off (upward {F[1]:.3g} N > its weight {m * g:.3g} N)")
+    # Travel along x (the frame's width), for a free or sliding body: the push, then coasting to the
+    # clip's end (kinetic friction ≈ μ slows it on a friction ground).
+    if room is not None and not anchored and abs(F[0]) > 1e-12:
+        mu_g = 0.0 if ground is None or ground.contact == "slip" else (
+            math.inf if ground.contact == "sticky" else float(ground.friction) * g)
+        a = abs(F[0]) / m - mu_g
+        if a > 0:
+            v = a * dt
+            travel = 0.5 * a * dt * dt
+            rest = max(0.0, clip_s - t1)
+            travel += v * rest if mu_g == 0 else min(v * rest, v * v / (2 * mu_g))
+            side = room[1] if F[0] > 0 else room[0]
+            if travel > side:
+                notes.append(f"it may leave the frame: about {travel:.3g} m of travel against {side:.3g} m of room "
+                             f"on the {'right' if F[0] > 0 else 'left'} (use a smaller force or a shorter push)")
+    return head + ("; " + "; ".join(notes) if notes else "") + "."
+
+
 def forecast(conditions: Conditions, facts: BodyFacts, material: Material, *, clip_s: float,
              camera: Optional[Camera] = None, held: bool = False) -> list[str]:
-    """Plain sentences: the mass and material, then what each load will roughly do."""
+    """Plain sentences: the mass and material, the separate pieces that nothing holds up, then what each
+    load will roughly do (a push on one of several pieces: on that piece)."""
     m = facts.total_mass
     g = float(np.linalg.norm(conditions.gravity()))
     ground = conditions.ground()
@@ -107,61 +275,45 @@ def forecast(conditions: Conditions, facts: BodyFacts, material: Material, *, cl
              f"density {material.density:.4g} kg/m³."]
     if m <= 0:
         return lines
-    anchored = held or bool(conditions.of(Anchor))
-    base_y = float(facts.x[:, 1].min())
-    base = facts.x[facts.x[:, 1] <= base_y + 0.05 * max(1e-9, float(np.ptp(facts.x[:, 1])))]
-    com = facts.com
+    # pieces of under PIECE_MIN_SHARE of the mass (a stray voxel of the fill) are not worth a word
+    parts = [p for p in pieces(facts, conditions, camera) if p.share >= PIECE_MIN_SHARE] if facts.dx > 0 else []
+    if len(parts) > 1:
+        loose = [p for p in parts if not p.supported]
+        lines.append(f"pieces: the object is {len(parts)} separate pieces (nothing binds them; the largest holds "
+                     f"{parts[0].share:.0%} of the mass)" + (":" if loose else "; each is held or stands on something."))
+        for p in loose[:3]:
+            lines.append(f"a piece of {_fmt_mass(p.mass)} ({p.share:.0%} of the mass){_where(p.sel, facts, camera)} is "
+                         "neither held nor standing on anything: it falls from the first frame (onto what is under it, or out "
+                         "of the picture). If it belongs to the "
+                         "object, make the mask join it to the rest (a box or a point on what joins them, or your own "
+                         "mask); if not, leave it out (a background point on it).")
+        if len(loose) > 3:
+            rest = loose[3:]
+            lines.append(f"... and {len(rest)} more such pieces ({sum(p.share for p in rest):.0%} of the mass).")
+    users_anchor = bool(conditions.of(Anchor))
+    anchored = held or users_anchor
     room = frame_room(facts, camera)
-    friction_limit = None
-    if ground is not None and not anchored:
-        friction_limit = {"sticky": math.inf, "slip": 0.0}.get(ground.contact, float(ground.friction) * m * g)
     for k, f in enumerate(conditions.of(Force), 1):
         t0, t1 = _window(f, clip_s)
         dt = t1 - t0
         F = np.asarray(f.vector, np.float64)
         fmag = float(np.linalg.norm(F))
-        dv = fmag * dt / m
-        head = f"force {k}: {fmag:.3g} N for {dt:.3g} s on {_fmt_mass(m)}: Δv ≈ {dv:.3g} m/s if nothing held it"
-        notes = []
-        if anchored:
-            notes.append("the object is held, so the push bends or shears it rather than moving it away")
-        fh = float(math.hypot(F[0], F[2]))
-        if ground is not None and not anchored and fh > 1e-12:
-            if math.isinf(friction_limit):
-                notes.append("the ground is sticky: it will not slide")
-            elif fh <= friction_limit:
-                notes.append(f"static friction holds up to μ·m·g = {friction_limit:.3g} N, more than its {fh:.3g} N "
-                             f"sideways: it will not slide (push harder than {friction_limit:.3g} N or lower the "
-                             "friction to make it slide)")
-            else:
-                notes.append(f"it beats static friction (μ·m·g = {friction_limit:.3g} N): it slides")
+        body, anch, on_ground, what = facts, anchored, ground, ""
+        if len(parts) > 1:
             sel = _region_sel(f, facts, camera)
-            h = float(facts.x[sel, 1].mean()) - base_y
-            d = F[[0, 2]] / fh
-            b = float((base[:, [0, 2]] @ d).max() - com[[0, 2]] @ d) if len(base) else 0.0
-            need = m * g * max(b, 0.0) / max(h, 1e-9)
-            if fh * h > m * g * max(b, 0.0):
-                notes.append(f"it can tip over (F·h = {fh * h:.3g} N·m > m·g·b = {m * g * max(b, 0):.3g} N·m)")
-            elif fh > 0.3 * need:
-                notes.append(f"it rocks but does not tip (tipping needs about {need:.3g} N at that height)")
-        if F[1] > m * g and not anchored:
-            notes.append(f"it lifts off (upward {F[1]:.3g} N > its weight {m * g:.3g} N)")
-        # Travel along x (the frame's width), for a free or sliding body: the push, then coasting to the
-        # clip's end (kinetic friction ≈ μ slows it on a friction ground).
-        if room is not None and not anchored and abs(F[0]) > 1e-12:
-            mu_g = 0.0 if ground is None or ground.contact == "slip" else (
-                math.inf if ground.contact == "sticky" else float(ground.friction) * g)
-            a = abs(F[0]) / m - mu_g
-            if a > 0:
-                v = a * dt
-                travel = 0.5 * a * dt * dt
-                rest = max(0.0, clip_s - t1)
-                travel += v * rest if mu_g == 0 else min(v * rest, v * v / (2 * mu_g))
-                side = room[1] if F[0] > 0 else room[0]
-                if travel > side:
-                    notes.append(f"it may leave the frame: about {travel:.3g} m of travel against {side:.3g} m of room "
-                                 f"on the {'right' if F[0] > 0 else 'left'} (use a smaller force or a shorter push)")
-        lines.append(head + ("; " + "; ".join(notes) if notes else "") + ".")
+            touched = [p for p in parts if (sel & p.sel).any()]
+            if touched and len(touched) < len(parts):
+                tsel = np.any([p.sel for p in touched], axis=0)
+                body = BodyFacts(facts.x[tsel], facts.mass[tsel], facts.dx)
+                if users_anchor:
+                    anch = any(p.held for p in touched)
+                if not any(p.grounded for p in touched):
+                    on_ground = None
+                share = sum(p.share for p in touched)
+                what = f" (the {'piece' if len(touched) == 1 else 'pieces'} it pushes, {share:.0%} of the object)"
+                if not any(p.supported for p in touched):
+                    what += "; nothing holds that piece up, so it also falls"
+        lines.append(_push_line(k, F, fmag, dt, body, g, on_ground, anch, camera, clip_s, t1, f, what))
     for k, tq in enumerate(conditions.of(Torque), 1):
         t0, t1 = _window(tq, clip_s)
         T = np.asarray(tq.vector, np.float64)
@@ -204,19 +356,31 @@ class MotionReport:
 def after_run(sim, camera: Camera) -> MotionReport:
     """Warn when nothing moved visibly (largest particle motion under ``STILL_PX`` in the input view,
     frames 1..end against frame 0) and when the object left the frame (``LEFT_FRACTION`` of its
-    particles project outside the image or behind the camera)."""
+    particles project outside the image or behind the camera), or, the object being in separate pieces
+    (``sim.particle_piece``), when a piece of at least ``PIECE_MIN_SHARE`` of it did."""
     x = sim.x
     T = int(x.shape[0])
     uv0, _ = camera.project(x[0].float())
     motion = 0.0
     left_at = None
     W, H = float(camera.width), float(camera.height)
+    piece = getattr(sim, "particle_piece", None)
+    piece = None if piece is None else piece.long()
+    n_pieces = int(piece.max()) + 1 if piece is not None and piece.numel() else 0
+    counts = torch.bincount(piece, minlength=n_pieces).float() if n_pieces > 1 else None
+    big = [] if counts is None else [p for p in range(n_pieces) if counts[p] >= PIECE_MIN_SHARE * piece.numel()]
+    piece_left: dict = {}
     for k in range(1, T):
         uv, z = camera.project(x[k].float())
         motion = max(motion, float((uv - uv0).norm(dim=1).max()) if uv.shape[0] else 0.0)
         outside = (z <= 0) | (uv[:, 0] < 0) | (uv[:, 0] > W) | (uv[:, 1] < 0) | (uv[:, 1] > H)
         if left_at is None and uv.shape[0] and float(outside.float().mean()) >= LEFT_FRACTION:
             left_at = k
+        if big:
+            share_out = torch.bincount(piece, weights=outside.float(), minlength=n_pieces) / counts
+            for p in big:
+                if p not in piece_left and float(share_out[p]) >= LEFT_FRACTION:
+                    piece_left[p] = k
     warnings = []
     if T > 1 and motion < STILL_PX:
         warnings.append(f"nothing moved visibly: the largest motion in the video is {motion:.2g} px. The push is too "
@@ -226,4 +390,10 @@ def after_run(sim, camera: Camera) -> MotionReport:
         warnings.append(f"the object left the frame: from frame {left_at} ({float(sim.times[left_at]):.2g} s) most "
                         "of it is outside the picture. Use a smaller force, a shorter push, more friction or fewer "
                         "frames.")
+    else:
+        for p, k in sorted(piece_left.items(), key=lambda pk: pk[1]):
+            share = float(counts[p]) / piece.numel()
+            warnings.append(f"a separate piece of the object (about {share:.0%} of it) left the frame from frame {k} "
+                            f"({float(sim.times[k]):.2g} s). The mask is in pieces that nothing binds together: join "
+                            "them in the mask (or leave that piece out), or push less.")
     return MotionReport(motion, left_at, warnings)

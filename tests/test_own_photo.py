@@ -10,7 +10,7 @@ import torch
 import physmotion_core.pipeline as pipeline
 from physmotion_core.errors import InputError
 from physmotion_core.pipeline import generate
-from physmotion_core.types import Conditions, Force, Region, SimSettings
+from physmotion_core.types import Conditions, Force, Ground, Region, SimSettings
 
 H, W = 96, 128
 FAST = SimSettings(frames=4, fps=24.0, grid_res=8, device="cpu")
@@ -235,3 +235,34 @@ def test_texture_photo_shows_the_photo_and_splat_the_gaussians_colours():
     assert psnr(splat_f0, ref) < psnr(photo_f0, ref) - 10.0
     with pytest.raises(InputError, match="texture"):
         generate(img, mask=m, settings=FAST, texture="paint")
+
+
+def test_a_mask_in_two_pieces_is_told_before_and_after_the_run(tmp_path):
+    """A head the mask holds apart from its body (a gap of a few pixels): the forecast pushes the head's
+    own mass, and after the run the head that the push threw out of the frame is reported, while the
+    body stayed (so "the object left the frame" is not what happened)."""
+    rng = np.random.default_rng(0)
+    img = 0.5 + 0.03 * rng.standard_normal((H, W, 3))
+    yy, xx = np.mgrid[:H, :W]
+    body = (abs(xx - 64) <= 30) & (yy >= 55)  # cut by the frame's bottom edge: held there
+    head = (xx - 64) ** 2 + (yy - 16) ** 2 <= 11 ** 2  # rows 5..27: 28 px (more than two grid cells) above
+    mask = body | head
+    img[mask] = (0.85, 0.5, 0.2)
+    said = []
+    res = generate(np.clip(img, 0, 1).astype(np.float32), mask=torch.from_numpy(mask.astype(np.float32)),
+                   material="jelly", conditions=Conditions([Force((20.0, 0.0, 0.0), region=Region(
+                       kind="image", points=((64.0, 16.0),), radius_px=8.0), t_start=0.0, t_end=0.25),
+                       Ground(0.0, "friction", 0.5)]),
+                   settings=SimSettings(frames=12, fps=24.0, grid_res=12, device="cpu"), report=said.append)
+    text = "\n".join(said)
+    assert "2 separate pieces" in text and "the piece it pushes" in text, text
+    (push,) = [s for s in said if s.startswith("force 1")]
+    head_share = float(push.split("(the piece it pushes, ")[1].split("%")[0]) / 100
+    assert 0.05 < head_share < 0.3  # the head's share of the volume, not the whole object's mass
+    (loose,) = [s for s in said if "neither held nor standing on anything" in s]
+    box = [int(v) for v in loose.split(" at x ")[1].split(" px")[0].replace("..", " ").replace(", y", "").split()]
+    assert np.allclose(box, [53, 75, 5, 27], atol=4), box  # x0, x1, y0, y1: where the head is in the photo
+    assert any("separate piece" in s and "left the frame" in s for s in said), text
+    assert not any("the object left the frame" in s for s in said)
+    piece = res.sim.particle_piece
+    assert piece is not None and int(piece.max()) == 1

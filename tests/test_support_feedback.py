@@ -255,3 +255,95 @@ def test_a_hold_on_nothing_is_skipped_but_a_users_anchor_on_nothing_is_refused()
     assert res.x.shape[0] == 2
     with pytest.raises(InputError, match="contains no part of the object"):
         simulate(g, Material.preset("rubber"), Conditions([Anchor(nowhere)]), settings)
+
+
+# -- a mask in separate pieces -------------------------------------------------------------------------
+
+S = 0.01  # particle spacing (m); the grid cell is two spacings, as the simulator's 8 particles a cell
+
+
+def lattice_block(lo, hi, seed=0):
+    """Particles as ``sim.fill`` puts them: voxel centres of spacing S over [lo, hi), jittered by 0.1 S."""
+    g = [np.arange(a + S / 2, b, S) for a, b in zip(lo, hi)]
+    x = np.stack(np.meshgrid(*g, indexing="ij"), -1).reshape(-1, 3)
+    return x + np.random.default_rng(seed).uniform(-0.1 * S, 0.1 * S, x.shape)
+
+
+def facts_of(*blocks, density=1000.0):
+    x = np.concatenate(blocks)
+    return BodyFacts(x, np.full(len(x), density * S ** 3), 2 * S)
+
+
+def test_piece_labels_part_bodies_one_empty_voxel_apart_and_only_those():
+    from physmotion_core.feedback import piece_labels
+
+    a = lattice_block((0, 0, 0), (0.1, 0.1, 0.1))
+    gap = lattice_block((0.11, 0, 0), (0.2, 0.1, 0.1), seed=1)  # one empty voxel (1 S) between them
+    touch = lattice_block((0.1, 0, 0), (0.2, 0.1, 0.1), seed=2)  # the next voxel: one body
+    lab = piece_labels(np.concatenate([a, gap]), 2 * S)
+    assert set(lab[:len(a)]) == {0} and set(lab[len(a):]) == {1}  # the larger first (1000 against 900)
+    assert set(piece_labels(np.concatenate([a, touch]), 2 * S)) == {0}
+    corner = lattice_block((0.1, 0.1, 0.1), (0.15, 0.15, 0.15), seed=3)  # meets the cube at one corner only
+    assert set(piece_labels(np.concatenate([a, corner]), 2 * S)) == {0}
+    assert not piece_labels(np.concatenate([a, gap]), 0.0).any()  # dx 0: looked at as one
+
+
+def test_pieces_held_standing_resting_or_loose():
+    from physmotion_core.feedback import pieces
+    from physmotion_core.types import Anchor, Region
+
+    base = lattice_block((-0.1, 0, -0.05), (0.1, 0.1, 0.05))  # on the ground (y = 0)
+    on_top = lattice_block((-0.03, 0.12, -0.03), (0.03, 0.18, 0.03), seed=1)  # 2 cm above the base: lies on it
+    floating = lattice_block((0.3, 0.3, -0.03), (0.36, 0.36, 0.03), seed=2)  # over nothing
+    facts = facts_of(base, on_top, floating)
+    ground = Ground(0.0, "friction", 0.5)
+    got = pieces(facts, Conditions([ground]))
+    assert [len(p.sel.nonzero()[0]) for p in got] == [len(base), len(on_top), len(floating)]
+    assert (got[0].grounded, got[1].resting, got[2].supported) == (True, True, False)
+    assert got[2].share == pytest.approx(len(floating) / len(facts.x))
+    # held by an anchor on its particles: supported; without the ground the base falls, and what lies on it
+    hold = Anchor(Region(kind="box", lo=(0.29, 0.29, -0.1), hi=(0.4, 0.4, 0.1)))
+    got = pieces(facts, Conditions([hold]))
+    assert (got[0].supported, got[1].supported, got[2].held) == (False, False, True)
+
+
+def test_forecast_pushes_the_piece_it_touches_and_names_the_loose_ones():
+    from physmotion_core.types import Region
+
+    base = lattice_block((-0.1, 0, -0.05), (0.1, 0.1, 0.05))
+    floating = lattice_block((0.3, 0.3, -0.03), (0.36, 0.36, 0.03), seed=2)
+    facts = facts_of(base, floating)
+    m_small = len(floating) * 1000.0 * S ** 3  # 0.216 kg
+    push = Force((10.0, 0.0, 0.0), t_start=0.0, t_end=0.25,
+                 region=Region(kind="box", lo=(0.29, 0.29, -0.1), hi=(0.4, 0.4, 0.1)))
+    lines = forecast(Conditions([push, Ground(0.0, "friction", 0.5)]), facts, Material.preset("jelly"), clip_s=1.0)
+    text = " ".join(lines)
+    assert "2 separate pieces" in text and "neither held nor standing on anything: it falls" in text
+    assert f"Δv ≈ {10 * 0.25 / m_small:.3g} m/s" in text and "the piece it pushes" in text
+    assert "nothing holds that piece up" in text and "static friction" not in text
+    # a push on the whole object, or the same object looked at as one (dx 0): the whole mass, no pieces
+    whole = forecast(Conditions([Force((10.0, 0.0, 0.0), t_start=0.0, t_end=0.25), Ground(0.0, "friction", 0.5)]),
+                     facts, Material.preset("jelly"), clip_s=1.0)
+    m = facts.total_mass
+    assert f"Δv ≈ {10 * 0.25 / m:.3g} m/s" in " ".join(whole)
+    one = forecast(Conditions([push, Ground(0.0, "friction", 0.5)]), BodyFacts(facts.x, facts.mass, 0.0),
+                   Material.preset("jelly"), clip_s=1.0)
+    assert "pieces" not in " ".join(one) and f"Δv ≈ {10 * 0.25 / m:.3g} m/s" in " ".join(one)
+
+
+def test_a_piece_that_leaves_the_frame_is_warned_about_and_one_that_stays_is_not():
+    half_width = 80 / CAM.fx
+    sim = _fake_sim([(0, 0, 0)] * 8)
+    n = sim.x.shape[1]
+    piece = torch.zeros(n, dtype=torch.long)
+    piece[: n // 4] = 1  # a quarter of the particles: a separate piece
+    x = sim.x.clone()
+    for k in range(8):
+        x[k, : n // 4, 0] += k * half_width * 0.4  # out of the frame from frame 3
+    rep = after_run(SimpleNamespace(x=x, times=sim.times, particle_piece=piece), CAM)
+    assert rep.left_frame_at is None  # most of the object stayed
+    (w,) = [w for w in rep.warnings if "separate piece" in w]
+    assert "25%" in w and "frame 3" in w
+    still = after_run(SimpleNamespace(x=sim.x, times=sim.times, particle_piece=piece), CAM)
+    assert not [w for w in still.warnings if "separate piece" in w]
+    assert not [w for w in after_run(SimpleNamespace(x=x, times=sim.times), CAM).warnings if "separate piece" in w]

@@ -403,7 +403,8 @@ def simulate(
     if on_start is not None:
         from ..feedback import BodyFacts
 
-        on_start(BodyFacts(x0, solver.mass_np.astype(np.float64)))
+        # (several objects are meant to be separate: the pieces are looked at for one object only)
+        on_start(BodyFacts(x0, solver.mass_np.astype(np.float64), float(res.dx) if len(objects) == 1 else 0.0))
 
     rec, rest_from, loop_s = run_frames(solver, schedule, settings, recorded, x0, progress)
     wall = time.perf_counter() - t_start
@@ -411,7 +412,14 @@ def simulate(
     stats["preload"] = preload
     log.info("simulated %d frames: %d particles, %d substeps, %.1fs (%d thread%s)", settings.frames, x0.shape[0],
              solver.substeps, wall, solver.threads, "" if solver.threads == 1 else "s")
-    return _result(gaussians, parts, recorded, materials, rec, frame_dt, stats)
+    from ..feedback import piece_labels
+
+    result = _result(gaussians, parts, recorded, materials, rec, frame_dt, stats)
+    # which separate body each recorded particle is part of (labelled on all particles: the recorded ones
+    # alone are too sparse inside), for the "a piece left the frame" warning
+    if len(objects) == 1:
+        result.particle_piece = torch.from_numpy(piece_labels(x0, res.dx)[recorded])
+    return result
 
 
 def _run_stats(solver: MPMSolver, settings: SimSettings, res: Resolution, domain: Domain, n_objects: int,

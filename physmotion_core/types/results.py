@@ -94,6 +94,7 @@ class SimResult:
     liquid: Optional[torch.Tensor] = None  # (P,) bool: a liquid, whose splats are round (see gaussians_at)
     neighbours: Optional[torch.Tensor] = None  # (N, K) particles each Gaussian interpolates from
     weights: Optional[torch.Tensor] = None  # (N, K) their weights (rows sum to 1)
+    particle_piece: Optional[torch.Tensor] = None  # (P,) the separate body of each recorded particle (feedback)
 
     @property
     def num_frames(self) -> int:
