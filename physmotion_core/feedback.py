@@ -35,13 +35,14 @@ LEFT_FRACTION = 0.5
 
 @dataclass
 class BodyFacts:
-    """The filled object: particle rest positions (P, 3) and masses (P,) in SI units, and the simulation's
-    grid cell size ``dx`` (m) for finding the object's separate pieces (``pieces``); 0 when unknown or when
-    the scene has several objects, which are meant to be apart: then the whole counts as one piece."""
+    """The filled object: particle rest positions (P, 3) and masses (P,) in SI units, the simulation's grid
+    cell size ``dx`` (m; 0 when unknown), and whether the scene is one object (``single``): only then are
+    its separate pieces looked for (``pieces``; several objects are meant to be apart)."""
 
     x: np.ndarray
     mass: np.ndarray
     dx: float = 0.0
+    single: bool = True
 
     @property
     def total_mass(self) -> float:
@@ -64,8 +65,8 @@ def body_facts(gaussians, material: Material, settings, ground: Optional[Ground]
     obj_ids, objects = _object_ids(gaussians)
     parts = fill_objects(gaussians, obj_ids, objects, res.spacing, res.dx, settings.max_particles, settings.seed,
                          ground)
-    return BodyFacts(parts.x, (parts.volume * float(material.density)).astype(np.float64),
-                     float(res.dx) if len(objects) == 1 else 0.0)
+    return BodyFacts(parts.x, (parts.volume * float(material.density)).astype(np.float64), float(res.dx),
+                     len(objects) == 1)
 
 
 #: A separate piece is reported (before: it falls; after: it left the frame) from this share of the mass.
@@ -209,6 +210,35 @@ def frame_room(facts: BodyFacts, camera: Optional[Camera]) -> Optional[tuple[flo
     return float(u.min()) * m_per_px, float(camera.width - u.max()) * m_per_px
 
 
+#: Fewer grid cells than THIN_CELLS across the object's narrowest side make it bend too easily; WANT_CELLS is
+#: what the advice aims for. Measured with the validation's cantilever (``validate.cases.cantilever``: L/h = 10,
+#: sagging under its own weight, against Euler-Bernoulli; docs/accuracy.md): 1 cell thick +27 %, 2 cells
+#: +5.0 %, 3 cells +2.2 %, 4 cells +2.1 % (shear, which beam theory leaves out, is about 1-2 % of that).
+THIN_CELLS = 2.0
+WANT_CELLS = 3.0
+
+
+def thin_line(facts: BodyFacts) -> str:
+    """A sentence when the object is under ``THIN_CELLS`` grid cells across its narrowest side (a pole, a wire, a
+    thin branch: the grid resolution counts cells across the object's largest extent), with the grid resolution
+    that gives it ``WANT_CELLS`` and what that costs; "" otherwise."""
+    if not facts.dx > 0 or len(facts.x) < 2:
+        return ""
+    ext = np.ptp(facts.x, axis=0) + facts.dx / 2  # particle centres lie half a spacing inside the surface
+    k = int(np.argmin(ext))
+    cells = float(ext[k]) / facts.dx
+    if cells >= THIN_CELLS:
+        return ""
+    res_now = float(ext.max()) / facts.dx
+    want = int(math.ceil(res_now * WANT_CELLS / cells))
+    r = want / res_now
+    side = ("width", "height", "depth")[k]
+    return (f"resolution: the object is only {cells:.1f} grid cells across its narrowest side (its {side}), so it "
+            f"bends too easily (a beam 1 cell thick sags 27 % more than beam theory, 2 cells 5 %, 3 cells 2 %). A "
+            f"grid resolution of {want} cells across the object gives it {WANT_CELLS:.0f} (about {r ** 3:.0f}x the "
+            f"particles and {r ** 4:.0f}x the run time).")
+
+
 def _push_line(k: int, F: np.ndarray, fmag: float, dt: float, body: BodyFacts, g: float, ground: Optional[Ground],
                anchored: bool, camera: Optional[Camera], clip_s: float, t1: float, f, what: str) -> str:
     """What push ``k`` does to ``body`` (the whole object, or the pieces it touches)."""
@@ -275,8 +305,12 @@ def forecast(conditions: Conditions, facts: BodyFacts, material: Material, *, cl
              f"density {material.density:.4g} kg/m³."]
     if m <= 0:
         return lines
+    thin = thin_line(facts)
+    if thin:
+        lines.append(thin)
     # pieces of under PIECE_MIN_SHARE of the mass (a stray voxel of the fill) are not worth a word
-    parts = [p for p in pieces(facts, conditions, camera) if p.share >= PIECE_MIN_SHARE] if facts.dx > 0 else []
+    parts = ([p for p in pieces(facts, conditions, camera) if p.share >= PIECE_MIN_SHARE]
+             if facts.dx > 0 and facts.single else [])
     if len(parts) > 1:
         loose = [p for p in parts if not p.supported]
         lines.append(f"pieces: the object is {len(parts)} separate pieces (nothing binds them; the largest holds "

@@ -262,11 +262,11 @@ def test_a_hold_on_nothing_is_skipped_but_a_users_anchor_on_nothing_is_refused()
 S = 0.01  # particle spacing (m); the grid cell is two spacings, as the simulator's 8 particles a cell
 
 
-def lattice_block(lo, hi, seed=0):
+def lattice_block(lo, hi, seed=0, jitter=0.1):
     """Particles as ``sim.fill`` puts them: voxel centres of spacing S over [lo, hi), jittered by 0.1 S."""
-    g = [np.arange(a + S / 2, b, S) for a, b in zip(lo, hi)]
+    g = [np.arange(a + S / 2, b - 1e-9, S) for a, b in zip(lo, hi)]
     x = np.stack(np.meshgrid(*g, indexing="ij"), -1).reshape(-1, 3)
-    return x + np.random.default_rng(seed).uniform(-0.1 * S, 0.1 * S, x.shape)
+    return x + np.random.default_rng(seed).uniform(-jitter * S, jitter * S, x.shape)
 
 
 def facts_of(*blocks, density=1000.0):
@@ -347,3 +347,18 @@ def test_a_piece_that_leaves_the_frame_is_warned_about_and_one_that_stays_is_not
     still = after_run(SimpleNamespace(x=sim.x, times=sim.times, particle_piece=piece), CAM)
     assert not [w for w in still.warnings if "separate piece" in w]
     assert not [w for w in after_run(SimpleNamespace(x=x, times=sim.times), CAM).warnings if "separate piece" in w]
+
+
+def test_a_slender_object_is_told_how_few_cells_it_is_across_and_the_grid_that_resolves_it():
+    from physmotion_core.feedback import thin_line
+
+    rod = lattice_block((0, 0, 0), (0.03, 0.6, 0.04), jitter=0.0)  # 3 cm wide, 60 cm tall: 0.03 / 0.02 = 1.5 cells
+    line = thin_line(facts_of(rod))
+    assert "1.5 grid cells across its narrowest side (its width)" in line and "bends too easily" in line
+    # 3 cells across need dx = 0.01: the 0.6 m height then spans 60 cells, 2x the 30 it spans now
+    assert "grid resolution of 60 cells" in line and "about 8x the particles and 16x the run time" in line
+    text = " ".join(forecast(Conditions([Ground(0.0, "friction", 0.5)]), facts_of(rod), Material.preset("metal"),
+                             clip_s=1.0))
+    assert "resolution:" in text
+    assert thin_line(facts_of(lattice_block((0, 0, 0), (0.05, 0.6, 0.05)))) == ""  # 2.5 cells: within 5 %
+    assert thin_line(BodyFacts(rod, np.ones(len(rod)))) == ""  # no grid known: nothing said

@@ -403,8 +403,7 @@ def simulate(
     if on_start is not None:
         from ..feedback import BodyFacts
 
-        # (several objects are meant to be separate: the pieces are looked at for one object only)
-        on_start(BodyFacts(x0, solver.mass_np.astype(np.float64), float(res.dx) if len(objects) == 1 else 0.0))
+        on_start(BodyFacts(x0, solver.mass_np.astype(np.float64), float(res.dx), len(objects) == 1))
 
     rec, rest_from, loop_s = run_frames(solver, schedule, settings, recorded, x0, progress)
     wall = time.perf_counter() - t_start
