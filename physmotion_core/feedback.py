@@ -194,9 +194,9 @@ def _region_sel(c, facts: BodyFacts, camera: Optional[Camera]) -> np.ndarray:
         return np.ones(len(facts.x), bool)  # reported by the simulation itself, with its own message
 
 
-def frame_room(facts: BodyFacts, camera: Optional[Camera]) -> Optional[tuple[float, float]]:
+def frame_room(facts: BodyFacts, camera: Optional[Camera], top: bool = False):
     """Metres of free room, at the object's depth, between the object and the frame's left and right
-    edges (None without a camera)."""
+    edges (None without a camera); with ``top``, also above it, up to the frame's top edge."""
     if camera is None:
         return None
     pts = torch.from_numpy(facts.x.astype(np.float32))
@@ -207,7 +207,8 @@ def frame_room(facts: BodyFacts, camera: Optional[Camera]) -> Optional[tuple[flo
         return None
     m_per_px = depth / float(camera.fx)
     u = uv[:, 0].numpy()
-    return float(u.min()) * m_per_px, float(camera.width - u.max()) * m_per_px
+    sides = float(u.min()) * m_per_px, float(camera.width - u.max()) * m_per_px
+    return sides + (float(uv[:, 1].min()) * m_per_px,) if top else sides
 
 
 #: Fewer grid cells than THIN_CELLS across the object's narrowest side make it bend too easily; WANT_CELLS is
@@ -369,12 +370,37 @@ def forecast(conditions: Conditions, facts: BodyFacts, material: Material, *, cl
         line = f"throw {k}: starts at {float(np.linalg.norm(v)):.3g} m/s"
         if np.any(w != 0):
             line += f", spinning at {float(np.linalg.norm(w)):.3g} rad/s"
-        if room is not None and abs(v[0]) > 0:
-            side = room[1] if v[0] > 0 else room[0]
-            if abs(v[0]) * clip_s > side and (ground is None or ground.contact == "slip"):
-                line += f"; at that speed it leaves the frame within {side / abs(v[0]):.2g} s"
+        line += _throw_travel(v, facts, camera, ground, g, clip_s, anchored)
         lines.append(line + ".")
     return lines
+
+
+def _throw_travel(v: np.ndarray, facts: BodyFacts, camera: Optional[Camera], ground: Optional[Ground], g: float,
+                  clip_s: float, anchored: bool) -> str:
+    """Whether a throw takes the object out of the frame: up, to its apex v_y²/2g, and sideways, in the air
+    for the flight time 2·v_y/g (landing where it started) and then sliding v_x²/2μg on a friction ground
+    (for the clip's length at most; no ground or a slip one: v_x for the whole clip). Spin and bounces are
+    left out: a rough answer, for a throw that is far too fast."""
+    room = frame_room(facts, camera, top=True)
+    if room is None or anchored:
+        return ""
+    vx, vy = abs(float(v[0])), float(v[1])
+    notes = []
+    if vy > 0 and g > 0 and vy * vy / (2 * g) > room[2]:
+        notes.append(f"it rises about {vy * vy / (2 * g):.2g} m, past the frame's top ({room[2]:.2g} m of room)")
+    if vx > 0:
+        if ground is None or ground.contact == "slip" or g <= 0:
+            travel = vx * clip_s
+        else:
+            flight = min(clip_s, 2 * vy / g) if vy > 0 else 0.0
+            travel = vx * flight
+            if flight < clip_s and ground.contact != "sticky" and float(ground.friction) > 0:
+                travel += min(vx * (clip_s - flight), vx * vx / (2 * float(ground.friction) * g))
+        side = room[1] if v[0] > 0 else room[0]
+        if travel > side:
+            notes.append(f"it travels about {travel:.2g} m sideways against {side:.2g} m of room on the "
+                         f"{'right' if v[0] > 0 else 'left'}")
+    return ("; it may leave the frame: " + " and ".join(notes) + " (a slower throw keeps it in)") if notes else ""
 
 
 @dataclass
@@ -385,6 +411,7 @@ class MotionReport:
     max_motion_px: float
     left_frame_at: Optional[int]
     warnings: list
+    back_in_frame_at: Optional[int] = None  # the first frame after ``left_frame_at`` with most of it inside again
 
 
 def after_run(sim, camera: Camera) -> MotionReport:
@@ -396,7 +423,7 @@ def after_run(sim, camera: Camera) -> MotionReport:
     T = int(x.shape[0])
     uv0, _ = camera.project(x[0].float())
     motion = 0.0
-    left_at = None
+    left_at = back_at = None
     W, H = float(camera.width), float(camera.height)
     piece = getattr(sim, "particle_piece", None)
     piece = None if piece is None else piece.long()
@@ -408,8 +435,11 @@ def after_run(sim, camera: Camera) -> MotionReport:
         uv, z = camera.project(x[k].float())
         motion = max(motion, float((uv - uv0).norm(dim=1).max()) if uv.shape[0] else 0.0)
         outside = (z <= 0) | (uv[:, 0] < 0) | (uv[:, 0] > W) | (uv[:, 1] < 0) | (uv[:, 1] > H)
-        if left_at is None and uv.shape[0] and float(outside.float().mean()) >= LEFT_FRACTION:
+        out = bool(uv.shape[0]) and float(outside.float().mean()) >= LEFT_FRACTION
+        if left_at is None and out:
             left_at = k
+        elif left_at is not None and back_at is None and not out:
+            back_at = k
         if big:
             share_out = torch.bincount(piece, weights=outside.float(), minlength=n_pieces) / counts
             for p in big:
@@ -421,13 +451,15 @@ def after_run(sim, camera: Camera) -> MotionReport:
                         "weak for this mass and friction (see the forecast above), or the object is held; push "
                         "harder, push longer, lower the friction or the density.")
     if left_at is not None:
+        back = ("it is back in from frame {} ({:.2g} s)".format(back_at, float(sim.times[back_at]))
+                if back_at is not None else "it does not come back")
         warnings.append(f"the object left the frame: from frame {left_at} ({float(sim.times[left_at]):.2g} s) most "
-                        "of it is outside the picture. Use a smaller force, a shorter push, more friction or fewer "
-                        "frames.")
+                        f"of it is outside the picture; {back}. Use a smaller force, a shorter push, a slower "
+                        "throw, more friction or fewer frames.")
     else:
         for p, k in sorted(piece_left.items(), key=lambda pk: pk[1]):
             share = float(counts[p]) / piece.numel()
             warnings.append(f"a separate piece of the object (about {share:.0%} of it) left the frame from frame {k} "
                             f"({float(sim.times[k]):.2g} s). The mask is in pieces that nothing binds together: join "
                             "them in the mask (or leave that piece out), or push less.")
-    return MotionReport(motion, left_at, warnings)
+    return MotionReport(motion, left_at, warnings, back_at)

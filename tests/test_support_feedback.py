@@ -362,3 +362,35 @@ def test_a_slender_object_is_told_how_few_cells_it_is_across_and_the_grid_that_r
     assert "resolution:" in text
     assert thin_line(facts_of(lattice_block((0, 0, 0), (0.05, 0.6, 0.05)))) == ""  # 2.5 cells: within 5 %
     assert thin_line(BodyFacts(rod, np.ones(len(rod)))) == ""  # no grid known: nothing said
+
+
+def test_a_throw_is_forecast_to_leave_the_frame_up_or_sideways_only_when_it_does():
+    """Apex v_y²/2g against the room above; sideways: v_x over the flight 2·v_y/g, then sliding v_x²/2μg."""
+    facts = slab(size=(0.1, 0.1, 0.1), mass=1.0)  # y 0..0.1, x -0.05..0.05, 1 m in front of CAM
+    ground = Ground(0.0, "friction", 0.5)
+    g = 9.81
+
+    def said(v):
+        return " ".join(forecast(Conditions([InitialVelocity(v), ground]), facts, Material.preset("rubber"),
+                                 clip_s=2.0, camera=CAM))
+
+    uv, z = CAM.project(torch.tensor([[0.05, 0.1, 0.05]]))  # the slab's top right front corner
+    top_room = float(uv[0, 1]) * float(z[0]) / CAM.fx  # metres at the object's depth (its centre, 1 m)
+    assert 2.0 ** 2 / (2 * g) < top_room < 3.0 ** 2 / (2 * g)  # the two throws below straddle it
+    assert "past the frame's top" not in said((0.0, 2.0, 0.0))
+    assert f"it rises about {3.0 ** 2 / (2 * g):.2g} m, past the frame's top" in said((0.0, 3.0, 0.0))
+    slow, fast = said((1.0, 1.0, 0.0)), said((2.0, 1.0, 0.0))
+    travel = 2.0 * (2 * 1.0 / g) + 2.0 ** 2 / (2 * 0.5 * g)  # 0.41 m in the air + 0.41 m sliding
+    assert "sideways" not in slow and f"it travels about {travel:.2g} m sideways" in fast
+    assert "on the right" in fast and "a slower throw keeps it in" in fast
+
+
+def test_leaving_the_frame_says_whether_it_came_back():
+    half_width = 80 / CAM.fx
+    out_and_back = [(0, 0, 0), (0, 0, 0), (0, 0, 0), (half_width * 1.5, 0, 0), (half_width * 1.5, 0, 0),
+                    (half_width * 1.5, 0, 0), (0.02, 0, 0), (0.02, 0, 0)]
+    rep = after_run(_fake_sim(out_and_back), CAM)
+    assert (rep.left_frame_at, rep.back_in_frame_at) == (3, 6)
+    assert any("from frame 3" in w and "back in from frame 6" in w for w in rep.warnings)
+    rep = after_run(_fake_sim(out_and_back[:6]), CAM)
+    assert rep.back_in_frame_at is None and any("does not come back" in w for w in rep.warnings)
