@@ -436,6 +436,9 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         previous = signal.signal(signal.SIGTERM, _on_sigterm)
     except (ValueError, OSError):  # not the main thread (an embedding application): leave it be
         previous = None
+    from .warp_build import hide_no_driver_warning
+
+    hide_no_driver_warning()  # our own stderr: Warp's "no NVIDIA driver" line on a CPU machine goes to the log
     try:
         return _main(argv)
     except BrokenPipeError:
@@ -458,6 +461,7 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
         print("physmotion: terminated (SIGTERM); no output was written for the unfinished step", file=sys.stderr)
         return 143
     finally:
+        hide_no_driver_warning(False)
         if previous is not None:
             signal.signal(signal.SIGTERM, previous)
 

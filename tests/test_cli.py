@@ -165,3 +165,37 @@ def test_a_closed_pipe_ends_the_listing_quietly(tmp_path):
     assert first.startswith(b"#")
     assert rc == 0, err
     assert "free space" not in err and "Traceback" not in err
+
+
+def test_warps_no_driver_line_is_hidden_by_the_cli_and_other_lines_pass(capfd):
+    """Warp's C library writes "Could not find or load the NVIDIA CUDA driver" to the process's stderr on every
+    start without a GPU; the CLI hides that line (it is said at INFO) and lets anything else Warp writes
+    through; outside the CLI (ComfyUI shares its stderr with other threads) nothing is caught."""
+    import os
+    from types import SimpleNamespace
+
+    from physmotion_core import warp_build
+
+    def fake_init():
+        os.write(2, b"Warp CUDA warning: Could not find or load the NVIDIA CUDA driver. GPU execution will not be "
+                    b"available.\nWarp: something else worth seeing\n")
+
+    wp = SimpleNamespace(config=SimpleNamespace(quiet=False), init=fake_init)
+    warp_build.init_warp(wp)
+    err = capfd.readouterr().err
+    assert "NVIDIA CUDA driver" in err and "something else" in err
+    warp_build.hide_no_driver_warning()
+    try:
+        warp_build.init_warp(wp)
+    finally:
+        warp_build.hide_no_driver_warning(False)
+    err = capfd.readouterr().err
+    assert "NVIDIA CUDA driver" not in err and "Warp: something else worth seeing" in err
+
+
+def test_a_cli_run_on_a_cpu_machine_prints_no_warp_driver_warning(red_ball_png, tmp_path):
+    proc = subprocess.run([sys.executable, "-m", "physmotion_core.cli", "generate", str(red_ball_png), "--preview",
+                           "--models", "none", "--grid-res", "8"], capture_output=True, text=True, cwd=tmp_path)
+    assert proc.returncode == 0, proc.stderr
+    assert "preview: stopped before simulating" in proc.stdout + proc.stderr
+    assert "Could not find or load the NVIDIA CUDA driver" not in proc.stderr

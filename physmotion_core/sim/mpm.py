@@ -74,10 +74,9 @@ MIN_SLAB_NODES = 65536  # grid spans smaller than this are updated by one thread
 def _warp():
     import warp as wp
 
-    from ..warp_build import quiet_warp
+    from ..warp_build import init_warp
 
-    quiet_warp(wp)
-    wp.init()
+    init_warp(wp)
     return wp
 
 
