@@ -240,6 +240,41 @@ def thin_line(facts: BodyFacts) -> str:
             f"particles and {r ** 4:.0f}x the run time).")
 
 
+def flow_line(material: Material, facts: BodyFacts, g: float) -> str:
+    """For a liquid or a paste (``fluid``, ``viscoplastic``): whether the object keeps its shape under its own
+    weight, and if not how fast it slumps; "" for other materials.
+
+    The weight's stress at the base of a body h tall is ρ·g·h; a paste yields where its von Mises stress passes
+    σ_y. Measured through the solver (upright cylinders on rough ground, docs/accuracy.md): toothpaste twice as
+    tall as wide at ρ·g·h = 1.5 σ_y sags 0.8 %, at 2 σ_y 7.5 % and still creeping; one as wide as tall at 4 σ_y
+    slumps to 70 % of its height. Honey, water and toothpaste 0.3 m tall fall nearly freely, their top at
+    0.52-0.54 of its height after 0.75·√(2h/g); honey 3 cm tall, slowed by its viscosity (μ/(ρ·g·h) a third of
+    √(2h/g)), is still at 0.79 then and takes about four times as long."""
+    if material.model not in ("fluid", "viscoplastic") or len(facts.x) < 2 or not g > 0:
+        return ""
+    h = float(np.ptp(facts.x[:, 1])) + facts.dx / 2
+    if not h > 0:
+        return ""
+    rho = float(material.density)
+    sigma = rho * g * h
+    yield_stress = float(material.yield_stress) if material.model == "viscoplastic" else 0.0
+    name = material.name
+    if sigma <= 1.5 * yield_stress:
+        return (f"flow: {name} keeps its shape under its own weight at this size (ρ·g·h = {sigma:.3g} Pa at its base, "
+                f"within 1.5 times its yield stress {yield_stress:.3g} Pa).")
+    if sigma <= 4 * yield_stress:
+        return (f"flow: {name} sags under its own weight at this size (ρ·g·h = {sigma:.3g} Pa at its base, "
+                f"{sigma / yield_stress:.2g}x its yield stress) and settles lower, but does not run away.")
+    t_fall = math.sqrt(2 * h / g)
+    slow = float(material.viscosity) / (rho * g * h) / t_fall
+    why = (f"its yield stress, {yield_stress:.3g} Pa, is far below the weight's {sigma:.3g} Pa at its base"
+           if yield_stress > 0 else "it has no shape of its own")
+    when = (f"its top falls to half its height in about {0.75 * t_fall:.2g} s, nearly a free fall" if slow < 0.05
+            else f"its viscosity ({material.viscosity:.3g} Pa·s) slows it: its top takes longer than "
+                 f"{0.75 * t_fall:.2g} s to fall to half its height")
+    return f"flow: {name} flows under its own weight from the first frame ({why}); {when}."
+
+
 def _push_line(k: int, F: np.ndarray, fmag: float, dt: float, body: BodyFacts, g: float, ground: Optional[Ground],
                anchored: bool, camera: Optional[Camera], clip_s: float, t1: float, f, what: str) -> str:
     """What push ``k`` does to ``body`` (the whole object, or the pieces it touches)."""
@@ -306,9 +341,9 @@ def forecast(conditions: Conditions, facts: BodyFacts, material: Material, *, cl
              f"density {material.density:.4g} kg/m³."]
     if m <= 0:
         return lines
-    thin = thin_line(facts)
-    if thin:
-        lines.append(thin)
+    for extra in (thin_line(facts), flow_line(material, facts, g)):
+        if extra:
+            lines.append(extra)
     # pieces of under PIECE_MIN_SHARE of the mass (a stray voxel of the fill) are not worth a word
     parts = ([p for p in pieces(facts, conditions, camera) if p.share >= PIECE_MIN_SHARE]
              if facts.dx > 0 and facts.single else [])
