@@ -116,13 +116,17 @@ def checked_segmentation(seg, prompted: bool, obj_pts=(), bg_pts=(), box=None, s
     """The Segment nodes' result: the mask's plausibility check (refused when nobody said which object,
     warned otherwise, with what to change for the prompt given), the overlay as an IMAGE output and as
     the node's preview. ``source``: "grabcut", "sam" or "mask" (a connected MASK)."""
-    from physmotion_core.segment.check import NODE_HOW_TO_FIX, check_mask, enforce_plausible, retry_hint
-    from physmotion_core.segment.overlay import mask_overlay
+    from physmotion_core.segment.check import (NODE_HOW_TO_FIX, NODE_PROMPT_TIP, check_mask, enforce_plausible,
+                                               overlay_caption, retry_hint)
+    from physmotion_core.segment.overlay import mask_overlay, with_caption
 
     report = check_mask(seg.mask, object_points=obj_pts, background_points=bg_pts, image=seg.image)
     overlay = torch.as_tensor(mask_overlay(seg.image, seg.mask, seg.background, object_points=obj_pts,
                                            background_points=bg_pts, box=box)).float()
-    preview = preview_images(overlay[None], "PhysMotion_segment")
+    # The node's picture says what the checks found and whether the object was picked automatically; the
+    # IMAGE output stays the plain overlay (the photo's height, for the nodes downstream).
+    shown = with_caption(overlay, overlay_caption(report, prompted=prompted, tip=NODE_PROMPT_TIP))
+    preview = preview_images(torch.from_numpy(shown)[None], "PhysMotion_segment")
     if not report.ok:
         shown = preview["images"][0]["filename"] if preview.get("images") else None
         from ._util import temp_directory

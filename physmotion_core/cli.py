@@ -134,8 +134,8 @@ def _segment_cmd(args) -> int:
     from .fsutil import check_outputs, protect_inputs
     from .image_io import load_image
     from .pipeline import DEFAULT_MAX_SIDE, _resize, available_models, segment_photo
-    from .segment.check import check_mask, retry_hint
-    from .segment.overlay import mask_overlay, write_overlay
+    from .segment.check import CLI_PROMPT_TIP, check_mask, overlay_caption, retry_hint
+    from .segment.overlay import mask_overlay, with_caption, write_overlay
 
     check_outputs({"-o/--output": args.output}, inputs=[args.image, args.mask])
     rgb, alpha = load_image(args.image)
@@ -171,10 +171,12 @@ def _segment_cmd(args) -> int:
                              progress=None if args.quiet else TextBar("segment"))
     seconds = time.perf_counter() - t0
     report = check_mask(seg.mask, object_points=scale_pts[0], background_points=scale_pts[1], image=seg.image)
-    with protect_inputs(args.image, args.mask):
-        write_overlay(args.output, mask_overlay(seg.image, seg.mask, seg.background, object_points=scale_pts[0],
-                                                background_points=scale_pts[1], box=box))
     prompted = bool(pr["object_points"]) or box is not None or how in ("alpha", "mask")
+    picture = mask_overlay(seg.image, seg.mask, seg.background, object_points=scale_pts[0],
+                           background_points=scale_pts[1], box=box)
+    with protect_inputs(args.image, args.mask):
+        write_overlay(args.output, with_caption(picture, overlay_caption(report, prompted=prompted,
+                                                                         tip=CLI_PROMPT_TIP)))
     print(f"wrote {args.output} ({how}, {seconds:.1f}s)")
     for line in report.summary_lines():
         print(line)

@@ -413,11 +413,14 @@ def prepare(
         overlay_path = _overlay_default(output)
     if overlay_path is not None:
         from .fsutil import protect_inputs
-        from .segment.overlay import mask_overlay, write_overlay
+        from .segment.check import CLI_PROMPT_TIP, overlay_caption
+        from .segment.overlay import mask_overlay, with_caption, write_overlay
 
+        picture = mask_overlay(seg.image, seg.mask, seg.background, object_points=obj_pts, background_points=bg_pts,
+                               box=box, force_points=force_pts)
         with protect_inputs(image if isinstance(image, (str, Path)) else None):
-            write_overlay(overlay_path, mask_overlay(seg.image, seg.mask, seg.background, object_points=obj_pts,
-                                                     background_points=bg_pts, box=box, force_points=force_pts))
+            write_overlay(overlay_path, with_caption(picture, overlay_caption(mask_report, prompted=given,
+                                                                              tip=CLI_PROMPT_TIP)))
     say(f"mask ({stages['segment']}): " + "; ".join(mask_report.summary_lines()))
     if overlay_path is not None:
         say(f"mask overlay: {overlay_path}")

@@ -414,3 +414,30 @@ def test_segment_node_shows_grabcuts_progress_and_honours_cancel(monkeypatch):
     with pytest.raises(InterruptProcessingException):
         seg.run(image, "auto", "auto", 5, object_points="45, 48")
     assert state.checks == state.cancel_after + 1 and state.updates[-1][0] < 100
+
+
+def test_segment_nodes_picture_is_captioned_for_an_automatic_pick_and_its_image_output_is_not(tmp_path, monkeypatch):
+    import cv2
+
+    monkeypatch.setenv("PHYSMOTION_TEMP_DIR", str(tmp_path))
+    seg = node_classes()["PhysMotionSegment"]()
+    image, red, blue = _two_objects()
+    H, W = image.shape[1:3]
+
+    def picture(out):
+        (item,) = out["ui"]["images"]
+        return cv2.imread(str(tmp_path / item["filename"]))
+
+    out = seg.run(image, "auto", "auto", 5, object_points="115, 48")
+    assert picture(out).shape[:2] == (H, 2 * W) and out["result"][3].shape == (1, H, 2 * W, 3)
+    before = set(tmp_path.glob("PhysMotion_segment_*.png"))
+    try:
+        out = seg.run(image, "auto", "auto", 5)
+    except ValueError:  # refused: the picture was still written, with the caption
+        (path,) = set(tmp_path.glob("PhysMotion_segment_*.png")) - before
+        shown = cv2.imread(str(path))
+    else:
+        shown = picture(out)
+        assert out["result"][3].shape == (1, H, 2 * W, 3)  # the IMAGE output: the plain overlay
+    bar = shown[: shown.shape[0] - H]
+    assert shown.shape[1] == 2 * W and bar.shape[0] >= 15 and (bar > 200).any() and np.median(bar) < 40

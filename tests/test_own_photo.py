@@ -120,6 +120,10 @@ def test_the_segment_command_writes_the_overlay_and_says_what_generate_would_do(
     assert main(["segment", str(path), "-o", str(tmp_path / "a.png")]) == 0
     out = capsys.readouterr().out
     assert "generate would refuse this mask" in out and "If the outline" not in out
+    # the picture says so too: a dark caption bar above the overlay, with light text
+    auto = cv2.imread(str(tmp_path / "a.png"))
+    bar = auto[: auto.shape[0] - H]
+    assert auto.shape[1] == 2 * W and auto.shape[0] - H >= 20 and np.median(bar) < 40 and (bar > 200).any()
     assert main(["segment", str(path), "--object-point", "64,50", "-o", str(tmp_path / "c.png")]) == 0
     out = capsys.readouterr().out
     assert "generate would warn about this mask" in out and "draw a box around the whole object with --box" in out

@@ -646,3 +646,19 @@ def test_cancel_during_a_click_stops_both_of_its_threads(monkeypatch):
     starts.clear()
     segment(img, points=[(160, 150)])
     assert len(starts) > state["raised"] + 10
+
+
+def test_a_caption_goes_above_the_overlay_and_wraps_to_its_width():
+    from physmotion_core.segment.overlay import with_caption
+
+    img, disk, _ = two_objects()
+    ov = mask_overlay(img, disk)
+    assert with_caption(ov, []) is not None and np.array_equal(with_caption(ov, []), ov)
+    long = "Picked automatically (no point, box or mask): " + "not your object? click on it " * 6
+    out = with_caption(ov, ["check: one problem", long])
+    extra = out.shape[0] - ov.shape[0]
+    assert out.shape[1:] == ov.shape[1:] and np.array_equal(out[extra:], ov)  # the overlay itself untouched
+    rows = (out[:extra].max(axis=(1, 2)) > 0.6)  # rows that hold light text
+    starts = np.flatnonzero(rows[1:] & ~rows[:-1])
+    assert len(starts) >= 3  # the long line wrapped: three or more lines of text for two captions
+    assert with_caption(ov, ["short"]).shape[0] < out.shape[0]

@@ -81,6 +81,20 @@ def retry_hint(*, points: bool, box: bool, model: bool = False, node: bool = Fal
     return ""
 
 
+#: What the caption over an automatic pick's overlay says to do, on the command line and in ComfyUI.
+CLI_PROMPT_TIP = "not your object? give --object-point U,V on it, or --box X0,Y0,X1,Y1 around it"
+NODE_PROMPT_TIP = "not your object? click on it, or drag a box around it, on the picture in this node"
+
+
+def overlay_caption(report: "MaskReport", *, prompted: bool, tip: str) -> list[str]:
+    """The lines written over the overlay (``overlay.with_caption``): what the checks found wrong, and for
+    an automatic pick, that it was one and how to say which object is meant."""
+    lines = [f"check: {p}" for p in report.problems[:2]]
+    if not prompted:
+        lines.append(f"Picked automatically (no point, box or mask): {tip}")
+    return lines
+
+
 @dataclass
 class MaskReport:
     """What ``check_mask`` found. ``problems`` empty means the mask looks like one object."""

@@ -70,6 +70,44 @@ def mask_overlay(image, mask, background=None, *, object_points=(), background_p
     return np.ascontiguousarray(out.astype(np.float32))
 
 
+CAPTION_BAR = (0.08, 0.08, 0.1)
+CAPTION_TEXT = (1.0, 1.0, 1.0)
+
+
+def with_caption(overlay, lines) -> np.ndarray:
+    """The overlay with a dark bar on top holding ``lines`` (wrapped to its width; light text): what the user
+    should know when looking at it (the object was picked automatically, what looks wrong). Nothing added
+    when ``lines`` is empty."""
+    arr = _arr(overlay).astype(np.float32)
+    lines = [str(t) for t in lines if str(t).strip()]
+    if not lines:
+        return arr
+    H, W = arr.shape[:2]
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    scale = max(0.4, min(1.2, W / 1600.0))
+    thick = 1 if scale < 0.8 else 2
+    (_, th), base = cv2.getTextSize("Ag", font, scale, thick)
+    pad = max(4, th // 2)
+    wrapped = []
+    for text in lines:
+        row = ""
+        for word in text.split():
+            trial = f"{row} {word}".strip()
+            if row and cv2.getTextSize(trial, font, scale, thick)[0][0] > W - 2 * pad:
+                wrapped.append(row)
+                row = word
+            else:
+                row = trial
+        wrapped.append(row)
+    step = th + base + pad
+    bar = np.empty((pad + step * len(wrapped), W, 3), np.uint8)  # OpenCV draws text on 8-bit images only
+    bar[:] = np.round(np.float32(CAPTION_BAR) * 255).astype(np.uint8)
+    ink = tuple(int(round(c * 255)) for c in CAPTION_TEXT)
+    for i, row in enumerate(wrapped):
+        cv2.putText(bar, row, (pad, pad + th + i * step), font, scale, ink, thick, cv2.LINE_AA)
+    return np.ascontiguousarray(np.concatenate([bar.astype(np.float32) / 255.0, arr], axis=0))
+
+
 def write_overlay(path, overlay) -> str:
     """Write an overlay (H, W, 3) float 0..1 (or uint8) as a PNG, atomically; returns the path."""
     arr = _arr(overlay)
