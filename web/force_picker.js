@@ -26,6 +26,7 @@ import {
   imageToCanvas,
   magnitude,
   nearestSource,
+  showsPhoto,
   torqueToArrow,
   viewParams,
 } from "./picker_math.js";
@@ -77,10 +78,7 @@ function linkedIds(graph, id) {
 /** The URL of the picture the picker shows for `node`, or null. */
 function sourceImageURL(node) {
   const graph = node.graph ?? app.graph;
-  const isSource = (id) => {
-    const n = graph.getNodeById(id);
-    return !!n && (n.comfyClass === "LoadImage" || n.type === "LoadImage" || (n.imgs?.length ?? 0) > 0);
-  };
+  const isSource = (id) => showsPhoto(graph.getNodeById(id));
   const id = nearestSource(node.id, (i) => linkedIds(graph, i), isSource);
   if (id == null) return null;
   const src = graph.getNodeById(id);

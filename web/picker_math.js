@@ -126,6 +126,21 @@ export function viewParams(widgetValue) {
 }
 
 /**
+ * Nodes whose picture is not the photo: the Segment nodes show the outlined photo beside the filled
+ * background, under a caption bar, so a point picked on it would land elsewhere in the photo.
+ */
+export const OVERLAY_NODES = new Set(["PhysMotionSegment", "PhysMotionSAMSegment"]);
+
+/** Whether node `n` shows a picture to pick points on: a LoadImage, or any other node showing an image
+ * except the Segment nodes (OVERLAY_NODES). */
+export function showsPhoto(n) {
+  if (!n) return false;
+  if (n.comfyClass === "LoadImage" || n.type === "LoadImage") return true;
+  if (OVERLAY_NODES.has(n.comfyClass ?? n.type)) return false;
+  return (n.imgs?.length ?? 0) > 0;
+}
+
+/**
  * The nearest node (by links, either direction) accepted by `isSource`, starting from `startId`.
  * `neighbours(id)` lists the ids linked to node `id`. Breadth-first, so the closest image wins; ties
  * keep the neighbours' order. Returns the id or null.

@@ -16,7 +16,7 @@
 // Entries the picker cannot read are kept verbatim (`raw`), so a hand-typed mistake is not silently
 // dropped when a click rewrites the field: the node reports it when the workflow is queued.
 
-import { nearestSource, viewParams } from "./picker_math.js";
+import { nearestSource, showsPhoto, viewParams } from "./picker_math.js";
 
 export const HIT_RADIUS_PX = 8; // canvas pixels: a click this close to a drawn point removes it
 export const MIN_BOX_PX = 1; // image pixels: a dragged box narrower or lower than this is no box
@@ -289,10 +289,7 @@ const isLoadImage = (n) => n?.comfyClass === "LoadImage" || n?.type === "LoadIma
  */
 export function sourceImageURL(graph, nodeId, apiURL) {
   if (!graph) return null;
-  const isSource = (id) => {
-    const n = graph.getNodeById(id);
-    return !!n && (isLoadImage(n) || (n.imgs?.length ?? 0) > 0);
-  };
+  const isSource = (id) => showsPhoto(graph.getNodeById(id));
   let id = nearestSource(nodeId, (i) => upstreamIds(graph, i), isSource);
   if (id == null) id = nearestSource(nodeId, (i) => linkedIds(graph, i), isSource);
   if (id == null) return null;

@@ -3,7 +3,7 @@ import assert from "node:assert/strict";
 import { test } from "node:test";
 
 import {
-  canvasToImage, dragToForce, dragToTorque, fitImage, forceToArrow, imageToCanvas, magnitude, nearestSource,
+  canvasToImage, dragToForce, dragToTorque, fitImage, forceToArrow, imageToCanvas, magnitude, nearestSource, showsPhoto,
   pixelOf, roundToStep, torqueToArrow, viewParams,
 } from "../../web/picker_math.js";
 
@@ -121,4 +121,15 @@ test("the picker finds the nearest image source through links in either directio
   assert.equal(nearestSource(6, nb, (id) => images.has(id)), 1);
   assert.equal(nearestSource(30, nb, (id) => images.has(id)), 20);
   assert.equal(nearestSource(5, nb, (id) => id === 99), null);
+});
+
+test("the Segment nodes' pictures are not photos to pick on; LoadImage and other previews are", () => {
+  assert.equal(showsPhoto({ comfyClass: "LoadImage" }), true);
+  assert.equal(showsPhoto({ type: "LoadImage" }), true);
+  assert.equal(showsPhoto({ comfyClass: "PreviewImage", imgs: [{ src: "x" }] }), true);
+  assert.equal(showsPhoto({ comfyClass: "PreviewImage" }), false);
+  // the overlay: photo beside the fill, under a caption bar
+  assert.equal(showsPhoto({ comfyClass: "PhysMotionSegment", imgs: [{ src: "x" }] }), false);
+  assert.equal(showsPhoto({ type: "PhysMotionSAMSegment", imgs: [{ src: "x" }] }), false);
+  assert.equal(showsPhoto(null), false);
 });

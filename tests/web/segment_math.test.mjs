@@ -206,3 +206,14 @@ test("without a photo upstream the nearest image either way is used; none gives 
   ], [[5, 3]]);
   assert.equal(sourceImageURL(preview, 3, apiURL), "blob:x");
 });
+
+test("a Segment node's own picture (the captioned overlay) is never the picture to pick on", () => {
+  // Force-like node 6 -> 7 <- Segment(3, showing its overlay) <- LoadImage(1): the photo is used
+  const g = graphOf([
+    { id: 1, type: "LoadImage", widgets: [{ name: "image", value: "cat.png" }] },
+    { id: 3, comfyClass: "PhysMotionSegment", imgs: [{ src: "/api/view?filename=overlay.png" }] },
+    { id: 7, comfyClass: "PhysMotionMPMSimulate" },
+    { id: 6, comfyClass: "PhysMotionSAMSegment" },
+  ], [[1, 3], [3, 7], [6, 7]]);
+  assert.equal(sourceImageURL(g, 6, apiURL), "/api/view?filename=cat.png&type=input&subfolder=");
+});
