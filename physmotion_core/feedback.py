@@ -120,11 +120,13 @@ class Piece:
         return self.held or self.grounded or self.resting
 
 
-def pieces(facts: BodyFacts, conditions: Conditions, camera: Optional[Camera] = None) -> list[Piece]:
-    """The object's separate bodies (``piece_labels``), heaviest first, and for each whether an anchor
-    holds it, it stands on the ground (its lowest particle within two cells of it), or it lies on a piece
-    that is held up (a particle of that piece at most two cells under one of its own, within a cell
-    sideways)."""
+def pieces(facts: BodyFacts, conditions: Conditions, camera: Optional[Camera] = None,
+           min_share: float = PIECE_MIN_SHARE) -> list[Piece]:
+    """The object's separate bodies (``piece_labels``) of at least ``min_share`` of its mass (a mask's stray
+    specks are not worth a word, and there are at most 1/min_share of the others), in order of particle
+    count, and for each whether an anchor holds it, it stands on the ground (its lowest particle within two
+    cells of it), or it lies on a piece that is held up (a particle of that piece at most two cells under one
+    of its own, within a cell sideways)."""
     from scipy import ndimage
 
     labels = piece_labels(facts.x, facts.dx)
@@ -134,13 +136,18 @@ def pieces(facts: BodyFacts, conditions: Conditions, camera: Optional[Camera] = 
     for a in conditions.of(Anchor):
         held_sel |= _region_sel(a, facts, camera)
     ground = conditions.ground()
+    masses = np.bincount(labels, weights=facts.mass, minlength=n)
+    held = np.bincount(labels, weights=held_sel.astype(np.float64), minlength=n) > 0
+    lowest = np.full(n, np.inf)
+    np.minimum.at(lowest, labels, facts.x[:, 1])
     out = []
     for k in range(n):
-        sel = labels == k
-        m = float(facts.mass[sel].sum())
-        grounded = ground is not None and float(facts.x[sel, 1].min()) <= float(ground.height) + 2 * facts.dx
-        out.append(Piece(sel, m, m / total, bool(held_sel[sel].any()), bool(grounded), False))
-    if n > 1:
+        if masses[k] < min_share * total:
+            continue
+        grounded = ground is not None and float(lowest[k]) <= float(ground.height) + 2 * facts.dx
+        out.append(Piece(labels == k, float(masses[k]), float(masses[k]) / total, bool(held[k]), bool(grounded),
+                         False))
+    if len(out) > 1:
         idx = np.floor((facts.x - facts.x.min(0)) / facts.dx).astype(np.int64)
         shape = tuple(idx.max(0) + 4)
         # the cells a held-up piece carries: up to two cells above it, one to each side
@@ -344,9 +351,7 @@ def forecast(conditions: Conditions, facts: BodyFacts, material: Material, *, cl
     for extra in (thin_line(facts), flow_line(material, facts, g)):
         if extra:
             lines.append(extra)
-    # pieces of under PIECE_MIN_SHARE of the mass (a stray voxel of the fill) are not worth a word
-    parts = ([p for p in pieces(facts, conditions, camera) if p.share >= PIECE_MIN_SHARE]
-             if facts.dx > 0 and facts.single else [])
+    parts = pieces(facts, conditions, camera) if facts.dx > 0 and facts.single else []
     if len(parts) > 1:
         loose = [p for p in parts if not p.supported]
         lines.append(f"pieces: the object is {len(parts)} separate pieces (nothing binds them; the largest holds "
