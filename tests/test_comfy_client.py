@@ -367,3 +367,30 @@ def test_a_failure_is_still_a_failure_not_a_cancel(tmp_path):
     finally:
         fake.close()
     assert not isinstance(err.value, comfy_client.ComfyCancelled)
+
+
+def test_a_run_on_another_photo_warns_about_pixels_placed_on_the_workflows_own(tmp_path, photo, caplog):
+    """push_a_jelly's Segment box and Force point are pixels of its coffee photo: run with --image on another
+    photo, comfy-run says which inputs still hold them and how to give them; inputs given by --set, a Force
+    on the whole object, or no --image at all, are not mentioned."""
+    import logging
+
+    from physmotion_core.comfy.client import placed_on_its_own_photo
+
+    prompt = json.loads(WORKFLOW.read_text())
+    stale = placed_on_its_own_photo(prompt, [])
+    assert stale == ["PhysMotionSegment.box = '55, 6, 498, 395'", "PhysMotionForce.u = 200", "PhysMotionForce.v = 150"]
+    assert placed_on_its_own_photo(prompt, ["PhysMotionSegment.box=", "6.u=10", "PhysMotionForce.v=20"]) == []
+    prompt["6"]["inputs"]["region"] = "whole object"
+    assert placed_on_its_own_photo(prompt, ["PhysMotionSegment.box=1,2,3,4"]) == []
+    fake = FakeComfy()
+    try:
+        with caplog.at_level(logging.WARNING, logger="physmotion"):
+            run_workflow(WORKFLOW, fake.url, tmp_path / "out", image=photo, timeout=20)
+            (w,) = [r.getMessage() for r in caplog.records if "placed on its own photo" in r.getMessage()]
+            caplog.clear()
+            run_workflow(WORKFLOW, fake.url, tmp_path / "out2", timeout=20)
+            assert not [r for r in caplog.records if "placed on its own photo" in r.getMessage()]
+    finally:
+        fake.close()
+    assert "PhysMotionSegment.box" in w and "photo.png" in w and "--set" in w

@@ -149,6 +149,44 @@ def apply_sets(prompt: dict, sets: list[str]) -> dict:
     return prompt
 
 
+#: Inputs that are pixels of the workflow's own photo: they mean nothing on another one.
+PLACED_INPUTS = {"PhysMotionSegment": ("box", "object_points", "background_points"),
+                 "PhysMotionSAMSegment": ("points", "boxes"),
+                 "PhysMotionForce": ("u", "v"), "PhysMotionTorque": ("u", "v")}
+
+
+def placed_on_its_own_photo(prompt: dict, sets: list[str]) -> list[str]:
+    """For a workflow run on another photo (``--image``): the inputs still holding pixels placed on the
+    workflow's own photo (a Segment node's box and points, a Force or Torque node's image point), that no
+    ``--set`` gave. Each as "NODE.INPUT = value"."""
+    given = set()
+    for item in sets:
+        target = item.split("=", 1)[0]
+        if "." in target:
+            node_ref, name = target.rsplit(".", 1)
+            try:
+                given.add((find_node(prompt, node_ref), name))
+            except InputError:
+                pass
+    out = []
+    for nid, node in prompt.items():
+        if not isinstance(node, dict):
+            continue
+        cls, inputs = node.get("class_type"), node.get("inputs", {})
+        names = PLACED_INPUTS.get(cls, ())
+        if cls in ("PhysMotionForce", "PhysMotionTorque") and inputs.get("region") != "image point":
+            continue
+        for name in names:
+            value = inputs.get(name)
+            if value in (None, "") or (nid, name) in given or (isinstance(value, list) and len(value) == 2
+                                                               and isinstance(value[0], str)):
+                continue
+            ref = cls if sum(1 for n in prompt.values() if isinstance(n, dict) and n.get("class_type") == cls) == 1 \
+                else nid
+            out.append(f"{ref}.{name} = {value!r}")
+    return out
+
+
 def find_node(prompt: dict, ref: str) -> str:
     if ref in prompt:
         return ref
@@ -687,6 +725,14 @@ def run_workflow(workflow: Path, server: str, out_dir: Path, *, image: Optional[
                              "Upload it and use --set NODE.image=NAME instead")
         prompt[loaders[0]]["inputs"]["image"] = client.upload_image(image)
     apply_sets(prompt, sets or [])
+    if image is not None:
+        stale = placed_on_its_own_photo(prompt, sets or [])
+        if stale:
+            text = ("the workflow's " + "; ".join(stale) + f" were placed on its own photo, not on {Path(image).name}: "
+                    "give them for your photo with --set NODE.INPUT=VALUE (a Segment node's box or points empty to "
+                    "let it pick automatically; a Force's region 'whole object' to push all of it), or set them to "
+                    "the same values to keep them")
+            log.warning("%s", text)
     client.connect()
     try:
         prompt_id = client.queue(prompt)
