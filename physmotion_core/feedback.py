@@ -247,6 +247,10 @@ def thin_line(facts: BodyFacts) -> str:
             f"particles and {r ** 4:.0f}x the run time).")
 
 
+def _fmt_pa(p: float) -> str:
+    return f"{p / 1000:.3g} kPa" if p >= 1000 else f"{p:.3g} Pa"
+
+
 def flow_line(material: Material, facts: BodyFacts, g: float) -> str:
     """For a liquid or a paste (``fluid``, ``viscoplastic``): whether the object keeps its shape under its own
     weight, and if not how fast it slumps; "" for other materials.
@@ -267,14 +271,14 @@ def flow_line(material: Material, facts: BodyFacts, g: float) -> str:
     yield_stress = float(material.yield_stress) if material.model == "viscoplastic" else 0.0
     name = material.name
     if sigma <= 1.5 * yield_stress:
-        return (f"flow: {name} keeps its shape under its own weight at this size (ρ·g·h = {sigma:.3g} Pa at its base, "
-                f"within 1.5 times its yield stress {yield_stress:.3g} Pa).")
+        return (f"flow: {name} keeps its shape under its own weight at this size (ρ·g·h = {_fmt_pa(sigma)} at its "
+                f"base, within 1.5 times its yield stress {_fmt_pa(yield_stress)}).")
     if sigma <= 4 * yield_stress:
-        return (f"flow: {name} sags under its own weight at this size (ρ·g·h = {sigma:.3g} Pa at its base, "
+        return (f"flow: {name} sags under its own weight at this size (ρ·g·h = {_fmt_pa(sigma)} at its base, "
                 f"{sigma / yield_stress:.2g}x its yield stress) and settles lower, but does not run away.")
     t_fall = math.sqrt(2 * h / g)
     slow = float(material.viscosity) / (rho * g * h) / t_fall
-    why = (f"its yield stress, {yield_stress:.3g} Pa, is far below the weight's {sigma:.3g} Pa at its base"
+    why = (f"its yield stress, {_fmt_pa(yield_stress)}, is far below the weight's {_fmt_pa(sigma)} at its base"
            if yield_stress > 0 else "it has no shape of its own")
     when = (f"its top falls to half its height in about {0.75 * t_fall:.2g} s, nearly a free fall" if slow < 0.05
             else f"its viscosity ({material.viscosity:.3g} Pa·s) slows it: its top takes longer than "
