@@ -41,6 +41,21 @@ def progress_callback():
     return callback
 
 
+def node_text(unique_id, lines) -> None:
+    """Show ``lines`` as text on the running node in ComfyUI (``PromptServer.send_progress_text``, which the
+    frontend draws under the node, as for the core Get Image Size node; each call replaces the text).
+    Nothing outside ComfyUI, without the node's id, or on a server without it."""
+    if unique_id is None:
+        return
+    try:
+        from server import PromptServer
+    except ImportError:
+        return
+    send = getattr(getattr(PromptServer, "instance", None), "send_progress_text", None)
+    if send is not None:
+        send("\n".join(str(t) for t in lines), str(unique_id))
+
+
 def preview_payload(image: torch.Tensor, max_side: int = 512):
     """An (H, W, 3) image in 0..1 as the preview ComfyUI's progress bar shows beside it
     (``ProgressBar.update_absolute(value, total, preview)``): ("JPEG", PIL image, max size)."""

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 from ._gaussian_io import GAUSSIANS_INPUT, GAUSSIANS_TOOLTIP_SUFFIX, SPLAT_AXES_INPUT, as_pm_gaussians
-from ._util import CATEGORY, log, output_path, progress_callback, sim_device
+from ._util import CATEGORY, log, node_text, output_path, progress_callback, sim_device
 
 _VEC = {"default": 0.0, "min": -1e7, "max": 1e7, "step": 0.1}
 
@@ -390,6 +390,7 @@ class PhysMotionMPMSimulate:
                                                           "the camera. Off: only the ground holds it."}),
                 "splat_axes": SPLAT_AXES_INPUT,
             },
+            "hidden": {"unique_id": "UNIQUE_ID"},
         }
 
     RETURN_TYPES = ("PM_SIM",)
@@ -398,7 +399,7 @@ class PhysMotionMPMSimulate:
     CATEGORY = f"{CATEGORY}/physics"
 
     def run(self, gaussians, material, frames, fps, quality, grid_res, particles_per_cell, cfl, domain_margin,
-            device, seed, conditions=None, camera=None, hold_cut_edges=True, splat_axes="y_down"):
+            device, seed, conditions=None, camera=None, hold_cut_edges=True, splat_axes="y_down", unique_id=None):
         from physmotion_core.feedback import after_run, forecast
         from physmotion_core.sim import simulate
         from physmotion_core.support import edge_hold
@@ -412,24 +413,30 @@ class PhysMotionMPMSimulate:
         g = as_pm_gaussians(gaussians, axes=splat_axes)
         conds = _chain(conditions)
         held = False
+        shown: list[str] = []  # also on the node itself in ComfyUI (node_text), before the wait and after it
         if hold_cut_edges and camera is not None and (g.object_ids is None or len(set(g.object_ids.tolist())) == 1):
             anchor, _, line = edge_hold(g, camera, material if not isinstance(material, (list, tuple)) else None)
             log.info("%s", line)
+            shown.append(line)
             if anchor is not None:
                 conds = conds + anchor
                 held = True
 
-        def told(facts) -> None:  # what the user reads in the console before the wait
+        def told(facts) -> None:  # what the user reads before the wait: in the console and on the node
             mat = material[0] if isinstance(material, (list, tuple)) else material
             for line in forecast(conds, facts, mat, clip_s=(settings.frames - 1) / settings.fps, camera=camera,
                                  held=held):
                 log.info("%s", line)
+                shown.append(line)
+            node_text(unique_id, shown)
 
         sim = simulate(g, material, conds, settings, camera=camera, progress=progress_callback(), make_room=make_room,
                        on_start=told)
         if camera is not None:
             for w in after_run(sim, camera).warnings:
                 log.warning("%s", w)
+                shown.append("warning: " + w)
+        node_text(unique_id, shown)
         return (sim,)
 
 

@@ -17,7 +17,9 @@ class InterruptProcessingException(Exception):
 def install_fake_comfy(monkeypatch, cancel_after_checks=None, model_manager=False) -> types.SimpleNamespace:
     """Put ``comfy``, ``comfy.model_management`` and ``comfy.utils`` in sys.modules for the test.
 
-    The returned state records every progress update (``updates``: (value, total)), counts the
+    The returned state records every progress update (``updates``: (value, total)) and every text shown
+    on a node (``texts``: (node id, text, how many progress updates came before it), through a stand-in
+    ``server.PromptServer``), counts the
     interruption checks (``checks``), and raises InterruptProcessingException once ``interrupt`` is
     set or more than ``cancel_after`` checks were made (``raised_at``: when, by time.monotonic()).
 
@@ -27,7 +29,7 @@ def install_fake_comfy(monkeypatch, cancel_after_checks=None, model_manager=Fals
     ``state.load_calls`` records (patchers, force_full_load) of every load_models_gpu call.
     """
     state = types.SimpleNamespace(interrupt=False, updates=[], checks=0, cancel_after=cancel_after_checks,
-                                  raised_at=None, load_calls=[], patchers=[])
+                                  raised_at=None, load_calls=[], patchers=[], texts=[])
     mm = types.ModuleType("comfy.model_management")
 
     def throw_exception_if_processing_interrupted():
@@ -53,7 +55,15 @@ def install_fake_comfy(monkeypatch, cancel_after_checks=None, model_manager=Fals
     utils.ProgressBar = ProgressBar
     comfy = types.ModuleType("comfy")
     comfy.model_management, comfy.utils = mm, utils
-    mods = [("comfy", comfy), ("comfy.model_management", mm), ("comfy.utils", utils)]
+    # ComfyUI's ``server.PromptServer.instance.send_progress_text(text, node_id)``: text shown on a node
+    server = types.ModuleType("server")
+
+    class PromptServer:
+        instance = types.SimpleNamespace(send_progress_text=lambda text, node_id, sid=None: state.texts.append(
+            (node_id, text, len(state.updates))))
+
+    server.PromptServer = PromptServer
+    mods = [("comfy", comfy), ("comfy.model_management", mm), ("comfy.utils", utils), ("server", server)]
     if model_manager:
         comfy.model_patcher = _fake_model_patcher(mm, state)
         mods.append(("comfy.model_patcher", comfy.model_patcher))

@@ -240,3 +240,44 @@ def test_the_segment_nodes_click_shows_progress_and_cancel_stops_it(comfy_server
     latency = time.monotonic() - sent["t"]
     print(f"Segment node: Cancel took {latency:.2f} s")
     assert latency < 3.0, f"Cancel took {latency:.2f}s"
+
+
+def test_the_simulate_nodes_forecast_reaches_the_node_as_text(comfy_server):
+    """MPM Simulate sends its forecast (mass, what the push does) as the node's text (the websocket's binary
+    TEXT event, which the frontend draws under the node) before the frames, and again after the run."""
+    import struct
+    import urllib.request
+    import uuid
+
+    import websocket
+
+    prompt = shrink(json.loads((ROOT / "example_workflows/api/push_a_jelly.json").read_text()), "text")
+    prepare_template_inputs(prompt, comfy_server.base / "output", max_gaussians=4000)
+    sim = next(n for n, v in prompt.items() if v["class_type"] == "PhysMotionMPMSimulate")
+    cid = uuid.uuid4().hex
+    ws = websocket.create_connection(comfy_server.url.replace("http", "ws", 1) + f"/ws?clientId={cid}", timeout=600)
+    try:
+        req = urllib.request.Request(comfy_server.url + "/prompt", headers={"Content-Type": "application/json"},
+                                     data=json.dumps({"prompt": prompt, "client_id": cid}).encode())
+        pid = json.loads(urllib.request.urlopen(req, timeout=60).read())["prompt_id"]
+        texts, progress_before = [], []
+        seen_progress = 0
+        while True:
+            m = ws.recv()
+            if isinstance(m, bytes):
+                if struct.unpack(">I", m[:4])[0] == 3:  # BinaryEventTypes.TEXT: node id length, node id, text
+                    n = struct.unpack(">I", m[4:8])[0]
+                    texts.append((m[8:8 + n].decode(), m[8 + n:].decode()))
+                    progress_before.append(seen_progress)
+                continue
+            d = json.loads(m)
+            if d["type"] == "progress" and d["data"].get("node") == sim:
+                seen_progress += 1
+            if d["type"] == "executing" and d["data"].get("node") is None and d["data"].get("prompt_id") == pid:
+                break
+    finally:
+        ws.close()
+    mine = [t for node, t in texts if node == sim]
+    assert len(mine) == 2, texts
+    assert "object: jelly" in mine[0] and "force 1:" in mine[0] and progress_before[0] <= 1
+    assert mine[1].startswith(mine[0])

@@ -300,3 +300,23 @@ def test_refine_saves_the_gaussians_as_ply_for_preview3d(tmp_path, monkeypatch):
     assert len(back) == len(g)
     assert torch.allclose(back.means, g.means.float(), atol=1e-6)
     assert out["ui"]["text"] == [ply] and out["ui"]["images"][0]["type"] == "temp"
+
+
+def test_simulate_shows_its_forecast_on_the_node_before_the_wait_and_its_warnings_after(fake_comfy):
+    """In ComfyUI the console is out of sight: the forecast (mass, material, what each push does) goes onto the
+    node itself (PromptServer.send_progress_text, as the core Get Image Size node does) once the objects are
+    filled, before the frames; after the run the text is sent again (with the after-run warnings when the node
+    has the camera)."""
+    from physmotion_core.types import Material
+
+    (sim,) = NODES["PhysMotionMPMSimulate"]().run(_block(), Material.preset("jelly"), 6, 24.0, "standard", 8, 8,
+                                                  0.4, 1.0, "cpu", 0, unique_id="17")
+    assert [n for n, _, _ in fake_comfy.texts] == ["17", "17"]
+    (_, first, updates_before), (_, last, _) = fake_comfy.texts
+    assert first.startswith("object: jelly") and "kg" in first
+    assert updates_before <= 1 < len(fake_comfy.updates)  # shown before the frames were simulated
+    assert last.startswith(first) and "nothing moved" not in first
+    # without the node's id (outside ComfyUI's executor) nothing is sent
+    NODES["PhysMotionMPMSimulate"]().run(_block(), Material.preset("jelly"), 3, 24.0, "standard", 8, 8, 0.4, 1.0,
+                                         "cpu", 0)
+    assert len(fake_comfy.texts) == 2
