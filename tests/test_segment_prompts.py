@@ -594,6 +594,52 @@ def test_grabcut_one_iteration_at_a_time_is_the_same_cut_bit_for_bit(mode):
     assert (a & 1).any() and not np.array_equal(a, start)  # it did cut
 
 
+def test_grabcut_run_stops_where_until_says_and_that_is_the_shorter_cut():
+    """``until(gc, i)`` is asked after every iteration but the last; True stops there, and the labels are
+    those of a cut with that many iterations."""
+    from physmotion_core.segment import classic as C
+
+    img = cv2.resize(_big_flower()[0], (320, 240), interpolation=cv2.INTER_AREA)
+    bgr = np.ascontiguousarray((img * 255).astype(np.uint8)[:, :, ::-1])
+    start = np.full(bgr.shape[:2], cv2.GC_BGD, np.uint8)
+    start[40:190, 30:220] = cv2.GC_PR_FGD
+    asked = []
+
+    def run(iters, until=None):
+        gc, b, f = start.copy(), np.zeros((1, 65)), np.zeros((1, 65))
+        C._grabcut_run(bgr, gc, None, b, f, iters, cv2.GC_INIT_WITH_MASK, until)
+        return gc
+
+    never = run(4, lambda g, i: asked.append(i) or False)
+    assert asked == [0, 1, 2] and np.array_equal(never, run(4))
+    asked.clear()
+    stopped = run(5, lambda g, i: asked.append(i) or i == 1)
+    assert asked == [0, 1] and np.array_equal(stopped, run(2))
+
+
+def test_a_growing_click_box_decides_early_and_ends_on_the_same_mask(monkeypatch):
+    """A pass of the click's growing box that will grow stops once GROW_DECIDE iterations in a row reach the
+    same sides; the pass the chain ends on runs all its iterations. Here (an L clicked at the end of an arm, so
+    the box grows several times) the mask is the one without early decisions, with fewer GrabCut iterations."""
+    from physmotion_core.segment import classic as C
+
+    img, obj, click = _shape("L")
+    pts, labels = np.array([click], float), np.array([1])
+    calls = []
+    real = cv2.grabCut
+    monkeypatch.setattr(cv2, "grabCut", lambda *a: calls.append(1) or real(*a))
+    runs = {}
+    for decide in (0, C.GROW_DECIDE):
+        monkeypatch.setattr(C, "GROW_DECIDE", decide)
+        calls.clear()
+        runs[decide] = (C._grown_click(img, pts, labels, 5, 640), len(calls))
+    (full, n_full), (early, n_early) = runs[0], runs[C.GROW_DECIDE]
+    assert C.GROW_DECIDE >= 2
+    assert n_full >= 15 and n_full % 5 == 0  # three passes or more, five iterations each
+    assert np.array_equal(full, early) and n_early < n_full
+    assert (full & obj).sum() / (full | obj).sum() > 0.9
+
+
 @pytest.mark.parametrize("prompt", [{"points": [(100, 100)]}, {"box": (50, 50, 152, 152)}, {}])
 def test_segment_reports_progress_during_grabcut_and_ends_at_its_total(prompt):
     img, disk = _lugged_clock()

@@ -65,18 +65,22 @@ def _ticking(fn):
 
 
 def _grabcut_run(bgr: np.ndarray, gc: np.ndarray, rect, bgd: np.ndarray, fgd: np.ndarray, iters: int,
-                 mode: int) -> None:
+                 mode: int, until=None) -> None:
     """``cv2.grabCut`` seeded (``GRABCUT_SEED``), one iteration per call, with this thread's hook
     (``_ticking``) before each: a long cut reports progress and can be cancelled between iterations (a
     1024 px cut's iteration takes up to a second or two). The colour models carry over from call to call
     in ``bgd``/``fgd``, so the labels and models are the same bit for bit as one call with ``iters``
-    (checked on every GrabCut of the benchmark photos' clicks, boxes and automatic picks)."""
+    (checked on every GrabCut of the benchmark photos' clicks, boxes and automatic picks).
+    ``until(gc, i)``, when given, is asked after each iteration ``i`` but the last whether the labels
+    already answer its caller's question; True stops the cut there (``_grown_click``)."""
     cv2.setRNGSeed(GRABCUT_SEED)
     for i in range(int(iters)):
         fn = getattr(_TICK, "fn", None)
         if fn is not None:
             fn()
         cv2.grabCut(bgr, gc, rect if i == 0 else None, bgd, fgd, 1, mode if i == 0 else cv2.GC_EVAL)
+        if until is not None and i + 1 < int(iters) and until(gc, i):
+            break
 
 
 class _CutProgress:
@@ -626,7 +630,7 @@ def _paint_seeds(gc: np.ndarray, fg_pts: np.ndarray, bg_pts: np.ndarray, radius:
 
 def grabcut(image, *, box=None, init_mask=None, points=None, point_labels=None, iters: int = 5,
             max_side: Optional[int] = None, progress=None, _click: str = "choose", _tight: bool = True,
-            _window: bool = True, _ticker: Optional[_CutProgress] = None) -> np.ndarray:
+            _window: bool = True, _ticker: Optional[_CutProgress] = None, _until=None) -> np.ndarray:
     """GrabCut foreground (bool (H,W)) of an image, seeded by a box, a rough mask and/or clicks.
 
     - ``box`` (x0, y0, x1, y1): everything outside it is certainly background, and GrabCut learns
@@ -727,7 +731,11 @@ def grabcut(image, *, box=None, init_mask=None, points=None, point_labels=None, 
             _paint_seeds(gc, fg_pts, bg_pts, radius)
             if not ((gc == cv2.GC_PR_FGD) | (gc == cv2.GC_FGD)).any():
                 raise InputError("the background points cover the whole box: nothing is left for the object")
-            _grabcut_run(bgr, gc, None, bgd, fgd, iters, cv2.GC_INIT_WITH_MASK)
+            # ``_until(mask, i)``: the growing box of a click stops a pass once its mask answers whether
+            # the object reaches the box (``_grown_click``)
+            until = (None if _until is None else
+                     lambda g, i: _until(_labels_to_mask(g, fg_pts, bg_pts, radius, (H, W)), i))
+            _grabcut_run(bgr, gc, None, bgd, fgd, iters, cv2.GC_INIT_WITH_MASK, until)
             if box is not None and _tight:
                 _tighten_to_box(bgr, gc, bgd, fgd, (sx0, sy0, sx1, sy1), iters)
         else:
@@ -746,6 +754,9 @@ CLICK_SEARCH_MAX_SIDE = 640
 GROW_START = 0.12
 GROW_FACTOR = 0.6
 GROW_PASSES = 6
+#: A growing pass stops once this many GrabCut iterations in a row reach the same sides of its box
+#: (0: every pass runs all its iterations).
+GROW_DECIDE = 3
 #: The click's last cut is a box prompt in its object's box grown by this fraction per side.
 CLICK_RECUT_GROW = 0.04
 
@@ -762,22 +773,40 @@ def _grown_click(img: np.ndarray, pts: np.ndarray, labels: np.ndarray, iters: in
     x0, y0 = fg.min(0) - GROW_START * S
     x1, y1 = fg.max(0) + GROW_START * S
     box = [max(0.0, x0), max(0.0, y0), min(float(W), x1 + 1), min(float(H), y1 + 1)]
-    comp = None
-    for _ in range(GROW_PASSES):
-        # On the whole photo, not a box prompt's window (``_box_window``): a growing box starts inside
-        # the object, where a window's ring is the object's own colour and the cut collapses onto the
-        # click (the clock's click; the rocket's 0.525 -> 0.460).
-        m = grabcut(img, box=[int(round(b)) for b in box], points=pts, point_labels=labels, iters=iters,
-                    max_side=max_side, _click="whole", _tight=False, _window=False)
+
+    def reach_of(m: np.ndarray):
+        """The clicked part of ``m`` and which sides of the box (left, top, right, bottom) it reaches."""
         n, cc = cv2.connectedComponents(m.astype(np.uint8), connectivity=8)
         ids = sorted({int(cc[int(y), int(x)]) for x, y in fg} - {0})
         comp = np.isin(cc, ids) if ids else m
         if not comp.any():
-            return comp
+            return comp, None
         bx0, by0, bx1, by1 = mask_box(comp)
         tol = 3
-        reach = [bx0 <= box[0] + tol and box[0] > 0, by0 <= box[1] + tol and box[1] > 0,
-                 bx1 >= box[2] - tol and box[2] < W, by1 >= box[3] - tol and box[3] < H]
+        return comp, (bx0 <= box[0] + tol and box[0] > 0, by0 <= box[1] + tol and box[1] > 0,
+                      bx1 >= box[2] - tol and box[2] < W, by1 >= box[3] - tol and box[3] < H)
+
+    comp = None
+    for _ in range(GROW_PASSES):
+        # A pass that is going to grow stops as soon as two iterations in a row reach the same sides
+        # (GROW_DECIDE): only its answer is used. A pass that reaches no side runs all its iterations,
+        # so the mask the chain ends on is the full cut.
+        seen: list = []
+
+        def decided(m: np.ndarray, i: int) -> bool:
+            seen.append(reach_of(m)[1])
+            last = seen[-GROW_DECIDE:] if GROW_DECIDE > 0 else []
+            return (len(last) == GROW_DECIDE > 0 and last[-1] is not None and any(last[-1])
+                    and all(r == last[-1] for r in last))
+
+        # On the whole photo, not a box prompt's window (``_box_window``): a growing box starts inside
+        # the object, where a window's ring is the object's own colour and the cut collapses onto the
+        # click (the clock's click; the rocket's 0.525 -> 0.460).
+        m = grabcut(img, box=[int(round(b)) for b in box], points=pts, point_labels=labels, iters=iters,
+                    max_side=max_side, _click="whole", _tight=False, _window=False, _until=decided)
+        comp, reach = reach_of(m)
+        if reach is None:
+            return comp
         if not any(reach):
             break
         bw, bh = box[2] - box[0], box[3] - box[1]
