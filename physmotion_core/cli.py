@@ -164,12 +164,13 @@ def _segment_cmd(args) -> int:
     import time
 
     t0 = time.perf_counter()
-    from .progress import TextBar
+    from .progress import TextBar, end_line
 
     seg, how = segment_photo(rgb, alpha=alpha, mask=mask, box=box, object_points=scale_pts[0],
                              background_points=scale_pts[1], sam_name=sam,
                              progress=None if args.quiet else TextBar("segment"))
     seconds = time.perf_counter() - t0
+    end_line()
     report = check_mask(seg.mask, object_points=scale_pts[0], background_points=scale_pts[1], image=seg.image)
     prompted = bool(pr["object_points"]) or box is not None or how in ("alpha", "mask")
     picture = mask_overlay(seg.image, seg.mask, seg.background, object_points=scale_pts[0],
@@ -192,7 +193,7 @@ def _segment_cmd(args) -> int:
 
 def _generate(args) -> int:
     from .pipeline import generate
-    from .progress import TextBar
+    from .progress import TextBar, end_line
     from .types.conditions import Conditions, Force, Ground, InitialVelocity, Region, Torque
     from .types.settings import SimSettings
 
@@ -248,6 +249,7 @@ def _generate(args) -> int:
 
     def report(line: str) -> None:
         if not args.quiet:
+            end_line()  # a stage's bar may be mid-line (the forecast comes as the simulation starts)
             print(line, file=sys.stderr, flush=True)
 
     with protect_inputs(*inputs):
@@ -457,9 +459,11 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
     except KeyboardInterrupt:
         # Ctrl-C at any point, start-up included. Outputs are written atomically: nothing
         # half-written is left behind.
+        _end_bar_line()
         print("physmotion: interrupted; no output was written for the unfinished step", file=sys.stderr)
         return 130
     except Terminated:
+        _end_bar_line()
         print("physmotion: terminated (SIGTERM); no output was written for the unfinished step", file=sys.stderr)
         return 143
     finally:
@@ -468,13 +472,28 @@ def main(argv: Optional[Sequence[str]] = None) -> int:
             signal.signal(signal.SIGTERM, previous)
 
 
+def _end_bar_line() -> None:
+    from .progress import end_line
+
+    end_line()
+
+
+def _ending_bar_lines(record: logging.LogRecord) -> bool:
+    """A logging filter that lets every record through after ending a progress bar's unfinished line."""
+    _end_bar_line()
+    return True
+
+
 def _main(argv: Optional[Sequence[str]] = None) -> int:
     from .fsutil import OutputLocationError
+    from .progress import end_line
 
     parser = _build_parser()
     args = parser.parse_args(_join_vector_values(sys.argv[1:] if argv is None else argv))
     logging.basicConfig(level=logging.INFO if args.verbose else logging.WARNING,
                         format="%(levelname)s %(name)s: %(message)s")
+    for handler in logging.getLogger().handlers:  # a log record never lands at the end of a progress bar
+        handler.addFilter(_ending_bar_lines)
     try:
         if args.command == "generate":
             return _generate(args)
@@ -493,14 +512,17 @@ def _main(argv: Optional[Sequence[str]] = None) -> int:
     except argparse.ArgumentTypeError as exc:
         parser.error(str(exc))
     except OutputLocationError as exc:  # a folder that cannot be created or written: a file-system error
+        end_line()
         print(f"physmotion: error: {exc}", file=sys.stderr)
         return 1
     except PhysMotionError as exc:
+        end_line()
         print(f"physmotion: error: {exc}", file=sys.stderr)
         return 2
     except BrokenPipeError:
         raise  # handled in main(): not a file-system error
     except OSError as exc:  # disk full, permissions, a path that is a folder, ...
+        end_line()
         print(f"physmotion: error: {exc.strerror or exc} ({exc.filename or 'file system'}); check that the output "
               "folder exists, is writable and has free space", file=sys.stderr)
         return 1

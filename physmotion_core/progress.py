@@ -51,21 +51,62 @@ def scaled(progress: Optional[ProgressFn], start: int, span: int, total: int) ->
     return fn
 
 
-class TextBar:
-    """A plain text progress bar on stderr for the CLI (no extra dependency)."""
+# The live TextBar whose line is unfinished (at most one): ``end_line`` ends it before other output.
+_OPEN: list = []
 
-    def __init__(self, label: str, stream=None, width: int = 30):
+
+def end_line() -> None:
+    """End a live progress bar's unfinished line, so that what is printed next starts a line of its own
+    (the CLI calls it before its messages and log records)."""
+    if _OPEN:
+        bar = _OPEN.pop()
+        bar.stream.write("\n")
+        bar.stream.flush()
+
+
+def _is_terminal(stream) -> bool:
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError):  # no isatty, or a closed stream
+        return False
+
+
+class TextBar:
+    """A plain text progress bar on stderr for the CLI (no extra dependency).
+
+    On a terminal it redraws one line (``\r``); written to a file or a pipe (a log, CI) it prints a line
+    of its own when the stage starts, at every quarter and at the end, instead of hundreds of redraws on
+    one line. ``live`` forces either."""
+
+    STEP = 0.25
+
+    def __init__(self, label: str, stream=None, width: int = 30, live: Optional[bool] = None):
         # sys.stderr as it is now, not at import (a redirected or captured stream gets the bar)
         self.label, self.stream, self.width = label, sys.stderr if stream is None else stream, width
+        self.live = _is_terminal(self.stream) if live is None else bool(live)
         self._start = time.monotonic()
-        self._last_len = 0
+        self._next = 0.0  # not live: the next fraction that gets a line
+        self._ended = False
 
     def __call__(self, done: int, total: int, preview=None) -> None:
         frac = min(max(done / max(total, 1), 0.0), 1.0)
         filled = int(frac * self.width)
         elapsed = time.monotonic() - self._start
-        line = f"\r{self.label:<10} [{'#' * filled}{'.' * (self.width - filled)}] {frac * 100:5.1f}% {elapsed:6.1f}s"
-        self.stream.write(line)
-        if done >= total:
-            self.stream.write("\n")
+        line = f"{self.label:<10} [{'#' * filled}{'.' * (self.width - filled)}] {frac * 100:5.1f}% {elapsed:6.1f}s"
+        end = done >= total
+        if self.live:
+            if _OPEN and _OPEN[0] is not self:
+                end_line()  # another bar's line (a stage left unfinished by an error)
+            self.stream.write("\r" + line)
+            if end:
+                self.stream.write("\n")
+                _OPEN.clear()
+            else:
+                _OPEN[:] = [self]
+        else:
+            if self._ended or not (end or frac >= self._next):
+                return
+            self.stream.write(line + "\n")
+            self._next = (int(frac / self.STEP + 1e-9) + 1) * self.STEP
+            self._ended = end
         self.stream.flush()
