@@ -39,10 +39,62 @@ def schemas() -> dict:
     return all_schemas()
 
 
+#: The node property naming the photo a picker's points, box or image point were set on (web/picker_math.js,
+#: PROMPT_PHOTO_PROPERTY): the pickers warn when the Load Image feeding the node shows another photo.
+PROMPT_PHOTO = "physmotion_prompt_photo"
+
+
+def _picks_in_pixels(node: dict) -> bool:
+    """Whether a node holds picks in the photo's pixels (which go stale on another photo)."""
+    kind, inputs = node["class_type"], node["inputs"]
+    said = lambda *names: any(str(inputs.get(k) or "").strip() for k in names)  # noqa: E731
+    if kind == "PhysMotionSegment":
+        return said("object_points", "background_points", "box")
+    if kind == "PhysMotionSAMSegment":
+        return inputs.get("coordinates") != "fraction" and said("points", "boxes")
+    if kind in ("PhysMotionForce", "PhysMotionTorque"):
+        return inputs.get("region") == "image point"
+    return False
+
+
+def picks_photo(prompt: dict, nid: str) -> str | None:
+    """The Load Image photo nearest to node ``nid`` by links either way (as the pickers find it), named as
+    its widget names it without an ``[input]`` tag, or None."""
+    near: dict[str, set] = {n: set() for n in prompt}
+    for n, node in prompt.items():
+        for v in node["inputs"].values():
+            if isinstance(v, list) and len(v) == 2 and str(v[0]) in prompt:
+                near[n].add(str(v[0]))
+                near[str(v[0])].add(n)
+    seen, frontier = {nid}, [nid]
+    while frontier:
+        nxt = []
+        for n in frontier:
+            for m in sorted(near[n], key=int):
+                if m in seen:
+                    continue
+                seen.add(m)
+                if prompt[m]["class_type"] == "LoadImage":
+                    name = str(prompt[m]["inputs"].get("image") or "").strip()
+                    return name[: -len(" [input]")] if name.endswith(" [input]") else name or None
+                nxt.append(m)
+        frontier = nxt
+    return None
+
+
 def build_ui(prompt: dict, sch: dict | None = None) -> dict:
-    """The UI template for an API prompt (what this script writes; the tests regenerate with it)."""
+    """The UI template for an API prompt (what this script writes; the tests regenerate with it). Nodes with
+    picks in pixels name the photo they were set on (``PROMPT_PHOTO``), so that the pickers warn once a user
+    loads another photo."""
     titles = {nid: TITLES[n["class_type"]] for nid, n in prompt.items() if n["class_type"] in TITLES}
-    return api_to_ui(prompt, sch or schemas(), titles, SIZES)
+    ui = api_to_ui(prompt, sch or schemas(), titles, SIZES)
+    for node in ui["nodes"]:
+        nid = str(node["id"])
+        if _picks_in_pixels(prompt[nid]):
+            photo = picks_photo(prompt, nid)
+            if photo:
+                node["properties"][PROMPT_PHOTO] = photo
+    return ui
 
 
 def widget_default(spec):

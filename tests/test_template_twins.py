@@ -114,3 +114,37 @@ def test_the_check_catches_a_template_that_lacks_a_new_optional_input(schemas):
     prompt, _ = graph_to_prompt(ui, schemas)
     api = json.loads((API_DIR / "own_splat_to_physics.json").read_text())
     assert prompt[str(fit["id"])]["inputs"] != api[str(fit["id"])]["inputs"]
+
+
+def test_picks_in_pixels_name_the_photo_they_were_set_on():
+    """A template's Segment box or points in pixels, and a Force/Torque image point, carry the photo they
+    belong to (a node property the pickers read: web/picker_math.js PROMPT_PHOTO_PROPERTY), so the picker
+    warns as soon as a user loads their own photo; picks that fit any photo (none, fractions, the whole
+    object) carry none."""
+    import re
+    import sys
+
+    sys.path.insert(0, str(ROOT / "scripts"))
+    from build_workflows import PROMPT_PHOTO
+
+    js = (ROOT / "web" / "picker_math.js").read_text()
+    assert re.search(r'PROMPT_PHOTO_PROPERTY = "' + PROMPT_PHOTO + '"', js)
+    stamped = 0
+    for path in UI:
+        wf = json.loads(path.read_text())
+        photos = {n["widgets_values"][0] for n in wf["nodes"] if n["type"] == "LoadImage"}
+        for n in wf["nodes"]:
+            v, stamp = n.get("widgets_values", []), n.get("properties", {}).get(PROMPT_PHOTO)
+            if n["type"] == "PhysMotionSegment":
+                pixel = any(str(x).strip() for x in v[3:6])
+            elif n["type"] == "PhysMotionSAMSegment":
+                pixel = v[2] != "fraction" and any(str(x).strip() for x in v[:2])
+            elif n["type"] in ("PhysMotionForce", "PhysMotionTorque"):
+                pixel = v[3] == "image point"
+            else:
+                pixel = False
+            assert (stamp is not None) == pixel, (path.name, n["type"], v, stamp)
+            if pixel:
+                assert len(photos) == 1 and stamp in photos, (path.name, stamp, photos)
+                stamped += 1
+    assert stamped >= 15  # the coffee templates' boxes and pushes, the clay's and the bar's pushes

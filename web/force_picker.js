@@ -20,6 +20,7 @@ import {
   DEFAULT_FORCE_FULL_SCALE,
   DEFAULT_TORQUE_FULL_SCALE,
   MIN_DRAG_PX,
+  PROMPT_PHOTO_PROPERTY,
   dragToForce,
   dragToTorque,
   forceToArrow,
@@ -30,7 +31,7 @@ import {
   torqueToArrow,
   viewParams,
 } from "./picker_math.js";
-import { ImagePicker, comfyClassOf, mountPicker, pickerRegistry } from "./picker_widget.js";
+import { ImagePicker, chain, comfyClassOf, mountPicker, pickerRegistry } from "./picker_widget.js";
 
 const PICKER_NODES = {
   PhysMotionForce: { kind: "force", scaleProperty: "picker_newtons_per_image_height",
@@ -207,6 +208,7 @@ class Picker extends ImagePicker {
         setWidget(node, "tz", t.tz);
       }
     }
+    this.stampPhoto();
     node.setDirtyCanvas?.(true, true);
     node.graph?.setDirtyCanvas?.(true, true);
   }
@@ -217,7 +219,7 @@ class Picker extends ImagePicker {
   }
 
   shownState() {
-    return [this.values(), this.scale];
+    return [this.values(), this.scale, this.node.properties?.[PROMPT_PHOTO_PROPERTY] ?? null];
   }
 
   draw() {
@@ -285,11 +287,10 @@ class Picker extends ImagePicker {
       ctx.arc(a.x, a.y, r, 0, -sweep, sweep > 0);
       ctx.stroke();
     }
-    ctx.font = "12px sans-serif";
-    ctx.fillStyle = "rgba(0,0,0,0.6)";
-    ctx.fillRect(4, h - 20, ctx.measureText(label).width + 8, 16);
-    ctx.fillStyle = "#fff";
-    ctx.fillText(label, 8, h - 8);
+    // The image point was set on another photo (a template's, kept after loading your own): say so.
+    const stale = !this.drag && vals.region === "image point" ? this.stalePhoto() : null;
+    if (stale) label = `point set on ${stale}: drag again on this photo`;
+    this.drawLabel(ctx, label, h, Boolean(stale));
   }
 
 }
@@ -300,10 +301,16 @@ const registry = pickerRegistry(app, api);
 /** Give a Force/Torque node its picker: a DOM widget, and the node's own events wired to refresh it
  *  (and its Properties panel, which holds the picker's scale). */
 function attachPicker(node, spec) {
-  return mountPicker(node, new Picker(node, spec), registry, {
+  const picker = mountPicker(node, new Picker(node, spec), registry, {
     widgetName: "physmotion_picker", nodeField: "physmotionPicker", height: PICKER_HEIGHT,
     alsoOn: ["onPropertyChanged"],
   });
+  // u, v typed by hand are the user's for the photo shown now (a workflow load sets values without callbacks)
+  for (const name of ["u", "v"]) {
+    const w = widget(node, name);
+    if (w) chain(w, "callback", () => picker.stampPhoto());
+  }
+  return picker;
 }
 
 app.registerExtension({

@@ -162,3 +162,32 @@ export function nearestSource(startId, neighbours, isSource, maxNodes = 500) {
   }
   return null;
 }
+
+/**
+ * The node property that names the photo a picker's points and box were set on (saved with the
+ * workflow): when the Load Image feeding the node shows another photo, the picks are stale (a
+ * template's box around the example cup, kept after the user loaded their own photo).
+ */
+export const PROMPT_PHOTO_PROPERTY = "physmotion_prompt_photo";
+
+/**
+ * The input photo behind a picker's image URL, named as Load Image's widget names it
+ * ("name.png", "sub/name.png"), or null for anything that is not an input photo (another node's
+ * preview: temp or output images change name from run to run, so they are never compared).
+ */
+export function photoKey(url) {
+  if (!url) return null;
+  const s = String(url);
+  const q = s.indexOf("?");
+  if (q < 0) return null;
+  const p = new URLSearchParams(s.slice(q + 1));
+  const filename = p.get("filename");
+  if (!filename || (p.get("type") ?? "input") !== "input") return null;
+  const sub = p.get("subfolder") ?? "";
+  return sub ? `${sub}/${filename}` : filename;
+}
+
+/** The photo the picks were set on when it is not the one shown now (else null). */
+export function stalePhoto(stamp, key) {
+  return stamp && key && String(stamp) !== key ? String(stamp) : null;
+}

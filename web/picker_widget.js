@@ -8,7 +8,7 @@
 // `releasePicker`), and the fields `releasePicker` clears (frame, resizeObserver, listeners, image);
 // the ImagePicker class below gives all of these.
 
-import { canvasToImage, fitImage } from "./picker_math.js";
+import { PROMPT_PHOTO_PROPERTY, canvasToImage, fitImage, photoKey, stalePhoto } from "./picker_math.js";
 
 /** obj[name] = its old value (if any) followed by `after`, same arguments and return value. */
 export function chain(obj, name, after) {
@@ -195,6 +195,33 @@ export class ImagePicker {
       this.stateKey = key;
       this.draw();
     }
+  }
+
+  /** Remember, in the node's properties (saved with the workflow), the input photo the picks are on. */
+  stampPhoto() {
+    const key = photoKey(this.imageURL);
+    const props = (this.node.properties = this.node.properties ?? {});
+    if (key) props[PROMPT_PHOTO_PROPERTY] = key;
+    else delete props[PROMPT_PHOTO_PROPERTY];
+  }
+
+  /** Forget the photo the picks were on (they are gone). */
+  clearStamp() {
+    if (this.node.properties) delete this.node.properties[PROMPT_PHOTO_PROPERTY];
+  }
+
+  /** The photo the picks were set on, when the node now shows another one (else null). */
+  stalePhoto() {
+    return stalePhoto(this.node.properties?.[PROMPT_PHOTO_PROPERTY], photoKey(this.imageURL));
+  }
+
+  /** The label at the foot of the picture: white on grey, or on orange for a warning. */
+  drawLabel(ctx, label, h, warn = false) {
+    ctx.font = "12px sans-serif";
+    ctx.fillStyle = warn ? "rgba(200,90,0,0.9)" : "rgba(0,0,0,0.6)";
+    ctx.fillRect(4, h - 20, ctx.measureText(label).width + 8, 16);
+    ctx.fillStyle = "#fff";
+    ctx.fillText(label, 8, h - 8);
   }
 
   remove() {

@@ -22,8 +22,8 @@
 
 import { app } from "../../scripts/app.js";
 import { api } from "../../scripts/api.js";
-import { MIN_DRAG_PX, imageToCanvas } from "./picker_math.js";
-import { ImagePicker, comfyClassOf, mountPicker, pickerRegistry } from "./picker_widget.js";
+import { MIN_DRAG_PX, PROMPT_PHOTO_PROPERTY, imageToCanvas } from "./picker_math.js";
+import { ImagePicker, chain, comfyClassOf, mountPicker, pickerRegistry } from "./picker_widget.js";
 import {
   PROMPT_WIDGETS,
   SEGMENT_KINDS,
@@ -33,6 +33,7 @@ import {
   emptyPrompt,
   hitTest,
   isDrag,
+  isEmptyPrompt,
   normaliseBox,
   pixelPoint,
   readPrompt,
@@ -136,7 +137,8 @@ class SegmentPicker extends ImagePicker {
     this.drag = null;
     if (this.image) {
       const { imgW, imgH } = this.imageSize();
-      const prompt = this.prompt();
+      // picks set on another photo are not added to: the first pick on this photo starts afresh
+      const prompt = this.staleOn() ? emptyPrompt() : this.prompt();
       if (isDrag(d.startCanvas, d.endCanvas, MIN_DRAG_PX)) {
         const box = normaliseBox(d.start, d.end, imgW, imgH);
         if (box) this.write(applyBox(prompt, box, { kind: this.kind, add: d.add || e.ctrlKey || e.metaKey }));
@@ -155,6 +157,7 @@ class SegmentPicker extends ImagePicker {
     if (prompt.fraction) return; // fractions of an image of unknown size: nothing sensible to write
     const node = this.node;
     for (const [name, value] of Object.entries(writePrompt(this.kind, prompt))) setWidget(node, name, value);
+    this.promptEdited();
     node.setDirtyCanvas?.(true, true);
     node.graph?.setDirtyCanvas?.(true, true);
     this.invalidate();
@@ -165,18 +168,34 @@ class SegmentPicker extends ImagePicker {
     for (const [name, value] of Object.entries(writePrompt(this.kind, emptyPrompt()))) {
       if (name !== "coordinates") setWidget(node, name, value);
     }
+    this.clearStamp();
     node.setDirtyCanvas?.(true, true);
     node.graph?.setDirtyCanvas?.(true, true);
     this.invalidate();
   }
 
-  /** Refresh on the next frame (many triggers in one frame give one refresh). */
+  /** The prompt changed (picked, or typed into a widget): it belongs to the photo shown now. */
+  promptEdited() {
+    if (!this.photoBound() || isEmptyPrompt(this.prompt())) this.clearStamp();
+    else this.stampPhoto();
+  }
+
+  /** Whether the prompt is in the photo's pixels (the SAM node's fractions fit any photo). */
+  photoBound() {
+    return this.kind === "grabcut" || this.values().coordinates !== "fraction";
+  }
+
+  /** The photo the prompt was set on, when it is in pixels, says something, and the photo shown is another. */
+  staleOn() {
+    return this.photoBound() && !isEmptyPrompt(this.prompt()) ? this.stalePhoto() : null;
+  }
+
   sourceURL() {
     return sourceImageURL(this.node.graph, this.node.id, (route) => api.apiURL(route));
   }
 
   shownState() {
-    return this.values();
+    return [this.values(), this.node.properties?.[PROMPT_PHOTO_PROPERTY] ?? null];
   }
 
   draw() {
@@ -203,6 +222,9 @@ class SegmentPicker extends ImagePicker {
     const prompt = this.prompt();
     const toCanvas = (x, y) => imageToCanvas(x, y, fit);
     let label = describePrompt(prompt);
+    // Points or a box set on another photo (a template's, kept after loading your own): say so.
+    const stale = this.staleOn();
+    if (stale) label = `set on ${stale}: click and drag again on this photo, or clear`;
     if (prompt.fraction) {
       label = "fractions: click to rewrite in pixels";
     } else {
@@ -235,10 +257,7 @@ class SegmentPicker extends ImagePicker {
         label = `box ${box.x0}, ${box.y0}, ${box.x1}, ${box.y1}`;
       }
     }
-    ctx.fillStyle = "rgba(0,0,0,0.6)";
-    ctx.fillRect(4, h - 20, ctx.measureText(label).width + 8, 16);
-    ctx.fillStyle = "#fff";
-    ctx.fillText(label, 8, h - 8);
+    this.drawLabel(ctx, label, h, Boolean(stale) && !(d && isDrag(d.startCanvas, d.endCanvas, MIN_DRAG_PX)));
   }
 
   drawBox(ctx, a, z, colour, tag) {
@@ -260,9 +279,15 @@ const registry = pickerRegistry(app, api);
 
 /** Give a Segment node its picker: a DOM widget, and the node's own events wired to refresh it. */
 function attachPicker(node, kind) {
-  return mountPicker(node, new SegmentPicker(node, kind), registry, {
+  const picker = mountPicker(node, new SegmentPicker(node, kind), registry, {
     widgetName: "physmotion_segment_picker", nodeField: "physmotionSegmentPicker", height: PICKER_HEIGHT,
   });
+  // a prompt typed by hand is the user's for the photo shown now (a workflow load sets values without callbacks)
+  for (const name of PROMPT_WIDGETS[kind]) {
+    const w = widget(node, name);
+    if (w && name !== "coordinates") chain(w, "callback", () => picker.promptEdited());
+  }
+  return picker;
 }
 
 app.registerExtension({

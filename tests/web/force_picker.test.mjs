@@ -365,3 +365,43 @@ test("removing the node disconnects its ResizeObserver and stops every refresh",
   // The DOM widget's own removal hook is safe to run too (either may come first).
   node.domWidgets[0].onRemove();
 });
+
+test("an image point remembers its photo: on another photo the label says so until it is dragged again", async () => {
+  const env = installBrowser();
+  const fakes = fakeApp();
+  const ext = await loadPicker(fakes);
+  ext.setup?.(fakes.app);
+  const { graph, node, load } = wiredScene(ext);
+  fakes.app.graph = graph;
+  ext.afterConfigureGraph?.([]);
+  await flush(env);
+  const picker = node.physmotionPicker;
+  const canvas = picker.canvas;
+  // photo 600x400 in a 320x200 canvas: scale 0.5, x offset 10
+  const ev = (u, v) => ({ clientX: 10 + u / 2, clientY: v / 2, button: 0, pointerId: 1, shiftKey: false,
+                          preventDefault() {}, stopPropagation() {} });
+  const dragOn = (from, to) => {
+    canvas.live("pointerdown")[0].fn(ev(...from));
+    canvas.live("pointermove")[0].fn(ev(...to));
+    canvas.live("pointerup")[0].fn(ev(...to));
+  };
+  dragOn([200, 150], [300, 150]);
+  assert.equal(node.properties.physmotion_prompt_photo, "jelly.png");
+  assert.equal(widgetOf(node, "u").value, 200);
+  await flush(env);
+  assert.ok(!canvas.texts().at(-1).includes("set on"), canvas.texts().at(-1));
+  widgetOf(load, "image").value = "own.png"; // the user's photo
+  picker.invalidate();
+  await flush(env);
+  assert.equal(canvas.texts().at(-1), "point set on jelly.png: drag again on this photo");
+  dragOn([400, 300], [420, 300]);
+  assert.equal(node.properties.physmotion_prompt_photo, "own.png");
+  await flush(env);
+  assert.ok(!canvas.texts().at(-1).includes("set on"), canvas.texts().at(-1));
+  // a push on the whole object has no point to go stale
+  widgetOf(load, "image").value = "third.png";
+  widgetOf(node, "region").value = "whole object";
+  picker.invalidate();
+  await flush(env);
+  assert.ok(!canvas.texts().at(-1).includes("set on"), canvas.texts().at(-1));
+});

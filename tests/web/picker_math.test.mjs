@@ -4,7 +4,7 @@ import { test } from "node:test";
 
 import {
   canvasToImage, dragToForce, dragToTorque, fitImage, forceToArrow, imageToCanvas, magnitude, nearestSource, showsPhoto,
-  pixelOf, roundToStep, torqueToArrow, viewParams,
+  photoKey, pixelOf, roundToStep, stalePhoto, torqueToArrow, viewParams,
 } from "../../web/picker_math.js";
 
 const close = (a, b, tol, msg) => assert.ok(Math.abs(a - b) <= tol, `${msg ?? ""} ${a} vs ${b} (tol ${tol})`);
@@ -132,4 +132,17 @@ test("the Segment nodes' pictures are not photos to pick on; LoadImage and other
   assert.equal(showsPhoto({ comfyClass: "PhysMotionSegment", imgs: [{ src: "x" }] }), false);
   assert.equal(showsPhoto({ type: "PhysMotionSAMSegment", imgs: [{ src: "x" }] }), false);
   assert.equal(showsPhoto(null), false);
+});
+
+test("photoKey names an input photo as Load Image does, and nothing else; stalePhoto compares", () => {
+  assert.equal(photoKey("/api/view?filename=cat.png&type=input&subfolder="), "cat.png");
+  assert.equal(photoKey("/api/view?filename=dog.png&type=input&subfolder=my%20photos"), "my photos/dog.png");
+  assert.equal(photoKey("/api/view?filename=ComfyUI_temp_0001.png&type=temp&subfolder=&rand=0.3"), null);
+  assert.equal(photoKey("/api/view?filename=x.png&type=output&subfolder="), null);
+  assert.equal(photoKey(null), null);
+  assert.equal(photoKey("blob:abc"), null);
+  assert.equal(stalePhoto("cat.png", "dog.png"), "cat.png");
+  assert.equal(stalePhoto("cat.png", "cat.png"), null);
+  assert.equal(stalePhoto(undefined, "dog.png"), null);
+  assert.equal(stalePhoto("cat.png", null), null);
 });

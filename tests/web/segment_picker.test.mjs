@@ -359,3 +359,70 @@ test("removing the node releases its listeners and observer; it never draws or l
   assert.equal(env.loaded.length, loads, "no image load after removal");
   node.domWidgets[0].onRemove(); // the DOM widget's own hook is safe as well
 });
+
+test("picks remember their photo: on another photo the label says so, and the first pick there starts afresh", async () => {
+  const { env, load, node, picker } = await scene();
+  click(picker.canvas, 300, 200);
+  drag(picker.canvas, [100, 80], [500, 360]);
+  assert.equal(node.properties.physmotion_prompt_photo, "cat.png");
+  await settle(env);
+  assert.doesNotMatch(picker.canvas.lastLabel(), /set on/);
+  // the user loads their own photo into the Load Image node: the picks stay, the label warns
+  load.widgets[0].value = "my photos/dog.png";
+  picker.invalidate();
+  await settle(env);
+  assert.equal(picker.canvas.lastLabel(), "set on cat.png: click and drag again on this photo, or clear");
+  assert.equal(value(node, "box"), "100, 80, 500, 360");
+  // the first click on this photo replaces the old picks and belongs to it
+  click(picker.canvas, 60, 40);
+  assert.equal(value(node, "object_points"), "60, 40");
+  assert.equal(value(node, "box"), "");
+  assert.equal(node.properties.physmotion_prompt_photo, "my photos/dog.png");
+  await settle(env);
+  assert.doesNotMatch(picker.canvas.lastLabel(), /set on/);
+  // back to the first photo: now these picks are the stale ones; "clear" forgets the photo too
+  load.widgets[0].value = "cat.png";
+  picker.invalidate();
+  await settle(env);
+  assert.match(picker.canvas.lastLabel(), /^set on my photos\/dog\.png/);
+  picker.clearButton.fire("click", { preventDefault() {}, stopPropagation() {} });
+  assert.equal(node.properties.physmotion_prompt_photo, undefined);
+  await settle(env);
+  assert.doesNotMatch(picker.canvas.lastLabel(), /set on/);
+});
+
+test("a prompt typed by hand belongs to the photo shown; a workflow's picks without a photo never warn", async () => {
+  const { env, load, node, picker } = await scene();
+  const box = node.widgets.find((w) => w.name === "box");
+  box.value = "10, 10, 200, 200";
+  box.callback(box.value); // what the frontend calls after a user edit
+  assert.equal(node.properties.physmotion_prompt_photo, "cat.png");
+  // picks loaded from an older workflow carry no photo: nothing to compare, no warning
+  delete node.properties.physmotion_prompt_photo;
+  load.widgets[0].value = "dog.png";
+  picker.invalidate();
+  await settle(env);
+  assert.doesNotMatch(picker.canvas.lastLabel(), /set on/);
+  // a template's picks name their photo (scripts/build_workflows.py): loading another warns at once
+  node.properties.physmotion_prompt_photo = "physmotion_coffee.png";
+  picker.invalidate();
+  await settle(env);
+  assert.match(picker.canvas.lastLabel(), /^set on physmotion_coffee\.png/);
+});
+
+test("the SAM node's fractions fit any photo: never stamped, never stale", async () => {
+  const { env, load, node, picker } = await scene("PhysMotionSAMSegment",
+    [["points", ""], ["boxes", "0.28, 0.03, 0.70, 0.74"], ["coordinates", "fraction"], ["clean", true]]);
+  const boxes = node.widgets.find((w) => w.name === "boxes");
+  boxes.callback(boxes.value);
+  assert.equal(node.properties.physmotion_prompt_photo, undefined);
+  node.properties.physmotion_prompt_photo = "cat.png"; // even if something left a name
+  load.widgets[0].value = "dog.png";
+  picker.invalidate();
+  await settle(env);
+  assert.doesNotMatch(picker.canvas.lastLabel(), /set on/);
+  // a drag writes pixels: those belong to the photo shown
+  drag(picker.canvas, [100, 80], [500, 360]);
+  assert.equal(value(node, "coordinates"), "pixels");
+  assert.equal(node.properties.physmotion_prompt_photo, "dog.png");
+});
