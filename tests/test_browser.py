@@ -12,7 +12,8 @@ what it saw:
   (fx, fy) from the arrow; on the Torque node a drag sets the trackball axis, Shift-drag the twist;
 * the values survive saving and reloading the workflow, and are what gets queued;
 * the picker is wired by the frontend's events (nodeCreated, no timer): a reload releases the old
-  node's picker and gives the new node its own.
+  node's picker and gives the new node its own;
+* a template's picks name their photo, and another photo in its Load Image makes the pickers say so.
 """
 
 from __future__ import annotations
@@ -163,3 +164,13 @@ def test_clicking_and_dragging_on_the_segment_node_sets_its_prompts(page_report)
     for name in ("object_points", "background_points", "box"):
         assert r["prompt_inputs"][name] == w[name], name
     assert r["wiring"] == {"old_removed": True, "new_live": True, "timer": False}, r["wiring"]
+
+
+def test_a_templates_picks_name_their_photo_and_warn_on_another(page_report):
+    """push_a_jelly's box and push point name the example photo (node properties the real frontend loads and
+    saves); after another photo is put in its Load Image both pickers report the picks as set on the old one."""
+    s = page_report["stale"]
+    assert s["before"] == {"seg": None, "force": None, "props": ["physmotion_coffee.png"] * 2}, s["before"]
+    assert s["after"] == {"loaded": True, "seg": "physmotion_coffee.png", "force": "physmotion_coffee.png"}, s
+    assert sorted(s["savedProps"]) == [["PhysMotionForce", "physmotion_coffee.png"],
+                                       ["PhysMotionSegment", "physmotion_coffee.png"]]

@@ -189,6 +189,50 @@ try {
   result.picker.segment = await drivePicker("push_a_jelly", "PhysMotionSegment", "segment-grabcut", [40, 12],
                                             [520, 392], [], "physmotionSegmentPicker",
                                             [[300, 150, []], [560, 60, ["Shift"]]]);
+
+  // Picks remember their photo: the template's box and push point name its example photo; once the Load
+  // Image shows another photo both pickers say so (the canvas redraw refreshes them), and saving keeps the names.
+  result.stale = await page.evaluate(async (wf) => {
+    await window.app.loadGraphData(wf, true, false, "stale_picks", { showMissingNodesDialog: false,
+                                                                     showMissingModelsDialog: false });
+    const nodes = window.app.graph._nodes;
+    const seg = nodes.find((n) => n.type === "PhysMotionSegment");
+    const force = nodes.find((n) => n.type === "PhysMotionForce");
+    const load = nodes.find((n) => n.type === "LoadImage");
+    const until = async (ok) => {
+      for (let i = 0; i < 150; i++) {
+        if (ok()) return true;
+        window.app.canvas.setDirty(true, true);
+        await new Promise((r) => setTimeout(r, 100));
+      }
+      return false;
+    };
+    const shows = (p, name) => p?.image?.naturalWidth > 0 && String(p.imageURL).includes(name);
+    await until(() => shows(seg.physmotionSegmentPicker, "physmotion_coffee") &&
+                      shows(force.physmotionPicker, "physmotion_coffee"));
+    const props = (n) => n.properties?.physmotion_prompt_photo ?? null;
+    const before = { seg: seg.physmotionSegmentPicker.staleOn(), force: force.physmotionPicker.stalePhoto(),
+                     props: [props(seg), props(force)] };
+    const w = load.widgets.find((x) => x.name === "image");
+    w.value = "physmotion_block.png";
+    w.callback?.(w.value);
+    const loaded = await until(() => shows(seg.physmotionSegmentPicker, "physmotion_block") &&
+                                     shows(force.physmotionPicker, "physmotion_block"));
+    const after = { loaded, seg: seg.physmotionSegmentPicker.staleOn(), force: force.physmotionPicker.stalePhoto() };
+    const saved = JSON.parse(JSON.stringify(window.app.graph.serialize()));
+    const savedProps = saved.nodes.filter((n) => n.properties?.physmotion_prompt_photo)
+      .map((n) => [n.type, n.properties.physmotion_prompt_photo]);
+    const ds = window.app.canvas.ds;
+    ds.scale = 1;
+    ds.offset[0] = -seg.pos[0] + 420;
+    ds.offset[1] = -seg.pos[1] + 60;
+    window.app.canvas.setDirty(true, true);
+    return { before, after, savedProps };
+  }, JSON.parse(await fetchTemplate("push_a_jelly")));
+  if (shotDir) {
+    await page.waitForTimeout(1500);
+    await page.screenshot({ path: path.join(shotDir, "stale_picks.png") });
+  }
 } finally {
   writeFileSync(resultPath, JSON.stringify(result, null, 1));
   await browser.close();
