@@ -152,3 +152,17 @@ def test_registry_metadata_is_complete():
         assert (ROOT / needed).exists() and not left_out(needed), needed
     for folder in comfy["includes"]:
         assert not left_out(folder + "/"), folder
+
+
+def test_the_license_is_a_pep639_expression_so_future_setuptools_still_build_the_install():
+    """setuptools deprecated the ``license = {text = ...}`` table (and license classifiers) and announced
+    that builds using it stop working after 2027-02-18: the install the README's two commands run would
+    fail then. An SPDX string plus license-files is PEP 639's form; comfy-cli 1.23 writes and reads it
+    too (``license = "MIT"``)."""
+    meta = tomllib.loads((ROOT / "pyproject.toml").read_text())
+    project = meta["project"]
+    assert project["license"] == "MIT" and project["license-files"] == ["LICENSE"]
+    assert (ROOT / "LICENSE").is_file() and "MIT" in (ROOT / "LICENSE").read_text()
+    assert not [c for c in project["classifiers"] if c.startswith("License ::")]
+    (req,) = [r for r in meta["build-system"]["requires"] if r.startswith("setuptools")]
+    assert int(re.search(r">=\s*(\d+)", req).group(1)) >= 77  # the first setuptools with PEP 639
