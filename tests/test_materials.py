@@ -337,7 +337,10 @@ def test_a_rigid_body_spinning_in_place_is_not_at_rest():
     assert res.stats["rest_from_frame"] is None
     x = res.x.numpy().astype(np.float64)
     r = [x[k] - x[k].mean(0) for k in (-3, -2, -1)]
-    turn = [np.arctan2(np.cross(r[i][:, [2, 0]], r[i + 1][:, [2, 0]]), (r[i][:, [2, 0]] * r[i + 1][:, [2, 0]]).sum(1))
+    def cross2(a, b):  # the z of the 2-D cross product (np.cross on 2-D vectors is deprecated in NumPy 2)
+        return a[:, 0] * b[:, 1] - a[:, 1] * b[:, 0]
+
+    turn = [np.arctan2(cross2(r[i][:, [2, 0]], r[i + 1][:, [2, 0]]), (r[i][:, [2, 0]] * r[i + 1][:, [2, 0]]).sum(1))
             for i in range(2)]
     # Still turning at a steady rate in the last frames (no torque, no friction: ω is constant);
     # ω = τ t / I ≈ 0.2 rad/s for this ~2 kg filled cube, 0.0083 rad per frame.
