@@ -84,8 +84,14 @@ class PhysMotionSegment:
         seg = segment(img, mask=m, method="mask" if m is not None else "grabcut", grabcut_iters=int(grabcut_iterations),
                       box=box_t, points=pts or None, point_labels=labels or None, progress=progress_callback())
         prompted = m is not None or bool(obj_pts) or box_t is not None
+        note = None
+        if m is not None and (obj_pts or bg_pts or box_t is not None):
+            # the picks would otherwise do nothing, silently: an RGBA photo's alpha reaches this node as a MASK
+            note = ("Your points and box were not used: the connected MASK (the photo's transparency, or another "
+                    "node's mask) is the object. To cut by them, set method to 'grabcut' or disconnect the mask.")
+            log.warning(note)
         return checked_segmentation(seg, prompted, obj_pts, bg_pts, box_t,
-                                    source="mask" if m is not None else "grabcut")
+                                    source="mask" if m is not None else "grabcut", note=note)
 
 
 def parse_grabcut_prompts(object_points: str, background_points: str, box: str, width: int, height: int):
@@ -112,10 +118,12 @@ def parse_grabcut_prompts(object_points: str, background_points: str, box: str, 
     return obj, list(dict.fromkeys(neg)), the_box
 
 
-def checked_segmentation(seg, prompted: bool, obj_pts=(), bg_pts=(), box=None, source: str = "grabcut") -> dict:
+def checked_segmentation(seg, prompted: bool, obj_pts=(), bg_pts=(), box=None, source: str = "grabcut",
+                         note: str | None = None) -> dict:
     """The Segment nodes' result: the mask's plausibility check (refused when nobody said which object,
     warned otherwise, with what to change for the prompt given), the overlay as an IMAGE output and as
-    the node's preview. ``source``: "grabcut", "sam" or "mask" (a connected MASK)."""
+    the node's preview. ``source``: "grabcut", "sam" or "mask" (a connected MASK); ``note``: one more line
+    for the picture's caption."""
     from physmotion_core.segment.check import (NODE_HOW_TO_FIX, NODE_PROMPT_TIP, check_mask, enforce_plausible,
                                                overlay_caption, retry_hint)
     from physmotion_core.segment.overlay import mask_overlay, with_caption
@@ -125,7 +133,7 @@ def checked_segmentation(seg, prompted: bool, obj_pts=(), bg_pts=(), box=None, s
                                            background_points=bg_pts, box=box)).float()
     # The node's picture says what the checks found and whether the object was picked automatically; the
     # IMAGE output stays the plain overlay (the photo's height, for the nodes downstream).
-    shown = with_caption(overlay, overlay_caption(report, prompted=prompted, tip=NODE_PROMPT_TIP))
+    shown = with_caption(overlay, overlay_caption(report, prompted=prompted, tip=NODE_PROMPT_TIP) + ([note] if note else []))
     preview = preview_images(torch.from_numpy(shown)[None], "PhysMotion_segment")
     if not report.ok:
         shown = preview["images"][0]["filename"] if preview.get("images") else None
@@ -231,7 +239,12 @@ class PhysMotionSAMSegment:
         m = first_mask(mask)
         if m is not None and float(m.max() - m.min()) >= 0.5:
             seg = segment(img, mask=m, method="mask")
-            out = checked_segmentation(seg, True, obj, neg, box, source="mask")
+            note = None
+            if prompts:
+                note = ("Your points and boxes were not used: the connected MASK (the photo's transparency, or "
+                        "another node's mask) is the object. To segment by them with SAM, disconnect the mask.")
+                log.warning(note)
+            out = checked_segmentation(seg, True, obj, neg, box, source="mask", note=note)
             out["result"] = out["result"][:3] + (seg.mask[None], out["result"][3])
             return out
         with models_on_device(sam, what="SAM Segment"):

@@ -181,6 +181,11 @@ def _segment_cmd(args) -> int:
     print(f"wrote {args.output} ({how}, {seconds:.1f}s)")
     for line in report.summary_lines():
         print(line)
+    from .pipeline import unused_prompts_line
+
+    unused = unused_prompts_line(how, box=box, object_points=scale_pts[0], background_points=scale_pts[1])
+    if unused:
+        print(unused)
     if not report.ok:
         print("generate would " + ("warn about this mask" if prompted else
                                    "refuse this mask: give --object-point U,V, --box X0,Y0,X1,Y1 or --mask FILE"))

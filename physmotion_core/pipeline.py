@@ -263,6 +263,21 @@ def segment_photo(rgb: torch.Tensor, *, alpha=None, mask=None, box=None, object_
     return seg, "grabcut"
 
 
+def unused_prompts_line(how: str, *, box=None, object_points=(), background_points=()) -> Optional[str]:
+    """What to tell a user whose points or box did not cut the mask because the photo's alpha channel or a
+    given mask is the object (``how`` from ``segment_photo``); None when nothing was given or it was used."""
+    given = [name for name, v in (("--box", box is not None), ("--object-point", bool(object_points)),
+                                  ("--background-point", bool(background_points))) if v]
+    if how not in ("alpha", "mask") or not given:
+        return None
+    source, fix = (("the photo's transparency (its alpha channel) is the object's mask",
+                    "give the photo without transparency (a JPEG, or the PNG flattened)") if how == "alpha" else
+                   ("the --mask file is the object's mask", "leave out --mask"))
+    one = len(given) == 1
+    return (f"note: {' and '.join(given)} {'was' if one else 'were'} not used to cut the mask: {source}. "
+            f"To segment by {'it' if one else 'them'} instead, {fix}.")
+
+
 def _overlay_default(output) -> Optional[Path]:
     if output is None:
         return None
@@ -422,6 +437,9 @@ def prepare(
             write_overlay(overlay_path, with_caption(picture, overlay_caption(mask_report, prompted=given,
                                                                               tip=CLI_PROMPT_TIP)))
     say(f"mask ({stages['segment']}): " + "; ".join(mask_report.summary_lines()))
+    unused = unused_prompts_line(stages["segment"], box=box, object_points=obj_pts, background_points=bg_pts)
+    if unused:
+        say(unused)
     if overlay_path is not None:
         say(f"mask overlay: {overlay_path}")
     enforce_plausible(mask_report, prompted=given, overlay=overlay_path, how_to_fix=CLI_HOW_TO_FIX,

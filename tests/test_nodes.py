@@ -441,3 +441,37 @@ def test_segment_nodes_picture_is_captioned_for_an_automatic_pick_and_its_image_
         assert out["result"][3].shape == (1, H, 2 * W, 3)  # the IMAGE output: the plain overlay
     bar = shown[: shown.shape[0] - H]
     assert shown.shape[1] == 2 * W and bar.shape[0] >= 15 and (bar > 200).any() and np.median(bar) < 40
+
+
+def test_segment_node_says_when_a_connected_mask_overrides_the_picks(tmp_path, monkeypatch, caplog):
+    """An RGBA photo's alpha reaches the Segment node as a MASK (the templates connect Load Image's MASK), and
+    a connected mask wins: points or a box clicked on the node would do nothing, silently. The node warns and
+    its picture gets a caption saying so; without picks, or with method 'grabcut', it says nothing."""
+    import cv2
+    import torch
+
+    monkeypatch.setenv("PHYSMOTION_TEMP_DIR", str(tmp_path))
+    seg = node_classes()["PhysMotionSegment"]()
+    image, red, blue = _two_objects()
+    H, W = image.shape[1:3]
+    alpha = torch.from_numpy(red.astype(np.float32))[None]  # ComfyUI's MASK: (1, H, W)
+
+    def picture(out):
+        (item,) = out["ui"]["images"]
+        return cv2.imread(str(tmp_path / item["filename"]))
+
+    with caplog.at_level("WARNING"):
+        out = seg.run(image, "auto", "auto", 5, mask=alpha, box="90, 20, 140, 80")
+    m = out["result"][1][0].numpy() > 0.5
+    assert (m == red).mean() > 0.99  # the mask, not the box, made the object
+    assert "points and box were not used" in caplog.text and "method to 'grabcut'" in caplog.text
+    shown = picture(out)
+    assert shown.shape[0] - H >= 15 and (shown[: shown.shape[0] - H] > 200).any()  # a caption bar
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        plain = seg.run(image, "auto", "auto", 5, mask=alpha)
+        forced = seg.run(image, "grabcut", "auto", 5, mask=alpha, object_points="115, 48")
+    assert "not used" not in caplog.text
+    assert picture(plain).shape[0] == H  # no caption: the mask was given, and it looks like one object
+    fm = forced["result"][1][0].numpy() > 0.5
+    assert (fm & blue).sum() / (fm | blue).sum() > 0.85  # 'grabcut' cuts by the click

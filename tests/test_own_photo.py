@@ -272,3 +272,40 @@ def test_a_mask_in_two_pieces_is_told_before_and_after_the_run(tmp_path):
     assert not any("the object left the frame" in s for s in said)
     piece = res.sim.particle_piece
     assert piece is not None and int(piece.max()) == 1
+
+
+def test_prompts_that_the_alpha_channel_overrides_are_named_not_silently_dropped(monkeypatch, tmp_path, capsys):
+    """A transparent PNG's alpha is the object's mask; a box or points given with it do not cut anything, and
+    the run says so (and how to segment by them instead). Without prompts, or on an opaque photo, no note."""
+    import cv2
+
+    from physmotion_core.cli import main
+
+    _no_simulation(monkeypatch)
+    img, disk = photo()
+    rgba = np.dstack([(img * 255).round().astype(np.uint8)[:, :, ::-1], (disk * 255).astype(np.uint8)])
+    path = tmp_path / "disk.png"
+    cv2.imwrite(str(path), rgba)
+    assert main(["segment", str(path), "--box", "30,20,100,80", "-o", str(tmp_path / "a.png"), "-q"]) == 0
+    out = capsys.readouterr().out
+    assert "(alpha," in out
+    assert "note: --box was not used to cut the mask: the photo's transparency" in out
+    assert "give the photo without transparency" in out
+    said = []
+    generate(path, material="jelly", settings=FAST, preview=True, report=said.append, overlay=tmp_path / "o.png",
+             object_points=[(64, 50)], background_points=[(5, 5)])
+    notes = [s for s in said if s.startswith("note:")]
+    assert notes == ["note: --object-point and --background-point were not used to cut the mask: the photo's "
+                     "transparency (its alpha channel) is the object's mask. To segment by them instead, give the "
+                     "photo without transparency (a JPEG, or the PNG flattened)."]
+    said.clear()
+    generate(path, material="jelly", settings=FAST, preview=True, report=said.append, overlay=tmp_path / "o.png")
+    assert not [s for s in said if s.startswith("note:")]
+    opaque = tmp_path / "opaque.png"
+    cv2.imwrite(str(opaque), rgba[:, :, :3])
+    assert main(["segment", str(opaque), "--box", "30,20,100,80", "-o", str(tmp_path / "b.png"), "-q",
+                 "--models", "none"]) == 0
+    assert "note:" not in capsys.readouterr().out
+    # a --mask file wins the same way
+    assert pipeline.unused_prompts_line("mask", box=(1, 2, 3, 4)).endswith("To segment by it instead, leave out --mask.")
+    assert pipeline.unused_prompts_line("grabcut", box=(1, 2, 3, 4)) is None
