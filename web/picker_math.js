@@ -187,7 +187,9 @@ export function photoKey(url) {
   return sub ? `${sub}/${filename}` : filename;
 }
 
-/** The photo the picks were set on when it is not the one shown now (else null). */
+/** The photo the picks were set on when it is not the one shown now (else null). A photo from ComfyUI's
+ *  mask editor ("clipspace/...": the same picture with a painted mask) never counts as another photo. */
 export function stalePhoto(stamp, key) {
-  return stamp && key && String(stamp) !== key ? String(stamp) : null;
+  if (!stamp || !key || key.startsWith("clipspace/")) return null;
+  return String(stamp) !== key ? String(stamp) : null;
 }

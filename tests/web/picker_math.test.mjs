@@ -145,4 +145,7 @@ test("photoKey names an input photo as Load Image does, and nothing else; staleP
   assert.equal(stalePhoto("cat.png", "cat.png"), null);
   assert.equal(stalePhoto(undefined, "dog.png"), null);
   assert.equal(stalePhoto("cat.png", null), null);
+  // the mask editor saves the same photo as clipspace/...: not another photo
+  assert.equal(stalePhoto("cat.png", photoKey("/api/view?filename=clipspace-painted-masked-1.png&type=input&subfolder=clipspace")), null);
+  assert.equal(stalePhoto("clipspace/clipspace-painted-masked-1.png", "dog.png"), "clipspace/clipspace-painted-masked-1.png");
 });
