@@ -201,6 +201,8 @@ export class ImagePicker {
   stampPhoto() {
     const key = photoKey(this.imageURL);
     const props = (this.node.properties = this.node.properties ?? {});
+    // the mask editor's copy (clipspace/...) is the same photo: keep the name of the one it came from
+    if (key?.startsWith("clipspace/") && props[PROMPT_PHOTO_PROPERTY]) return;
     if (key) props[PROMPT_PHOTO_PROPERTY] = key;
     else delete props[PROMPT_PHOTO_PROPERTY];
   }

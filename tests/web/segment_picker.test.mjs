@@ -426,3 +426,20 @@ test("the SAM node's fractions fit any photo: never stamped, never stale", async
   assert.equal(value(node, "coordinates"), "pixels");
   assert.equal(node.properties.physmotion_prompt_photo, "dog.png");
 });
+
+test("the mask editor's copy of the photo is the same photo: no warning, and the original keeps its name", async () => {
+  const { env, load, node, picker } = await scene();
+  click(picker.canvas, 300, 200);
+  assert.equal(node.properties.physmotion_prompt_photo, "cat.png");
+  load.widgets[0].value = "clipspace/clipspace-painted-masked-17.png [input]"; // saved by the mask editor
+  picker.invalidate();
+  await settle(env);
+  assert.doesNotMatch(picker.canvas.lastLabel(), /set on/);
+  click(picker.canvas, 100, 100); // a pick on the copy adds to the picks, and the name stays the original's
+  assert.equal(value(node, "object_points"), "300, 200; 100, 100");
+  assert.equal(node.properties.physmotion_prompt_photo, "cat.png");
+  load.widgets[0].value = "cat.png";
+  picker.invalidate();
+  await settle(env);
+  assert.doesNotMatch(picker.canvas.lastLabel(), /set on/);
+});
