@@ -788,8 +788,8 @@ def _grown_click(img: np.ndarray, pts: np.ndarray, labels: np.ndarray, iters: in
 
     comp = None
     for _ in range(GROW_PASSES):
-        # A pass that is going to grow stops as soon as two iterations in a row reach the same sides
-        # (GROW_DECIDE): only its answer is used. A pass that reaches no side runs all its iterations,
+        # A pass that is going to grow stops as soon as GROW_DECIDE iterations in a row reach the same
+        # sides: only its answer is used. A pass that reaches no side runs all its iterations,
         # so the mask the chain ends on is the full cut.
         seen: list = []
 
