@@ -84,7 +84,11 @@ class PhysMotionSegment:
         seg = segment(img, mask=m, method="mask" if m is not None else "grabcut", grabcut_iters=int(grabcut_iterations),
                       box=box_t, points=pts or None, point_labels=labels or None, progress=progress_callback())
         prompted = m is not None or bool(obj_pts) or box_t is not None
-        note = None
+        from physmotion_core.segment.check import box_past_photo
+
+        note = box_past_photo(box_t, W, H)
+        if note:
+            log.warning(note)
         if m is not None and (obj_pts or bg_pts or box_t is not None):
             # the picks would otherwise do nothing, silently: an RGBA photo's alpha reaches this node as a MASK
             note = ("Your points and box were not used: the connected MASK (the photo's transparency, or another "

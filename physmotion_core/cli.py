@@ -186,6 +186,12 @@ def _segment_cmd(args) -> int:
     unused = unused_prompts_line(how, box=box, object_points=scale_pts[0], background_points=scale_pts[1])
     if unused:
         print(unused)
+    else:
+        from .segment.check import box_past_photo
+
+        past = box_past_photo(pr["box"], W, H)  # the photo's own pixels
+        if past:
+            print(past)
     if not report.ok:
         print("generate would " + ("warn about this mask" if prompted else
                                    "refuse this mask: give --object-point U,V, --box X0,Y0,X1,Y1 or --mask FILE"))

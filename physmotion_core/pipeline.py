@@ -379,6 +379,9 @@ def prepare(
     H, W = int(rgb.shape[0]), int(rgb.shape[1])
     W0 = W
     _check_prompts_inside({"object point": obj_pts, "background point": bg_pts}, box, W, H)
+    from .segment.check import box_past_photo
+
+    box_note = box_past_photo(box, W, H)  # in the photo's own pixels, before any scaling
     if max_side and max(H, W) > max_side:
         scale = max_side / max(H, W)
         w, h = max(1, round(W * scale)), max(1, round(H * scale))
@@ -440,6 +443,8 @@ def prepare(
     unused = unused_prompts_line(stages["segment"], box=box, object_points=obj_pts, background_points=bg_pts)
     if unused:
         say(unused)
+    elif box_note:
+        say(box_note)
     if overlay_path is not None:
         say(f"mask overlay: {overlay_path}")
     enforce_plausible(mask_report, prompted=given, overlay=overlay_path, how_to_fix=CLI_HOW_TO_FIX,

@@ -475,3 +475,29 @@ def test_segment_node_says_when_a_connected_mask_overrides_the_picks(tmp_path, m
     assert picture(plain).shape[0] == H  # no caption: the mask was given, and it looks like one object
     fm = forced["result"][1][0].numpy() > 0.5
     assert (fm & blue).sum() / (fm | blue).sum() > 0.85  # 'grabcut' cuts by the click
+
+
+def test_segment_node_names_a_box_that_reaches_past_the_photo(tmp_path, monkeypatch, caplog):
+    """The template's coffee box (55, 6, 498, 395) on a smaller photo: cut to the photo and used, with a warning
+    and a caption on the node's picture; a box inside the photo gets neither."""
+    import cv2
+
+    monkeypatch.setenv("PHYSMOTION_TEMP_DIR", str(tmp_path))
+    seg = node_classes()["PhysMotionSegment"]()
+    image, red, blue = _two_objects()
+    H, W = image.shape[1:3]
+
+    def picture(out):
+        (item,) = out["ui"]["images"]
+        return cv2.imread(str(tmp_path / item["filename"]))
+
+    with caplog.at_level("WARNING"):
+        out = seg.run(image, "auto", "auto", 5, box=f"90, 20, {W + 40}, 76")
+    assert f"reaches past the {W}x{H} photo (right by 40 px)" in caplog.text
+    assert picture(out).shape[0] > H  # the caption bar
+    m = out["result"][1][0].numpy() > 0.5
+    assert (m & blue).sum() / (m | blue).sum() > 0.8  # the box, cut to the photo, still found the square
+    caplog.clear()
+    with caplog.at_level("WARNING"):
+        seg.run(image, "auto", "auto", 5, box="90, 20, 145, 76")
+    assert "reaches past" not in caplog.text

@@ -309,3 +309,34 @@ def test_prompts_that_the_alpha_channel_overrides_are_named_not_silently_dropped
     # a --mask file wins the same way
     assert pipeline.unused_prompts_line("mask", box=(1, 2, 3, 4)).endswith("To segment by it instead, leave out --mask.")
     assert pipeline.unused_prompts_line("grabcut", box=(1, 2, 3, 4)) is None
+
+
+def test_a_box_reaching_past_the_photo_is_cut_to_it_and_named(monkeypatch, tmp_path, capsys):
+    """A box larger than the photo (a template's box kept after loading a smaller photo, or typed wrong) is cut
+    to the photo and used, and the run says by how much it reached past, in the photo's own pixels."""
+    import cv2
+
+    from physmotion_core.cli import main
+    from physmotion_core.segment.check import box_past_photo
+
+    _no_simulation(monkeypatch)
+    img, disk = photo()
+    path = tmp_path / "disk.png"
+    cv2.imwrite(str(path), cv2.cvtColor((img * 255).round().astype(np.uint8), cv2.COLOR_RGB2BGR))
+    assert main(["segment", str(path), "--box", "30,20,190,80", "-o", str(tmp_path / "a.png"), "-q",
+                 "--models", "none"]) == 0
+    out = capsys.readouterr().out
+    assert f"note: the box (30, 20, 190, 80) reaches past the {W}x{H} photo (right by {190 - W} px)" in out
+    said = []
+    generate(img, material="jelly", settings=FAST, preview=True, report=said.append, overlay=tmp_path / "o.png",
+             box=(-10, 20, 100, 80), models="none")
+    assert [s for s in said if "reaches past" in s] == [
+        f"note: the box (-10, 20, 100, 80) reaches past the {W}x{H} photo (left by 10 px) and was cut to it: was it "
+        "drawn on another photo?"]
+    said.clear()
+    generate(img, material="jelly", settings=FAST, preview=True, report=said.append, overlay=tmp_path / "o.png",
+             box=(30, 20, 100, 80), models="none")
+    assert not [s for s in said if "reaches past" in s]
+    # within a hand-drawn box's slack of the edge: nothing to say; and each side is named
+    assert box_past_photo((-2, 0, W + 2, H), W, H) is None and box_past_photo(None, W, H) is None
+    assert "left by 5 px, top by 4 px, right by 6 px, bottom by 7 px" in box_past_photo((-5, -4, W + 6, H + 7), W, H)

@@ -86,6 +86,21 @@ CLI_PROMPT_TIP = "not your object? give --object-point U,V on it, or --box X0,Y0
 NODE_PROMPT_TIP = "not your object? click on it, or drag a box around it, on the picture in this node"
 
 
+def box_past_photo(box, width: int, height: int, slack: float = 2.0):
+    """A note for a box that reaches past the photo by more than ``slack`` pixels (it is cut to the photo and
+    used): often a box drawn on another, larger photo (a template's, kept after loading your own). None when
+    the box lies within the photo or there is no box."""
+    if box is None:
+        return None
+    x0, y0, x1, y1 = (float(c) for c in box)
+    over = [f"{side} by {d:g} px" for side, d in (("left", -x0), ("top", -y0), ("right", x1 - width),
+                                                   ("bottom", y1 - height)) if d > slack]
+    if not over:
+        return None
+    return (f"note: the box ({x0:g}, {y0:g}, {x1:g}, {y1:g}) reaches past the {width}x{height} photo ("
+            f"{', '.join(over)}) and was cut to it: was it drawn on another photo?")
+
+
 def overlay_caption(report: "MaskReport", *, prompted: bool, tip: str) -> list[str]:
     """The lines written over the overlay (``overlay.with_caption``): what the checks found wrong, and for
     an automatic pick, that it was one and how to say which object is meant."""
