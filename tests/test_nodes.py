@@ -416,17 +416,26 @@ def test_segment_node_shows_grabcuts_progress_and_honours_cancel(monkeypatch):
     assert state.checks == state.cancel_after + 1 and state.updates[-1][0] < 100
 
 
-def test_segment_nodes_picture_is_captioned_for_an_automatic_pick_and_its_image_output_is_not(tmp_path, monkeypatch):
+def _segment_node_and_its_picture(tmp_path, monkeypatch):
+    """The no-model Segment node with its previews written to ``tmp_path``, and a reader of the picture a
+    run's UI result shows."""
     import cv2
 
     monkeypatch.setenv("PHYSMOTION_TEMP_DIR", str(tmp_path))
-    seg = node_classes()["PhysMotionSegment"]()
-    image, red, blue = _two_objects()
-    H, W = image.shape[1:3]
 
     def picture(out):
         (item,) = out["ui"]["images"]
         return cv2.imread(str(tmp_path / item["filename"]))
+
+    return node_classes()["PhysMotionSegment"](), picture
+
+
+def test_segment_nodes_picture_is_captioned_for_an_automatic_pick_and_its_image_output_is_not(tmp_path, monkeypatch):
+    import cv2
+
+    seg, picture = _segment_node_and_its_picture(tmp_path, monkeypatch)
+    image, red, blue = _two_objects()
+    H, W = image.shape[1:3]
 
     out = seg.run(image, "auto", "auto", 5, object_points="115, 48")
     assert picture(out).shape[:2] == (H, 2 * W) and out["result"][3].shape == (1, H, 2 * W, 3)
@@ -447,18 +456,12 @@ def test_segment_node_says_when_a_connected_mask_overrides_the_picks(tmp_path, m
     """An RGBA photo's alpha reaches the Segment node as a MASK (the templates connect Load Image's MASK), and
     a connected mask wins: points or a box clicked on the node would do nothing, silently. The node warns and
     its picture gets a caption saying so; without picks, or with method 'grabcut', it says nothing."""
-    import cv2
     import torch
 
-    monkeypatch.setenv("PHYSMOTION_TEMP_DIR", str(tmp_path))
-    seg = node_classes()["PhysMotionSegment"]()
+    seg, picture = _segment_node_and_its_picture(tmp_path, monkeypatch)
     image, red, blue = _two_objects()
     H, W = image.shape[1:3]
     alpha = torch.from_numpy(red.astype(np.float32))[None]  # ComfyUI's MASK: (1, H, W)
-
-    def picture(out):
-        (item,) = out["ui"]["images"]
-        return cv2.imread(str(tmp_path / item["filename"]))
 
     with caplog.at_level("WARNING"):
         out = seg.run(image, "auto", "auto", 5, mask=alpha, box="90, 20, 140, 80")
@@ -480,16 +483,9 @@ def test_segment_node_says_when_a_connected_mask_overrides_the_picks(tmp_path, m
 def test_segment_node_names_a_box_that_reaches_past_the_photo(tmp_path, monkeypatch, caplog):
     """The template's coffee box (55, 6, 498, 395) on a smaller photo: cut to the photo and used, with a warning
     and a caption on the node's picture; a box inside the photo gets neither."""
-    import cv2
-
-    monkeypatch.setenv("PHYSMOTION_TEMP_DIR", str(tmp_path))
-    seg = node_classes()["PhysMotionSegment"]()
+    seg, picture = _segment_node_and_its_picture(tmp_path, monkeypatch)
     image, red, blue = _two_objects()
     H, W = image.shape[1:3]
-
-    def picture(out):
-        (item,) = out["ui"]["images"]
-        return cv2.imread(str(tmp_path / item["filename"]))
 
     with caplog.at_level("WARNING"):
         out = seg.run(image, "auto", "auto", 5, box=f"90, 20, {W + 40}, 76")
