@@ -3,7 +3,8 @@
 Before simulating: the object's mass and material, and what each push, twist or throw will roughly do,
 from Newton's laws on the whole body (no simulation): the change of speed Δv = F·Δt / m, whether the
 push beats static friction μ·m·g, whether it can tip the object over its base edge (F·h > m·g·b, the
-quasi-static tipping condition about the edge it pushes towards), and whether the estimated travel
+quasi-static tipping condition about the edge it pushes towards; a soft body leans into the push first
+and tips with less: ``lean``), and whether the estimated travel
 leaves the frame. These are estimates for a body that stays in one piece; they say what to change when
 a push is far too weak or far too strong, so that nobody waits minutes for a video in which nothing
 moves, or in which the object flies off screen. A mask in separate pieces lifts to separate bodies
@@ -84,13 +85,11 @@ def piece_labels(x: np.ndarray, dx: float) -> np.ndarray:
     only where they press on each other, and a push or gravity parts them. The lattice's spacing is
     measured from the particles (the median distance to the nearest one)."""
     from scipy import ndimage
-    from scipy.spatial import cKDTree
 
     x = np.asarray(x, np.float64)
     if len(x) < 2 or not dx > 0:
         return np.zeros(len(x), np.int64)
-    d, _ = cKDTree(x).query(x, k=2)
-    spacing = float(np.median(d[:, 1]))
+    spacing = lattice_spacing(x)
     if not spacing > 0:
         return np.zeros(len(x), np.int64)
     idx = np.rint((x - x.min(0)) / spacing).astype(np.int64)
@@ -286,13 +285,179 @@ def flow_line(material: Material, facts: BodyFacts, g: float) -> str:
     return f"flow: {name} flows under its own weight from the first frame ({why}); {when}."
 
 
-def _push_line(k: int, F: np.ndarray, fmag: float, dt: float, body: BodyFacts, g: float, ground: Optional[Ground],
-               anchored: bool, camera: Optional[Camera], clip_s: float, t1: float, f, what: str) -> str:
-    """What push ``k`` does to ``body`` (the whole object, or the pieces it touches)."""
+#: The base a body stands on, for the tipping estimate: its particles this share of its height above its lowest.
+BASE_BAND = 0.05
+#: Materials whose elasticity lets a pushed body lean before it tips (``lean``); for a rigid body, a
+#: liquid, a paste or sand the rigid estimate stays (sand and pastes slump rather than tip).
+LEAN_MODELS = ("fixed_corotated", "neo_hookean", "fracture", "snow", "von_mises", "plasticine")
+#: A sliding body whose turning moment comes within this share of the one that keeps it up may tip.
+SLIDE_TIP_MARGIN = 0.8
+#: The lean is named only when it lowers the tipping force by more than this share.
+LEAN_MATTERS = 0.1
+
+
+def lattice_spacing(x: np.ndarray) -> float:
+    """The spacing of the simulator's particle lattice (``sim.fill``), measured as the median distance from a
+    particle to its nearest neighbour; 0 for fewer than two particles."""
+    from scipy.spatial import cKDTree
+
+    if len(x) < 2:
+        return 0.0
+    d, _ = cKDTree(x).query(x, k=2)
+    return float(np.median(d[:, 1]))
+
+
+@dataclass
+class Lean:
+    """A soft body's sideways give: ``compliance`` (m/N), how far its centre of mass moves per newton of push,
+    its own weight's sway included; ``buckling``, its weight over the weight that would buckle it (Greenhill's
+    (L/L_c)³ for a uniform column): at 1 or more it cannot stand up under its own weight (``compliance`` is then
+    inf)."""
+
+    compliance: float
+    buckling: float
+
+
+def lean(x: np.ndarray, mass: np.ndarray, material: Material, direction: np.ndarray, load: np.ndarray,
+         g: float = 9.81) -> Lean:
+    """How far a body standing on the ground leans along the horizontal unit ``direction`` (x, z) under a push
+    spread over its particles in the proportions ``load`` (summing to 1), and whether its own weight can hold
+    it up at all.
+
+    The body above its base band (``BASE_BAND``) is a vertical beam clamped at the band, in slices one particle
+    spacing thick, each with its own area A and second moment I about its centroid across ``direction``
+    (particle volumes m/ρ): Timoshenko's beam, bending M/(E·I) and shear V/(κ·G·A), κ = 5/6, integrated up
+    from the base. As it leans, the weight above each slice pulls sideways on it (g·Σ m·(u_above - u_here)),
+    which the beam takes in too: the lean solves (1 - W)·u = u_push, W that weight's bend. W's largest
+    eigenvalue is the weight over the buckling weight. For a uniform block of height L this gives the closed
+    form L³/(20·E·I) + L/(3·κ·G·A) without the weight and Greenhill's (L/L_c)³, L_c = (7.837·E·I/q)^(1/3), q
+    its weight per length (``tests/test_feedback_lean.py``). A sketch: it leaves out the base's own give and
+    large deflections. Measured against the simulation in docs/accuracy.md ("Does a push tip it over?")."""
+    spacing = lattice_spacing(x)
+    y = x[:, 1]
+    H = float(np.ptp(y)) if len(y) else 0.0
+    if not spacing > 0 or not H > 0 or not material.E > 0:
+        return Lean(0.0, 0.0)
+    up = y > float(y.min()) + BASE_BAND * H
+    if not up.any():
+        return Lean(0.0, 0.0)
+    vol = mass[up] / float(material.density)
+    k = np.floor((y[up] - float(y[up].min())) / spacing).astype(np.int64)
+    n = int(k.max()) + 1
+    v = np.bincount(k, vol, n)
+    across = x[up][:, [0, 2]] @ np.asarray(direction, np.float64)
+    centre = np.bincount(k, vol * across, n) / np.maximum(v, 1e-30)
+    inertia = np.bincount(k, vol * (across - centre[k]) ** 2, n) / spacing + v * spacing / 12.0
+    area = v / spacing
+    filled = v > 0
+    flex = np.where(filled, 1.0 / (material.E * np.maximum(inertia, 1e-30)), 0.0)  # 1/(E·I) per slice
+    w = np.bincount(k, load[up], n)
+    yc = (np.arange(n) + 0.5) * spacing
+    shear = np.cumsum(w[::-1])[::-1]  # the load on each slice and every slice above it
+    moment = np.cumsum((w * yc)[::-1])[::-1] - shear * (yc - 0.5 * spacing)  # about each slice's bottom
+    slide = np.where(filled, shear / (5.0 / 6.0 * material.mu * np.maximum(area, 1e-30)), 0.0)
+    lower = np.tril(np.ones((n, n)))  # running sum up from the base
+    u_push = lower @ (lower @ (moment * flex * spacing) * spacing) + lower @ (slide * spacing)
+    # the weight above slice i, leaning by u_j - u_{i-1}, bends slice i: moment g·(Σ_j≥i m_j u_j - u_{i-1} Σ_j≥i m_j)
+    m_slice = np.bincount(k, mass[up], n)
+    above = np.triu(np.ones((n, n))) * m_slice[None, :]
+    below = np.eye(n, k=-1) * (above.sum(1))[:, None]
+    weight = g * (lower @ (lower * spacing) * spacing) @ (flex[:, None] * (above - below))
+    ratio = float(np.max(np.abs(np.linalg.eigvals(weight)))) if n else 0.0
+    if ratio >= 1.0:
+        return Lean(math.inf, ratio)
+    u = np.linalg.solve(np.eye(n) - weight, u_push)
+    return Lean(float((m_slice * u).sum() / max(float(mass.sum()), 1e-30)), ratio)
+
+
+def dynamic_factor(mass: float, compliance: float, duration: float) -> float:
+    """How far past its static lean a body swings under a push switched on at once and held for ``duration``:
+    the peak of an undamped oscillator (period 2π·√(m·c)) under a rectangular pulse, 2·sin(π·t/T) up to 2."""
+    if not compliance > 0 or not mass > 0:
+        return 1.0
+    period = 2.0 * math.pi * math.sqrt(mass * compliance)
+    return 2.0 * math.sin(min(math.pi / 2.0, math.pi * max(duration, 0.0) / period))
+
+
+@dataclass
+class Tipping:
+    """Where a sideways push tips a body standing on the ground: ``b`` (m), from its centre of mass to the edge of
+    its base it is pushed towards; ``h`` (m), the height the push acts at, and ``h_com`` the centre of mass's
+    (both above its lowest point); ``need`` (N), the rigid body's tipping
+    force m·g·b/h; ``lean_per_n`` (m/N), how far a soft body's centre of mass leans towards that edge per newton
+    (static lean times the swing of a sudden push; 0 for a rigid body); ``soft_need`` (N), the force that tips it
+    with that lean, m·g·b/(h + m·g·lean_per_n)."""
+
+    b: float
+    h: float
+    h_com: float
+    need: float
+    lean_per_n: float
+    soft_need: float
+    buckling: float = 0.0  # the body's weight over its buckling weight (``Lean``); at 1 or more it cannot stand
+
+
+def tipping(body: BodyFacts, direction: np.ndarray, sel: np.ndarray, g: float, duration: float,
+            material: Optional[Material] = None) -> Tipping:
+    """The tipping estimate for a push along the horizontal unit ``direction`` (x, z) on the particles ``sel``
+    for ``duration`` seconds: the quasi-static condition about the base's edge, F·h > m·g·b, and for an elastic
+    ``material`` (``LEAN_MODELS``) the same with the body's lean, F·h + m·g·D·c·F > m·g·b (``lean``'s
+    compliance c, ``dynamic_factor`` D). Measured against the simulation in docs/accuracy.md ("Does a push tip it over?")."""
     m = body.total_mass
     base_y = float(body.x[:, 1].min())
-    base = body.x[body.x[:, 1] <= base_y + 0.05 * max(1e-9, float(np.ptp(body.x[:, 1])))]
+    base = body.x[body.x[:, 1] <= base_y + BASE_BAND * max(1e-9, float(np.ptp(body.x[:, 1])))]
     com = body.com
+    d = np.asarray(direction, np.float64)
+    h = float(body.x[sel, 1].mean()) - base_y if sel.any() else float(com[1]) - base_y
+    b = max(0.0, float((base[:, [0, 2]] @ d).max() - com[[0, 2]] @ d) if len(base) else 0.0)
+    need = m * g * b / max(h, 1e-9)
+    lean_per_n, soft_need, buckling = 0.0, need, 0.0
+    if material is not None and material.model in LEAN_MODELS and b > 0:
+        load = body.mass * sel
+        give = lean(body.x, body.mass, material, d, load / max(float(load.sum()), 1e-30), g)
+        buckling = give.buckling
+        if math.isinf(give.compliance):
+            lean_per_n, soft_need = math.inf, 0.0
+        else:
+            lean_per_n = dynamic_factor(m, give.compliance, duration) * give.compliance
+            soft_need = m * g * b / (max(h, 1e-9) + m * g * lean_per_n)
+    return Tipping(b, h, float(com[1]) - base_y, need, lean_per_n, soft_need, buckling)
+
+
+#: A body whose weight is this share of its buckling weight or more is said to stand only just.
+STAND_WARN = 0.6
+
+
+def stand_line(material: Material, facts: BodyFacts, g: float) -> str:
+    """For an elastic solid (``LEAN_MODELS``) that is too soft for its height: a sentence saying that it cannot
+    stand under its own weight (a soft column buckles: ``lean``'s weight over buckling weight, in the weaker of
+    the two horizontal directions, 1 or more) and what stiffness or height lets it, or that it stands only just
+    (``STAND_WARN`` or more); "" otherwise. The ratio grows as E falls (1/E) and as the body is scaled up
+    (proportionally to its size: its weight grows as size³, its bending stiffness as size⁴ over a column's
+    size³ lever). Checked against the simulation: a 0.3 m jelly bar 1:4 wide falls over with no push at
+    E = 20 and 50 kPa and stands at 100 kPa (docs/accuracy.md)."""
+    if material.model not in LEAN_MODELS or len(facts.x) < 2 or not g > 0 or facts.total_mass <= 0:
+        return ""
+    share = facts.mass / facts.total_mass
+    ratio = max(lean(facts.x, facts.mass, material, np.array(d, np.float64), share, g).buckling
+                for d in ((1.0, 0.0), (0.0, 1.0)))
+    height = float(np.ptp(facts.x[:, 1])) + facts.dx / 2
+    if ratio >= 1.0:
+        return (f"stability: {material.name} this soft (E = {material.E:.3g} Pa) cannot hold up a body {height:.2g} m "
+                f"tall: its weight is {ratio:.2g} times what buckles it, so it bends over and falls from the first "
+                f"frame without any push. It stands with E above about {material.E * ratio / STAND_WARN:.2g} Pa, or "
+                f"at under {height * STAND_WARN / ratio:.2g} m tall (the object height).")
+    if ratio >= STAND_WARN:
+        return (f"stability: {material.name} this soft (E = {material.E:.3g} Pa) only just holds up a body {height:.2g} m "
+                f"tall (its weight is {ratio:.0%} of what buckles it): it sways far and tips easily.")
+    return ""
+
+
+def _push_line(k: int, F: np.ndarray, fmag: float, dt: float, body: BodyFacts, g: float, ground: Optional[Ground],
+               anchored: bool, camera: Optional[Camera], clip_s: float, t1: float, f, what: str,
+               material: Optional[Material] = None) -> str:
+    """What push ``k`` does to ``body`` (the whole object, or the pieces it touches)."""
+    m = body.total_mass
     room = frame_room(body, camera)
     friction_limit = None
     if ground is not None and not anchored:
@@ -312,15 +477,34 @@ def _push_line(k: int, F: np.ndarray, fmag: float, dt: float, body: BodyFacts, g
                          "friction to make it slide)")
         else:
             notes.append(f"it beats static friction (μ·m·g = {friction_limit:.3g} N): it slides")
-        sel = _region_sel(f, body, camera)
-        h = float(body.x[sel, 1].mean()) - base_y
-        d = F[[0, 2]] / fh
-        b = float((base[:, [0, 2]] @ d).max() - com[[0, 2]] @ d) if len(base) else 0.0
-        need = m * g * max(b, 0.0) / max(h, 1e-9)
-        if fh * h > m * g * max(b, 0.0):
-            notes.append(f"it can tip over (F·h = {fh * h:.3g} N·m > m·g·b = {m * g * max(b, 0):.3g} N·m)")
-        elif fh > 0.3 * need:
-            notes.append(f"it rocks but does not tip (tipping needs about {need:.3g} N at that height)")
+        tip = tipping(body, F[[0, 2]] / fh, _region_sel(f, body, camera), g, dt, material)
+        soft = tip.soft_need < (1.0 - LEAN_MATTERS) * tip.need
+        # Sliding, the ground's friction is μ·m·g at most: it turns the body about its centre of mass with
+        # μ·m·g·h_c, and the push with F·(h - h_c), against m·g·b (a body pushed at its centre of mass that is
+        # wider than μ times its height slides rather than tips, however hard it is pushed).
+        # Within SLIDE_TIP_MARGIN of m·g·b it is a toss-up (a rounded base rolls over sooner).
+        sliding = friction_limit is not None and not math.isinf(friction_limit) and fh > friction_limit
+        turn = fh * (tip.h - tip.h_com) + friction_limit * tip.h_com if sliding else fh * tip.h
+        if fh * tip.h > m * g * tip.b and turn > m * g * tip.b:
+            notes.append(f"it can tip over (F·h = {fh * tip.h:.3g} N·m > m·g·b = {m * g * tip.b:.3g} N·m)")
+        elif fh * tip.h > m * g * tip.b and turn > SLIDE_TIP_MARGIN * m * g * tip.b:
+            notes.append(f"it slides and may tip over: sliding, the ground holds its base with μ·m·g = "
+                         f"{friction_limit:.3g} N only, which turns it with {turn:.3g} N·m against the "
+                         f"{m * g * tip.b:.3g} N·m that keep it up")
+        elif fh * tip.h > m * g * tip.b and not soft:
+            notes.append(f"it slides rather than tips: sliding, the ground holds its base with μ·m·g = "
+                         f"{friction_limit:.3g} N only, too little to turn it over its edge")
+        elif tip.buckling >= 1.0:
+            notes.append(f"it falls over with or without the push: {material.name} this soft cannot hold up a body "
+                         "this tall (see 'stability')")
+        elif soft and fh >= tip.soft_need:
+            notes.append(f"it may tip over: a rigid body would need about {tip.need:.3g} N at that height, but "
+                         f"{material.name} this soft leans about {100 * tip.lean_per_n * fh:.2g} cm into the push "
+                         f"and tips from about {tip.soft_need:.3g} N")
+        elif fh > 0.3 * tip.soft_need:
+            notes.append(f"it rocks but does not tip (tipping needs about {tip.soft_need:.3g} N at that height"
+                         + (f"; {material.name} this soft leans into the push: a rigid body would need "
+                            f"{tip.need:.3g} N" if soft else "") + ")")
     if F[1] > m * g and not anchored:
         notes.append(f"it lifts off (upward {F[1]:.3g} N > its weight {m * g:.3g} N)")
     # Travel along x (the frame's width), for a free or sliding body: the push, then coasting to the
@@ -352,7 +536,7 @@ def forecast(conditions: Conditions, facts: BodyFacts, material: Material, *, cl
              f"density {material.density:.4g} kg/m³."]
     if m <= 0:
         return lines
-    for extra in (thin_line(facts), flow_line(material, facts, g)):
+    for extra in (thin_line(facts), flow_line(material, facts, g), stand_line(material, facts, g)):
         if extra:
             lines.append(extra)
     parts = pieces(facts, conditions, camera) if facts.dx > 0 and facts.single else []
@@ -392,7 +576,8 @@ def forecast(conditions: Conditions, facts: BodyFacts, material: Material, *, cl
                 what = f" (the {'piece' if len(touched) == 1 else 'pieces'} it pushes, {share:.0%} of the object)"
                 if not any(p.supported for p in touched):
                     what += "; nothing holds that piece up, so it also falls"
-        lines.append(_push_line(k, F, fmag, dt, body, g, on_ground, anch, camera, clip_s, t1, f, what))
+        lines.append(_push_line(k, F, fmag, dt, body, g, on_ground, anch, camera, clip_s, t1, f, what,
+                                material))
     for k, tq in enumerate(conditions.of(Torque), 1):
         t0, t1 = _window(tq, clip_s)
         T = np.asarray(tq.vector, np.float64)
