@@ -536,7 +536,10 @@ def forecast(conditions: Conditions, facts: BodyFacts, material: Material, *, cl
              f"density {material.density:.4g} kg/m³."]
     if m <= 0:
         return lines
-    for extra in (thin_line(facts), flow_line(material, facts, g), stand_line(material, facts, g)):
+    # Standing on the ground only: a body held at the frame's edge or by an anchor hangs from it, which the
+    # column that buckles from the ground up does not describe.
+    standing = ground is not None and not held and not conditions.of(Anchor)
+    for extra in (thin_line(facts), flow_line(material, facts, g), stand_line(material, facts, g) if standing else ""):
         if extra:
             lines.append(extra)
     parts = pieces(facts, conditions, camera) if facts.dx > 0 and facts.single else []

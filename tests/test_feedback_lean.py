@@ -18,7 +18,7 @@ import torch
 
 from physmotion_core.feedback import (BASE_BAND, STAND_WARN, BodyFacts, body_facts, forecast, lean, stand_line,
                                       tipping)
-from physmotion_core.types import Conditions, Force, Material, SimSettings
+from physmotion_core.types import Conditions, Force, Ground, Material, SimSettings
 
 
 def block(a=0.08, t=0.06, L=0.4, s=0.005, rho=1000.0):
@@ -153,3 +153,14 @@ def test_a_wide_rigid_block_pushed_past_friction_slides_and_does_not_tip():
     text, tilt = _run("box", mat, force=lambda need: 1.3 * need)
     assert "slides rather than tips" in text and "can tip over" not in text
     assert tilt < 5.0
+
+
+def test_a_held_body_is_not_told_it_cannot_stand():
+    x, m = block(a=0.05, t=0.05, L=0.4, s=0.005)
+    facts = BodyFacts(x, m, dx=0.01)
+    soft = Material.preset("jelly", E=2e4)
+    on_ground = Conditions([Ground(0.0, "friction", 0.5)])
+    assert any("cannot hold up" in s for s in forecast(on_ground, facts, soft, clip_s=2.0))
+    # held where the photo's edge cuts it off, or without a ground, no column stands on anything
+    assert not any("cannot hold up" in s for s in forecast(on_ground, facts, soft, clip_s=2.0, held=True))
+    assert not any("cannot hold up" in s for s in forecast(Conditions([]), facts, soft, clip_s=2.0))
