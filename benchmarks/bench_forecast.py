@@ -176,6 +176,11 @@ NOTES = """How the forecast decides (`feedback.tipping`, `lean`, `stand_line`):
   forecast says so and what stiffness or height lets it stand: the 0.3 m jelly bar (20 kPa) falls with no push,
   at 100 kPa it stands.
 
+- **Not balanced**: the lift stands an object on its lowest point; when its centre of mass lies beyond that base
+  (the convex hull of its lowest particles), it tips over with no push (`balance`), and the forecast says so
+  before any push estimate (a pagoda whose mask ended in a spike of trees below it: its centre of mass 4 cm past
+  a 6 cm foot; checked through the simulation in `test_a_drawn_table_on_a_leg_at_its_end_tips_over...`).
+
 The misses are the disc, a rounded bottom: it rolls where the 5 % band counts a flat base, so it goes over with
 less than the forecast's force (the rigid disc at 70 % of its tipping force rolled onto its face at standard
 quality, while at draft quality, whose coarser grid flattens the contact, it rocked back). The cup's jelly at 60 %

@@ -424,6 +424,45 @@ def tipping(body: BodyFacts, direction: np.ndarray, sel: np.ndarray, g: float, d
     return Tipping(b, h, float(com[1]) - base_y, need, lean_per_n, soft_need, buckling)
 
 
+def balance(facts: BodyFacts) -> tuple[float, np.ndarray]:
+    """How far (m) the centre of mass of a body standing on the ground lies beyond the edge of what it stands on
+    (0 when above it), and the particles it stands on: its base, those within ``BASE_BAND`` of its height of the
+    lowest, whose footprint (convex hull in x, z) reaches half a lattice spacing past their centres."""
+    from scipy.spatial import ConvexHull, QhullError
+
+    x = facts.x
+    y = x[:, 1]
+    if len(x) < 2:
+        return 0.0, np.ones(len(x), bool)
+    on = y <= float(y.min()) + BASE_BAND * max(1e-9, float(np.ptp(y)))
+    foot = x[on][:, [0, 2]].astype(np.float64)
+    com = facts.com[[0, 2]]
+    reach = 0.5 * (lattice_spacing(x) or facts.dx / 2)
+    try:
+        hull = ConvexHull(foot)
+        out = float(np.max(hull.equations[:, :2] @ com + hull.equations[:, 2]))
+    except (QhullError, ValueError):  # a line or a point of contact
+        out = float(np.min(np.linalg.norm(foot - com, axis=1)))
+    return max(0.0, out - reach), on
+
+
+def balance_line(facts: BodyFacts, camera: Optional[Camera] = None) -> str:
+    """A sentence when a body standing on the ground is not balanced on what it stands on (its centre of mass
+    beyond its base's edge, ``balance``): it tips over under its own weight with no push. This is a mask whose
+    lowest part is not what the object stands on (a spike of foliage under a building, a wheel cut off, a
+    leaning object), as the lift stands the object on its lowest point; "" when balanced."""
+    off, on = balance(facts)
+    if not off > 0:
+        return ""
+    foot = facts.x[on]
+    wide, deep = (float(np.ptp(foot[:, k])) + facts.dx / 2 for k in (0, 2))
+    return (f"balance: it stands on its lowest part ({100 * wide:.2g} x {100 * deep:.2g} cm{_where(on, facts, camera)}) "
+            f"and its "
+            f"centre of mass is {100 * off:.2g} cm beyond that part's edge, so it tips over under its own weight from "
+            "the first frame, without any push. If it should stand, make the box or mask end where the object stands "
+            "(whatever sticks out below it is what it is stood on).")
+
+
 #: A body whose weight is this share of its buckling weight or more is said to stand only just.
 STAND_WARN = 0.6
 
@@ -455,7 +494,7 @@ def stand_line(material: Material, facts: BodyFacts, g: float) -> str:
 
 def _push_line(k: int, F: np.ndarray, fmag: float, dt: float, body: BodyFacts, g: float, ground: Optional[Ground],
                anchored: bool, camera: Optional[Camera], clip_s: float, t1: float, f, what: str,
-               material: Optional[Material] = None) -> str:
+               material: Optional[Material] = None, tilted: bool = False) -> str:
     """What push ``k`` does to ``body`` (the whole object, or the pieces it touches)."""
     m = body.total_mass
     room = frame_room(body, camera)
@@ -485,7 +524,10 @@ def _push_line(k: int, F: np.ndarray, fmag: float, dt: float, body: BodyFacts, g
         # Within SLIDE_TIP_MARGIN of m·g·b it is a toss-up (a rounded base rolls over sooner).
         sliding = friction_limit is not None and not math.isinf(friction_limit) and fh > friction_limit
         turn = fh * (tip.h - tip.h_com) + friction_limit * tip.h_com if sliding else fh * tip.h
-        if fh * tip.h > m * g * tip.b and turn > m * g * tip.b:
+        if tilted:
+            notes.append("it tips over with or without the push: it is not balanced on what it stands on (see "
+                         "'balance')")
+        elif fh * tip.h > m * g * tip.b and turn > m * g * tip.b:
             notes.append(f"it can tip over (F·h = {fh * tip.h:.3g} N·m > m·g·b = {m * g * tip.b:.3g} N·m)")
         elif fh * tip.h > m * g * tip.b and turn > SLIDE_TIP_MARGIN * m * g * tip.b:
             notes.append(f"it slides and may tip over: sliding, the ground holds its base with μ·m·g = "
@@ -498,9 +540,12 @@ def _push_line(k: int, F: np.ndarray, fmag: float, dt: float, body: BodyFacts, g
             notes.append(f"it falls over with or without the push: {material.name} this soft cannot hold up a body "
                          "this tall (see 'stability')")
         elif soft and fh >= tip.soft_need:
+            leans = tip.lean_per_n * fh
             notes.append(f"it may tip over: a rigid body would need about {tip.need:.3g} N at that height, but "
-                         f"{material.name} this soft leans about {100 * tip.lean_per_n * fh:.2g} cm into the push "
-                         f"and tips from about {tip.soft_need:.3g} N")
+                         f"{material.name} this soft "
+                         + (f"leans about {100 * leans:.2g} cm into the push" if leans < tip.b else
+                            "leans past its base's edge under this push")
+                         + f" and tips from about {tip.soft_need:.3g} N")
         elif fh > 0.3 * tip.soft_need:
             notes.append(f"it rocks but does not tip (tipping needs about {tip.soft_need:.3g} N at that height"
                          + (f"; {material.name} this soft leans into the push: a rigid body would need "
@@ -539,7 +584,9 @@ def forecast(conditions: Conditions, facts: BodyFacts, material: Material, *, cl
     # Standing on the ground only: a body held at the frame's edge or by an anchor hangs from it, which the
     # column that buckles from the ground up does not describe.
     standing = ground is not None and not held and not conditions.of(Anchor)
-    for extra in (thin_line(facts), flow_line(material, facts, g), stand_line(material, facts, g) if standing else ""):
+    tilted = balance_line(facts, camera) if standing and facts.single else ""
+    for extra in (thin_line(facts), flow_line(material, facts, g), tilted,
+                  stand_line(material, facts, g) if standing and not tilted else ""):
         if extra:
             lines.append(extra)
     parts = pieces(facts, conditions, camera) if facts.dx > 0 and facts.single else []
@@ -580,7 +627,7 @@ def forecast(conditions: Conditions, facts: BodyFacts, material: Material, *, cl
                 if not any(p.supported for p in touched):
                     what += "; nothing holds that piece up, so it also falls"
         lines.append(_push_line(k, F, fmag, dt, body, g, on_ground, anch, camera, clip_s, t1, f, what,
-                                material))
+                                material, tilted=bool(tilted) and body is facts))
     for k, tq in enumerate(conditions.of(Torque), 1):
         t0, t1 = _window(tq, clip_s)
         T = np.asarray(tq.vector, np.float64)

@@ -164,3 +164,54 @@ def test_a_held_body_is_not_told_it_cannot_stand():
     # held where the photo's edge cuts it off, or without a ground, no column stands on anything
     assert not any("cannot hold up" in s for s in forecast(on_ground, facts, soft, clip_s=2.0, held=True))
     assert not any("cannot hold up" in s for s in forecast(Conditions([]), facts, soft, clip_s=2.0))
+
+
+# -- balance: the centre of mass over what the body stands on --------------------------------------------
+
+
+def _table(leg_at):
+    """A 0.4 x 0.05 x 0.1 m slab on one leg 0.04 x 0.2 x 0.1 m, under the slab at ``leg_at`` (m from its left)."""
+    s = 0.005
+    slab, m1 = block(a=0.4, t=0.1, L=0.05, s=s)
+    slab[:, 1] += 0.2
+    leg, m2 = block(a=0.04, t=0.1, L=0.2, s=s)
+    leg[:, 0] += leg_at
+    return BodyFacts(np.concatenate([slab, leg]), np.concatenate([m1, m2]), dx=2 * s)
+
+
+def test_a_body_whose_centre_of_mass_is_off_its_base_is_told_it_tips_over_and_a_balanced_one_is_not():
+    from physmotion_core.feedback import balance, balance_line
+
+    off, _ = balance(_table(0.0))  # the leg at the left end (x 0..0.04 m): the centre of mass is far right of it
+    assert off == pytest.approx(_table(0.0).com[0] - 0.04, abs=0.001)
+    assert "tips over under its own weight" in balance_line(_table(0.0))
+    assert balance(_table(0.18))[0] == 0.0  # the leg under the middle: balanced
+    assert balance_line(_table(0.18)) == ""
+    mat = Material.preset("rigid")
+    ground = Conditions([Force((1.0, 0.0, 0.0), t_start=0.0, t_end=0.25), Ground(0.0, "friction", 0.5)])
+    text = " ".join(forecast(ground, _table(0.0), mat, clip_s=2.0))
+    assert "balance:" in text and "tips over with or without the push" in text and "rocks" not in text
+    # held at the frame's edge, it hangs from the hold: nothing to say about balance
+    assert "balance:" not in " ".join(forecast(ground, _table(0.0), mat, clip_s=2.0, held=True))
+
+
+def test_a_drawn_table_on_a_leg_at_its_end_tips_over_with_no_push_and_on_a_middle_leg_stands():
+    from physmotion_core.pipeline import prepare
+    from physmotion_core.sim.simulate import simulate
+
+    mat = Material.preset("rigid")
+    for leg_x, falls in ((130, True), (300, False)):
+        im, _ = _photo("bar")
+        yy, xx = np.mgrid[:427, :640]
+        mask = ((xx >= 120) & (xx < 520) & (yy >= 150) & (yy < 220)) | ((xx >= leg_x) & (xx < leg_x + 40) & (yy >= 150)
+                                                                        & (yy < 400))
+        im[mask] = (40, 90, 170)
+        settings = SimSettings(frames=24, fps=24.0, quality="draft")
+        lines = []
+        prep = prepare(im, mask=torch.from_numpy(mask.astype(np.float32)), material=mat, settings=settings,
+                       report=lines.append)
+        said = any(s.startswith("balance:") for s in lines)
+        y = simulate(prep.gaussians, mat, prep.conditions, settings, camera=prep.camera).x.numpy()[:, :, 1]
+        drop = float(y[0].mean() - y[-1].mean())  # the centre of mass comes down as it tips
+        assert said == falls, lines
+        assert (drop > 0.02) == falls, drop
