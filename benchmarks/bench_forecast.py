@@ -30,7 +30,8 @@ CLIP_FRAMES, FPS, PUSH_S = 48, 24.0, 0.25
 
 
 def synthetic(kind: str) -> tuple[np.ndarray, np.ndarray]:
-    """A plain grey wall over a table, with a blue object (disc or tall bar), and its mask."""
+    """A plain grey wall over a table, with a blue object (a disc, a tall bar or a wide box), and its mask
+    (tests/test_feedback_lean.py draws on it too)."""
     h, w = 427, 640
     rng = np.random.default_rng(0)
     im = np.full((h, w, 3), 200.0)
@@ -41,6 +42,10 @@ def synthetic(kind: str) -> tuple[np.ndarray, np.ndarray]:
         mask = (xx - 320) ** 2 + (yy - 230) ** 2 <= 130 ** 2
     elif kind == "bar":
         mask = (xx >= 270) & (xx < 370) & (yy >= 40) & (yy < 400)
+    elif kind == "box":
+        mask = (xx >= 120) & (xx < 520) & (yy >= 200) & (yy < 400)
+    elif kind == "plain":
+        mask = np.zeros((h, w), bool)
     else:
         raise ValueError(kind)
     im[mask] = (40, 90, 170)
