@@ -285,7 +285,8 @@ def flow_line(material: Material, facts: BodyFacts, g: float) -> str:
     return f"flow: {name} flows under its own weight from the first frame ({why}); {when}."
 
 
-#: The base a body stands on, for the tipping estimate: its particles this share of its height above its lowest.
+#: The base band: a body's particles within this share of its height of its lowest. ``lean``'s beam is clamped at
+#: its top and ``balance`` takes its footprint; the tipping lever (``tipping``) uses the lowest layer only.
 BASE_BAND = 0.05
 #: Materials whose elasticity lets a pushed body lean before it tips (``lean``); for a rigid body, a
 #: liquid, a paste or sand the rigid estimate stays (sand and pastes slump rather than tip).
@@ -405,11 +406,15 @@ def tipping(body: BodyFacts, direction: np.ndarray, sel: np.ndarray, g: float, d
     compliance c, ``dynamic_factor`` D). Measured against the simulation in docs/accuracy.md ("Does a push tip it over?")."""
     m = body.total_mass
     base_y = float(body.x[:, 1].min())
-    base = body.x[body.x[:, 1] <= base_y + BASE_BAND * max(1e-9, float(np.ptp(body.x[:, 1])))]
+    # What it stands on: its lowest layer of particles (the lattice is jittered by a tenth of its spacing), whose
+    # footprint reaches half a spacing past their centres. A rounded bottom stands on a narrow layer and tips
+    # sooner than a band of its height would say (docs/accuracy.md: the rigid disc).
+    spacing = lattice_spacing(body.x)
+    base = body.x[body.x[:, 1] <= base_y + 0.5 * spacing]
     com = body.com
     d = np.asarray(direction, np.float64)
     h = float(body.x[sel, 1].mean()) - base_y if sel.any() else float(com[1]) - base_y
-    b = max(0.0, float((base[:, [0, 2]] @ d).max() - com[[0, 2]] @ d) if len(base) else 0.0)
+    b = max(0.0, float((base[:, [0, 2]] @ d).max() - com[[0, 2]] @ d) + 0.5 * spacing if len(base) else 0.0)
     need = m * g * b / max(h, 1e-9)
     lean_per_n, soft_need, buckling = 0.0, need, 0.0
     if material is not None and material.model in LEAN_MODELS and b > 0:
