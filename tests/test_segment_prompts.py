@@ -379,8 +379,12 @@ def _lugged_clock(seed=3):
 
 
 @pytest.mark.parametrize("click", [(100, 100), (90, 110), (100, 80)])
-def test_a_click_is_cut_again_as_a_box_around_its_object(click):
+def test_a_click_is_cut_again_as_a_box_around_its_object(click, monkeypatch):
     from physmotion_core.segment import classic as C
+
+    # one cut at a time, so that only the winner is re-cut (on two threads the other candidate's re-cut
+    # may run too, as a guess)
+    monkeypatch.setattr(C, "CLICK_THREADS", 1)
 
     img, disk = _lugged_clock()
     iou = lambda m: (m & disk).sum() / (m | disk).sum()  # noqa: E731
@@ -408,53 +412,67 @@ def test_a_click_is_cut_again_as_a_box_around_its_object(click):
     assert 50 <= x0 <= 58 and 50 <= y0 <= 58 and 142 <= x1 <= 150 and 142 <= y1 <= 150, recut[0]
 
 
-def test_a_clicks_early_recut_on_the_second_thread_gives_the_same_mask(monkeypatch):
-    """The whole-image candidate, when plausible, is re-cut on its own thread while the grown box is still
-    growing (the 1024 px coffee photo's click: 7.3-7.7 s -> 5.0-5.4 s). Forced to happen and forced not to,
-    the mask is the same, and it is re-cut exactly once either way."""
-    import threading
+def test_a_clicks_cuts_give_the_same_mask_one_at_a_time_or_guessed_ahead_on_two_threads(monkeypatch):
+    """A click's cuts run on CLICK_THREADS workers, the second one guessing what comes next (the growing
+    pass after a running one, a candidate's re-cut before the other candidate is known). Each cut is a
+    function of its inputs only, so the mask is the same one at a time, on two threads, and with every
+    guess made wrong on purpose (a guessed growing pass grown on the wrong sides): on shapes whose growing
+    box grows several times (an L clicked at the end of an arm, a ring), the lugged clock (its whole-image
+    candidate wins and is re-cut ahead) and the flower (low contrast)."""
     import time
 
     from physmotion_core.segment import classic as C
 
-    img, disk = _lugged_clock()
-    real_grown, real_recut, real_check = C._grown_click, C._click_recut, C._clean_and_check
-    recuts, grown_finished = [], threading.Event()
+    def scenes():
+        for name in ("L", "ring"):
+            img, obj, click = _shape(name)
+            yield name, img, click
+        yield "clock", _lugged_clock()[0], (100, 100)
+        yield "flower", cv2.resize(_big_flower()[0], (400, 300), interpolation=cv2.INTER_AREA), (160, 150)
 
-    def recut(*a, **k):
-        recuts.append(threading.current_thread().name)
-        return real_recut(*a, **k)
+    real_pass, real_recut = C._grow_pass, C._click_recut
+    for name, img, click in scenes():
+        masks, cuts = {}, {}
+        for mode in ("one", "two", "wrong"):
+            calls = {"grow": [], "recut": 0}
 
-    def grown_waits_for_the_early_recut(*a, **k):
-        out = real_grown(*a, **k)
-        deadline = time.monotonic() + 120
-        while not recuts and time.monotonic() < deadline:
-            time.sleep(0.01)
-        return out
+            def grow_pass(img_, pts, labels, iters, max_side, box, on_reach=None):
+                if mode == "wrong" and on_reach is not None:
+                    inner = on_reach
+                    on_reach = lambda r: inner(None if r is None else tuple(not x for x in r))  # noqa: E731
+                entry = [tuple(box), time.monotonic(), float("inf")]  # a pass called off never ends
+                calls["grow"].append(entry)
+                out = real_pass(img_, pts, labels, iters, max_side, box, on_reach)
+                entry[2] = time.monotonic()
+                return out
 
-    monkeypatch.setattr(C, "_click_recut", recut)
-    monkeypatch.setattr(C, "_grown_click", grown_waits_for_the_early_recut)
-    early = C.grabcut(img, points=[(100, 100)])
-    assert recuts == ["physmotion-click_0"]
+            def recut(*a, **k):
+                calls["recut"] += 1
+                return real_recut(*a, **k)
 
-    def grown_first(*a, **k):
-        try:
-            return real_grown(*a, **k)
-        finally:
-            grown_finished.set()
-
-    def check_after_the_grown_box(img_, cand, pts):
-        if threading.current_thread().name.startswith("physmotion-click"):
-            grown_finished.wait(120)
-            time.sleep(0.05)  # past the point where the grown box's thread says it is done
-        return real_check(img_, cand, pts)
-
-    recuts.clear()
-    monkeypatch.setattr(C, "_grown_click", grown_first)
-    monkeypatch.setattr(C, "_clean_and_check", check_after_the_grown_box)
-    late = C.grabcut(img, points=[(100, 100)])
-    assert recuts == ["MainThread"]
-    assert np.array_equal(early, late) and (early & disk).sum() / (early | disk).sum() > 0.97
+            monkeypatch.setattr(C, "_grow_pass", grow_pass)
+            monkeypatch.setattr(C, "_click_recut", recut)
+            monkeypatch.setattr(C, "CLICK_THREADS", 1 if mode == "one" else 2)
+            masks[mode] = C.grabcut(img, points=[click])
+            cuts[mode] = (calls["grow"], calls["recut"])
+        monkeypatch.setattr(C, "_grow_pass", real_pass)
+        assert np.array_equal(masks["one"], masks["two"]), name
+        assert np.array_equal(masks["one"], masks["wrong"]), name
+        one = [b for b, _, _ in cuts["one"][0]]
+        assert cuts["one"][1] == 1  # one at a time: only the winner is re-cut
+        # one at a time runs the chain of ``_grown_click`` once, in order; the others run at least that chain
+        chain_boxes = []
+        monkeypatch.setattr(C, "_grow_pass", lambda *a, **k: chain_boxes.append(tuple(a[5])) or real_pass(*a, **k))
+        C._grown_click(img, np.array([click], float), np.array([1]), 5, C.CLICK_SEARCH_MAX_SIDE)
+        monkeypatch.setattr(C, "_grow_pass", real_pass)
+        assert one == chain_boxes, name
+        for mode in ("two", "wrong"):
+            assert set(one) <= {b for b, _, _ in cuts[mode][0]}, (name, mode)
+        if name == "L":  # its box grows five times: the passes were guessed ahead ...
+            two = sorted((c for c in cuts["two"][0] if c[0] in one), key=lambda c: one.index(c[0]))
+            assert any(nxt[1] < cur[2] for cur, nxt in zip(two, two[1:]))
+            # ... and the wrong guesses ran and were thrown away
+            assert {b for b, _, _ in cuts["wrong"][0]} - set(one)
 
 
 def _big_flower(H=900, W=1200, seed=5):
@@ -657,9 +675,10 @@ def torch_equal(a, b):
 
 
 def test_cancel_during_a_click_stops_both_of_its_threads(monkeypatch):
-    """A click cuts on two threads; a progress callback that raises (ComfyUI's Cancel) stops the calling
-    thread at once and the second one before its next GrabCut iteration: the error comes out, no thread of
-    the click is left running, and at most the one iteration already under way on the second thread runs."""
+    """A click cuts on two worker threads while the calling thread reports each iteration; a progress
+    callback that raises (ComfyUI's Cancel) stops them before their next GrabCut iteration: the error comes
+    out, no thread of the click is left running, and no GrabCut iteration starts after the callback raised
+    (the workers wait while it runs)."""
     import threading
 
     from physmotion_core.segment import classic as C
@@ -685,8 +704,8 @@ def test_cancel_during_a_click_stops_both_of_its_threads(monkeypatch):
     with pytest.raises(Stop):
         segment(img, points=[(160, 150)], progress=cancel)
     assert state["raised"] is not None
-    after = starts[state["raised"]:]
-    assert len(after) <= 1 and all(n.startswith("physmotion-click") for n in after)
+    assert starts[state["raised"]:] == []
+    assert starts and all(n.startswith("physmotion-click") for n in starts)
     assert not [t for t in threading.enumerate() if t.name.startswith("physmotion-click")]
     # and the same click without Cancel needs many more
     starts.clear()

@@ -95,10 +95,6 @@ class _CutProgress:
         report(self.progress, self.done, self.total)
         self.done = min(self.done + 1, self.total - 1)
 
-    def skip_to(self, done: int) -> None:
-        """Fewer iterations than estimated were needed for a stage: jump to where its end was expected."""
-        self.done = max(self.done, min(int(done), self.total - 1))
-
 
 @dataclass
 class Segmentation:
@@ -630,7 +626,7 @@ def _paint_seeds(gc: np.ndarray, fg_pts: np.ndarray, bg_pts: np.ndarray, radius:
 
 def grabcut(image, *, box=None, init_mask=None, points=None, point_labels=None, iters: int = 5,
             max_side: Optional[int] = None, progress=None, _click: str = "choose", _tight: bool = True,
-            _window: bool = True, _ticker: Optional[_CutProgress] = None, _until=None) -> np.ndarray:
+            _window: bool = True, _until=None) -> np.ndarray:
     """GrabCut foreground (bool (H,W)) of an image, seeded by a box, a rough mask and/or clicks.
 
     - ``box`` (x0, y0, x1, y1): everything outside it is certainly background, and GrabCut learns
@@ -657,16 +653,17 @@ def grabcut(image, *, box=None, init_mask=None, points=None, point_labels=None, 
     click = _click == "choose" and box is None and init_mask is None and bool((labels == 1).any())
     if progress is not None:
         # the iterations of one cut (with the tightness prior's and a coarse to fine cut's), and for a
-        # click the growing box's passes before it (``_click_prompted``)
-        n = int(iters) + 2 * max(1, int(iters) // 2) + REFINE_ITERS + (GROW_PASSES * int(iters) if click else 0)
+        # click its search before it (``_click_prompted``: the growing box's passes, and the whole-image
+        # candidate's point pass and cut)
+        n = int(iters) + 2 * max(1, int(iters) // 2) + REFINE_ITERS + ((GROW_PASSES + 2) * int(iters) if click else 0)
         ticker = _CutProgress(progress, n + 1)
         with _ticking(ticker):
             m = grabcut(img, box=box, init_mask=init_mask, points=points, point_labels=point_labels, iters=iters,
-                        max_side=max_side, _click=_click, _tight=_tight, _window=_window, _ticker=ticker)
+                        max_side=max_side, _click=_click, _tight=_tight, _window=_window)
         report(progress, ticker.total, ticker.total)
         return m
     if click:
-        return _click_prompted(img, pts, labels, int(iters), max_side, _ticker)
+        return _click_prompted(img, pts, labels, int(iters), max_side)
     if box is not None and init_mask is None and _window:
         window = _box_window(_check_box(box, W, H), W, H)
         if window is not None:
@@ -761,117 +758,260 @@ GROW_DECIDE = 3
 CLICK_RECUT_GROW = 0.04
 
 
-def _grown_click(img: np.ndarray, pts: np.ndarray, labels: np.ndarray, iters: int, max_side) -> np.ndarray:
-    """A click's object by a box grown from the click: GrabCut in a box around the clicks; while the
-    clicked part reaches a side of its box (not the image's border), that side moves out and GrabCut
-    runs again. It finds a compact object (a cell, a rocket on a dark sky, a cup) that the whole-image
-    pass merges with its surroundings, but collapses onto the clicked colour where the object's own
-    colours surround it (a suit, a coat): ``_click_prompted`` chooses between the two."""
-    H, W = img.shape[:2]
+def _grow_start_box(pts: np.ndarray, labels: np.ndarray, W: int, H: int) -> tuple[float, float, float, float]:
+    """The first box of a click's growing box: the clicks grown by GROW_START of the long side."""
     S = float(max(H, W))
     fg = pts[labels == 1]
     x0, y0 = fg.min(0) - GROW_START * S
     x1, y1 = fg.max(0) + GROW_START * S
-    box = [max(0.0, x0), max(0.0, y0), min(float(W), x1 + 1), min(float(H), y1 + 1)]
+    return (max(0.0, float(x0)), max(0.0, float(y0)), min(float(W), float(x1) + 1), min(float(H), float(y1) + 1))
 
-    def reach_of(m: np.ndarray):
-        """The clicked part of ``m`` and which sides of the box (left, top, right, bottom) it reaches."""
-        n, cc = cv2.connectedComponents(m.astype(np.uint8), connectivity=8)
-        ids = sorted({int(cc[int(y), int(x)]) for x, y in fg} - {0})
-        comp = np.isin(cc, ids) if ids else m
-        if not comp.any():
-            return comp, None
-        bx0, by0, bx1, by1 = mask_box(comp)
-        tol = 3
-        return comp, (bx0 <= box[0] + tol and box[0] > 0, by0 <= box[1] + tol and box[1] > 0,
-                      bx1 >= box[2] - tol and box[2] < W, by1 >= box[3] - tol and box[3] < H)
 
-    comp = None
-    for _ in range(GROW_PASSES):
-        # A pass that is going to grow stops as soon as GROW_DECIDE iterations in a row reach the same
-        # sides: only its answer is used. A pass that reaches no side runs all its iterations,
-        # so the mask the chain ends on is the full cut.
-        seen: list = []
+def _reach(m: np.ndarray, box, fg: np.ndarray, W: int, H: int):
+    """The clicked part of ``m`` and which sides of ``box`` (left, top, right, bottom; not the image's
+    border) it reaches, or None for the sides when no click is on ``m``."""
+    n, cc = cv2.connectedComponents(m.astype(np.uint8), connectivity=8)
+    ids = sorted({int(cc[int(y), int(x)]) for x, y in fg} - {0})
+    comp = np.isin(cc, ids) if ids else m
+    if not comp.any():
+        return comp, None
+    bx0, by0, bx1, by1 = mask_box(comp)
+    tol = 3
+    return comp, (bx0 <= box[0] + tol and box[0] > 0, by0 <= box[1] + tol and box[1] > 0,
+                  bx1 >= box[2] - tol and box[2] < W, by1 >= box[3] - tol and box[3] < H)
 
-        def decided(m: np.ndarray, i: int) -> bool:
-            seen.append(reach_of(m)[1])
-            last = seen[-GROW_DECIDE:] if GROW_DECIDE > 0 else []
-            return (len(last) == GROW_DECIDE > 0 and last[-1] is not None and any(last[-1])
-                    and all(r == last[-1] for r in last))
 
-        # On the whole photo, not a box prompt's window (``_box_window``): a growing box starts inside
-        # the object, where a window's ring is the object's own colour and the cut collapses onto the
-        # click (the clock's click; the rocket's 0.525 -> 0.460).
-        m = grabcut(img, box=[int(round(b)) for b in box], points=pts, point_labels=labels, iters=iters,
-                    max_side=max_side, _click="whole", _tight=False, _window=False, _until=decided)
-        comp, reach = reach_of(m)
-        if reach is None:
+def _grow_box(box, reach, W: int, H: int) -> tuple[float, float, float, float]:
+    """The next box of a click's growing box: each side the clicked part reached moves out by
+    GROW_FACTOR of the box's size."""
+    bw, bh = box[2] - box[0], box[3] - box[1]
+    return (max(0.0, box[0] - GROW_FACTOR * bw) if reach[0] else box[0],
+            max(0.0, box[1] - GROW_FACTOR * bh) if reach[1] else box[1],
+            min(float(W), box[2] + GROW_FACTOR * bw) if reach[2] else box[2],
+            min(float(H), box[3] + GROW_FACTOR * bh) if reach[3] else box[3])
+
+
+def _grow_pass(img: np.ndarray, pts: np.ndarray, labels: np.ndarray, iters: int, max_side, box, on_reach=None):
+    """One pass of a click's growing box: GrabCut with ``box`` as its box and the clicks, on the whole
+    photo; returns ``_reach`` of the result. A pass that is going to grow stops as soon as GROW_DECIDE
+    iterations in a row reach the same sides (only that answer is used); a pass that reaches no side runs
+    all its iterations, so the mask a chain ends on is the full cut. ``on_reach(sides)`` is told the sides
+    after each iteration but the last (what ``_click_prompted`` guesses the next box from)."""
+    H, W = img.shape[:2]
+    fg = pts[labels == 1]
+    seen: list = []
+
+    def decided(m: np.ndarray, i: int) -> bool:
+        r = _reach(m, box, fg, W, H)[1]
+        seen.append(r)
+        if on_reach is not None:
+            on_reach(r)
+        last = seen[-GROW_DECIDE:] if GROW_DECIDE > 0 else []
+        return (len(last) == GROW_DECIDE > 0 and last[-1] is not None and any(last[-1])
+                and all(r == last[-1] for r in last))
+
+    # On the whole photo, not a box prompt's window (``_box_window``): a growing box starts inside the
+    # object, where a window's ring is the object's own colour and the cut collapses onto the click (the
+    # clock's click; the rocket's 0.525 -> 0.460).
+    m = grabcut(img, box=[int(round(b)) for b in box], points=pts, point_labels=labels, iters=iters,
+                max_side=max_side, _click="whole", _tight=False, _window=False, _until=decided)
+    return _reach(m, box, fg, W, H)
+
+
+def _grow_ends(reach, depth: int) -> bool:
+    """Whether the chain of growing passes ends at the pass ``depth`` (from 0) that reached ``reach``."""
+    return reach is None or not any(reach) or depth >= GROW_PASSES - 1
+
+
+def _grown_click(img: np.ndarray, pts: np.ndarray, labels: np.ndarray, iters: int, max_side) -> np.ndarray:
+    """A click's object by a box grown from the click: GrabCut in a box around the clicks; while the
+    clicked part reaches a side of its box (not the image's border), that side moves out and GrabCut
+    runs again (``_grow_pass``). It finds a compact object (a cell, a rocket on a dark sky, a cup) that the
+    whole-image pass merges with its surroundings, but collapses onto the clicked colour where the object's
+    own colours surround it (a suit, a coat): ``_click_prompted`` chooses between the two. This is the
+    chain one pass after the other; ``_click_prompted`` runs the same passes, some ahead of time."""
+    H, W = img.shape[:2]
+    box = _grow_start_box(pts, labels, W, H)
+    for depth in range(GROW_PASSES):
+        comp, reach = _grow_pass(img, pts, labels, iters, max_side, box)
+        if _grow_ends(reach, depth):
             return comp
-        if not any(reach):
-            break
-        bw, bh = box[2] - box[0], box[3] - box[1]
-        box = [max(0.0, box[0] - GROW_FACTOR * bw) if reach[0] else box[0],
-               max(0.0, box[1] - GROW_FACTOR * bh) if reach[1] else box[1],
-               min(float(W), box[2] + GROW_FACTOR * bw) if reach[2] else box[2],
-               min(float(H), box[3] + GROW_FACTOR * bh) if reach[3] else box[3]]
+        box = _grow_box(box, reach, W, H)
     return comp
 
 
-def _click_prompted(img: np.ndarray, pts: np.ndarray, labels: np.ndarray, iters: int, max_side,
-                    ticker: Optional[_CutProgress] = None) -> np.ndarray:
+#: How many of a click's GrabCut cuts run at once (``_click_prompted``): 2 uses both cores of a small
+#: machine; 1 runs them one after the other. The mask is the same either way.
+CLICK_THREADS = 2
+
+
+class _ClickJob:
+    """One cut of a click's search on a worker thread: its future, whether it was called off, and (a
+    growing pass) the sides of its box its clicked part reaches so far."""
+
+    __slots__ = ("future", "cancel", "reach")
+
+    def __init__(self):
+        self.future, self.cancel, self.reach = None, False, None
+
+
+def _choose_click(img: np.ndarray, whole, grown, fg_pts: np.ndarray):
+    """The click's two candidates, each (mask, (cleaned, plausible) or None), to what wins: the larger
+    plausible one, and when neither is plausible the whole-image one. Returns (k, cleaned) with k the
+    winner's index, or (None, mask) when no candidate has a pixel left (that mask is the answer)."""
+    best, best_key, best_clean, won = whole[0], None, None, 0
+    for k, (cand, checked) in enumerate((whole, grown)):
+        if not cand.any():
+            continue
+        cleaned, ok = checked if checked is not None else _clean_and_check(img, cand, fg_pts)
+        key = (ok, float(cleaned.mean()) if ok else -k)
+        if best_key is None or key > best_key:
+            best, best_key, best_clean, won = cand, key, cleaned, k
+    if best_clean is None or not best_clean.any():
+        return None, best
+    return won, best_clean
+
+
+def _click_prompted(img: np.ndarray, pts: np.ndarray, labels: np.ndarray, iters: int, max_side) -> np.ndarray:
     """Clicks without a box: two candidates, the whole-image pass (``_point_box``) and the grown box
     (``_grown_click``), each cleaned and checked (``check.check_mask`` with the photo and the clicks);
     the larger plausible one wins (the whole-image pass errs by swallowing the surroundings, which the
     check catches; the grown box errs by shrinking onto a part, which it does not), and when neither is
     plausible the whole-image one. The winner is cut once more as a box prompt (``_click_recut``).
-    Measured on the benchmark photos (docs/quality.md)."""
+    Measured on the benchmark photos (docs/quality.md).
+
+    The cuts run on CLICK_THREADS worker threads while this thread plans and reports: first what the
+    answer needs for certain (the whole-image pass, the next growing pass, the winner's re-cut); on a
+    free thread what it probably needs: the growing pass after a running one, its box grown by the sides
+    the running pass reaches so far; a plausible candidate's re-cut before the other candidate is known.
+    A guess that turns out wrong is called off at its next GrabCut iteration. Each cut is a function of
+    its inputs only (GrabCut seeds its generator per call), so the mask is the one the chain gives one
+    cut after the other (``_grown_click``), whichever ran when. This thread's hook (``_ticking``: the
+    progress callback, ComfyUI's Cancel) is called once per GrabCut iteration of any worker, while the
+    workers wait: when it raises, no worker starts another iteration."""
     fg_pts = pts[labels == 1]
+    H, W = img.shape[:2]
     search = min(CLICK_SEARCH_MAX_SIDE, GRABCUT_MAX_SIDE if max_side is None else int(max_side))
-    grown_done, cancelled = threading.Event(), threading.Event()
+    hook = getattr(_TICK, "fn", None)  # the progress callback's ticker (``grabcut(progress=)``), if any
+    cv = threading.Condition()
+    jobs: dict = {}
+    state = {"started": 0, "stop": False}
 
-    def stop_if_cancelled() -> None:
-        if cancelled.is_set():
-            raise _Cancelled()
+    def tick(job: _ClickJob) -> None:
+        with cv:
+            if state["stop"] or job.cancel:
+                raise _Cancelled()
+            state["started"] += 1
+            cv.notify_all()
 
-    def whole_pass():
-        with _ticking(stop_if_cancelled):
-            whole = grabcut(img, points=pts, point_labels=labels, iters=iters, max_side=search, _click="whole")
-            cleaned, ok = _clean_and_check(img, whole, fg_pts) if whole.any() else (None, False)
-            # While the grown box is still growing, this thread would idle: cut the whole-image candidate
-            # again already if it is plausible (then it wins unless the grown one is plausible and larger).
-            recut = (_click_recut(img, cleaned, pts, labels, iters, max_side)
-                     if ok and cleaned.any() and not grown_done.is_set() else None)
-        return whole, cleaned, ok, recut
+    def told(job: _ClickJob, reach) -> None:
+        with cv:
+            job.reach = reach
+            cv.notify_all()
 
-    # The two candidates are independent: the whole-image pass runs on a second thread while this one
-    # grows the box (OpenCV releases the GIL inside grabCut and its RNG is per thread, and each pass
-    # seeds it, so the masks are the same as one after the other, and a re-cut is the same on either
-    # thread).
-    with ThreadPoolExecutor(1, thread_name_prefix="physmotion-click") as pool:
-        pending = pool.submit(whole_pass)
-        try:
-            grown = _grown_click(img, pts, labels, iters, search)
-        except BaseException:
-            cancelled.set()  # the second thread stops at its next GrabCut iteration
-            raise
-        finally:
-            grown_done.set()
-        if ticker is not None:
-            ticker.skip_to(GROW_PASSES * iters)
-        whole, whole_clean, whole_ok, whole_recut = pending.result()
-    best, best_key, best_clean, won = whole, None, None, 0
-    for k, cand in enumerate((whole, grown)):
-        if not cand.any():
-            continue
-        cleaned, ok = (whole_clean, whole_ok) if k == 0 else _clean_and_check(img, cand, fg_pts)
-        key = (ok, float(cleaned.mean()) if ok else -k)
-        if best_key is None or key > best_key:
-            best, best_key, best_clean, won = cand, key, cleaned, k
-    if best_clean is None or not best_clean.any():
-        return best
-    if won == 0 and whole_recut is not None:
-        return whole_recut
-    return _click_recut(img, best_clean, pts, labels, iters, max_side)
+    def whole_cut(job):
+        whole = grabcut(img, points=pts, point_labels=labels, iters=iters, max_side=search, _click="whole")
+        return whole, (_clean_and_check(img, whole, fg_pts) if whole.any() else None)
+
+    def grow_cut(job, box, depth):
+        comp, reach = _grow_pass(img, pts, labels, iters, search, box, on_reach=lambda r: told(job, r))
+        told(job, reach)
+        checked = _clean_and_check(img, comp, fg_pts) if _grow_ends(reach, depth) and comp.any() else None
+        return comp, reach, checked
+
+    def recut(job, cleaned):
+        return _click_recut(img, cleaned, pts, labels, iters, max_side)
+
+    def done(key):
+        j = jobs.get(key)
+        return j is not None and j.future.done()
+
+    def plan():
+        """(the answer or None, the cuts wanted in order: (key, function))."""
+        want, later = [], []
+        whole = jobs[("whole",)].future.result() if done(("whole",)) else None
+        if whole is None:
+            want.append((("whole",), whole_cut))
+        box, depth, grown = _grow_start_box(pts, labels, W, H), 0, None
+        while grown is None:
+            key = ("grow", box, depth)
+            if done(key):
+                comp, reach, checked = jobs[key].future.result()
+                if _grow_ends(reach, depth):
+                    grown = (comp, checked)
+                else:
+                    box, depth = _grow_box(box, reach, W, H), depth + 1
+                continue
+            want.append((key, lambda job, b=box, d=depth: grow_cut(job, b, d)))
+            j = jobs.get(key)  # the passes after it, grown by the sides it reaches so far
+            while j is not None and j.reach is not None and not _grow_ends(j.reach, depth):
+                box, depth = _grow_box(box, j.reach, W, H), depth + 1
+                key = ("grow", box, depth)
+                if not done(key):
+                    later.append((key, lambda job, b=box, d=depth: grow_cut(job, b, d)))
+                j = jobs.get(key)
+            break
+        if whole is not None and grown is not None:
+            won, cleaned = _choose_click(img, whole, grown, fg_pts)
+            if won is None:
+                return cleaned, []
+            key = ("recut", won)
+            if done(key):
+                return jobs[key].future.result(), []
+            return None, [(key, lambda job, c=cleaned: recut(job, c))]
+        # guesses: a plausible candidate's re-cut, the whole-image one's before the guessed passes (it
+        # wins when plausible and larger), the grown box's after them
+        guess = [[], []]
+        for k, cand in ((0, whole), (1, grown)):
+            if cand is not None and cand[1] is not None and cand[1][1] and cand[1][0].any() \
+                    and not done(("recut", k)):
+                guess[k].append((("recut", k), lambda job, c=cand[1][0]: recut(job, c)))
+        return None, want + guess[0] + later + guess[1]
+
+    def run(job: _ClickJob, fn):
+        with _ticking(lambda: tick(job)):
+            return fn(job)
+
+    def wake(_future) -> None:
+        with cv:
+            cv.notify_all()
+
+    pool = ThreadPoolExecutor(CLICK_THREADS + 2, thread_name_prefix="physmotion-click")
+    finished = False
+    try:
+        with cv:
+            reported = 0
+            while True:
+                while reported < state["started"]:
+                    reported += 1
+                    if hook is not None:
+                        try:
+                            hook()
+                        except BaseException:
+                            state["stop"] = True  # before any worker can start another iteration
+                            raise
+                answer, wanted = plan()
+                if answer is not None:
+                    break
+                first = wanted[:max(1, int(CLICK_THREADS))]
+                keys = {k for k, _ in first}
+                for key in [k for k, j in jobs.items() if not j.future.done() and k not in keys]:
+                    jobs.pop(key).cancel = True  # a guess no longer wanted, or one ranked lower now
+                for key, fn in first:
+                    if key not in jobs:
+                        job = _ClickJob()
+                        jobs[key] = job
+                        job.future = pool.submit(run, job, fn)
+                        job.future.add_done_callback(wake)
+                cv.wait(0.5)
+        finished = True
+        return answer
+    finally:
+        with cv:
+            state["stop"] = True  # every worker stops before its next GrabCut iteration
+        # after a failure or Cancel, wait for the workers (at most the iteration under way); after an
+        # answer, a guess no longer wanted finishes its iteration on its own
+        pool.shutdown(wait=not finished, cancel_futures=True)
 
 
 def _clean_and_check(img: np.ndarray, cand: np.ndarray, fg_pts: np.ndarray) -> tuple[np.ndarray, bool]:
