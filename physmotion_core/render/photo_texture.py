@@ -36,6 +36,9 @@ shows it, and reads the photo there:
 * Coverage follows the photo's matte for the seen part: alpha = s·m(uv_0) + (1 − s)·alpha_splats, and the
   photo's colour is its premultiplied foreground (the matting equation solved with the inpainted background,
   ``make_photo_texture``), so frame 0 composited over that background is the photo itself, soft edge included.
+  Well inside the splats' silhouette their own coverage is a floor (no hole where a rim turned toward the camera
+  reads the matte's edge, ``INTERIOR_PX``), except where the photo coordinate lies outside the matte
+  (``OUTSIDE_PX``): a notch narrower than the splats stays open.
 """
 
 from __future__ import annotations
@@ -74,6 +77,12 @@ UNSEEN_BLUR_CELLS = 1
 
 #: The splats' coverage is a floor from INTERIOR_PX[1] px inside their silhouette (none within INTERIOR_PX[0]).
 INTERIOR_PX = (1.5, 3.5)
+
+#: ... but only where the pixel's photo coordinate lies within OUTSIDE_PX[0] px of the photo's matte (m >= 0.5), and
+#: not at all from OUTSIDE_PX[1] px beyond it: there the splats' coverage is their own overshoot past the object's
+#: outline at rest (a notch in the outline narrower than the splats, the gap under a horse's jaw or between its
+#: legs, comes out filled in the splat render), which the photo says is background, frame 0 included.
+OUTSIDE_PX = (1.5, 3.0)
 
 #: Largest photo-coordinate error (px) accepted from reading a frame's motion back to rest as one rigid map.
 ONE_MAP_TOLERANCE_PX = 0.01
@@ -249,6 +258,37 @@ def _texture_planes(texture: PhotoTexture) -> np.ndarray:
     return planes
 
 
+def _outside_px(texture: PhotoTexture) -> torch.Tensor:
+    """(H,W) float32: each photo pixel's distance (px) to the nearest pixel of the object (matte >= 0.5), 0 on it
+    (made once per texture)."""
+    out = texture.__dict__.get("_outside")
+    if out is None:
+        import cv2
+
+        off = (texture.matte.float().cpu().numpy() < 0.5).astype(np.uint8)
+        out = torch.from_numpy(cv2.distanceTransform(off, cv2.DIST_L2, 3).astype(np.float32))
+        if not bool((off == 0).any()):
+            out.fill_(float("inf"))  # no object in the matte: everything is far outside it
+        texture.__dict__["_outside"] = out
+    return out
+
+
+def _floor_outside(dist: torch.Tensor, texture: PhotoTexture, u: torch.Tensor, v: torch.Tensor,
+                   ok: torch.Tensor) -> torch.Tensor:
+    """``dist`` (the splats' interior distance, (bh,bw)) lowered so that the coverage floor fades out where the
+    pixel's photo coordinate (u, v) lies outside the photo's matte, by OUTSIDE_PX: the floor's ramp becomes the
+    smaller of its own and the one of the distance outside."""
+    out = _outside_px(texture)
+    PH, PW = out.shape
+    shape = dist.shape
+    ix = torch.floor(u.reshape(shape)).clamp(0, PW - 1).long()
+    iy = torch.floor(v.reshape(shape)).clamp(0, PH - 1).long()
+    d = out[iy, ix]
+    near = 1.0 - ((d - OUTSIDE_PX[0]) / (OUTSIDE_PX[1] - OUTSIDE_PX[0])).clamp(0.0, 1.0)
+    cap = INTERIOR_PX[0] + (INTERIOR_PX[1] - INTERIOR_PX[0]) * near
+    return torch.where(ok.reshape(shape).bool(), torch.minimum(dist, cap.float()), dist)
+
+
 def _keys_weights(t: torch.Tensor) -> list:
     """Keys' cubic convolution weights (a = -0.75, OpenCV's bicubic) of the taps at -1, 0, 1, 2 for fractions
     ``t`` in [0, 1) (float32, in ``_warp_shade.keys``' order of operations)."""
@@ -402,6 +442,7 @@ def shade(texture: PhotoTexture, camera: Camera, rgb: torch.Tensor, alpha: torch
         from . import _warp_shade
 
         u, v, ok = _warp_shade.photo_coords(extra, depth, box, camera, pc, photo_map)
+        dist = _floor_outside(dist, texture, u, v, ok).contiguous()
         fade = _spread_fade(_warp_shade.stretch_fade(u, v, ok, box, PHOTO_STRETCH[0], PHOTO_STRETCH[1]))
         planes = _texture_planes(texture)
         pw = texture.__dict__.get("_planes_wp")
@@ -418,6 +459,7 @@ def shade(texture: PhotoTexture, camera: Camera, rgb: torch.Tensor, alpha: torch
         out_a.copy_(tmp_a)
         return out_rgb, out_a
     u, v, ok = _photo_coords(extra, depth, box, camera, pc, photo_map)
+    dist = _floor_outside(dist, texture, u, v, ok)
     ok_box = ok.reshape(y1 - y0, x1 - x0)
     u, v = u.reshape(ok_box.shape), v.reshape(ok_box.shape)
     Sb = S[y0:y1, x0:x1]
