@@ -430,8 +430,12 @@ class PhysMotionMPMSimulate:
                 shown.append(line)
             node_text(unique_id, shown)
 
+        def slow(message: str) -> None:  # a run whose first seconds say it takes minutes: on the node too
+            shown.append("warning: " + message)
+            node_text(unique_id, shown)
+
         sim = simulate(g, material, conds, settings, camera=camera, progress=progress_callback(), make_room=make_room,
-                       on_start=told)
+                       on_start=told, on_pace=slow)
         if camera is not None:
             for w in after_run(sim, camera).warnings:
                 log.warning("%s", w)

@@ -64,6 +64,20 @@ def end_line() -> None:
         bar.stream.flush()
 
 
+def duration_words(seconds: float) -> str:
+    """A run time in words: "40 s", "12 min", "3.5 h"."""
+    if seconds < 90:
+        return f"{seconds:.0f} s"
+    if seconds < 90 * 60:
+        return f"{seconds / 60:.0f} min"
+    return f"{seconds / 3600:.1f} h"
+
+
+#: The bar adds the time left once this share is done and this many seconds have passed (an estimate from the
+#: pace so far).
+ETA_AFTER = (0.01, 3.0)
+
+
 def _is_terminal(stream) -> bool:
     try:
         return bool(stream.isatty())
@@ -87,6 +101,7 @@ class TextBar:
         self._start = time.monotonic()
         self._next = 0.0  # not live: the next fraction that gets a line
         self._ended = False
+        self._drawn = 0  # live: the length of the line on the terminal now
 
     def __call__(self, done: int, total: int, preview=None) -> None:
         frac = min(max(done / max(total, 1), 0.0), 1.0)
@@ -94,6 +109,10 @@ class TextBar:
         elapsed = time.monotonic() - self._start
         line = f"{self.label:<10} [{'#' * filled}{'.' * (self.width - filled)}] {frac * 100:5.1f}% {elapsed:6.1f}s"
         end = done >= total
+        if not end and frac >= ETA_AFTER[0] and elapsed >= ETA_AFTER[1]:
+            line += f", about {duration_words(elapsed * (1.0 - frac) / frac)} left"
+        if self.live:  # blank out what a longer line before it left on the terminal
+            line, self._drawn = line + " " * max(0, self._drawn - len(line)), len(line)
         if self.live:
             if _OPEN and _OPEN[0] is not self:
                 end_line()  # another bar's line (a stage left unfinished by an error)

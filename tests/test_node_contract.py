@@ -320,3 +320,22 @@ def test_simulate_shows_its_forecast_on_the_node_before_the_wait_and_its_warning
     NODES["PhysMotionMPMSimulate"]().run(_block(), Material.preset("jelly"), 3, 24.0, "standard", 8, 8, 0.4, 1.0,
                                          "cpu", 0)
     assert len(fake_comfy.texts) == 2
+
+
+def test_simulate_puts_a_slow_runs_pace_on_the_node_while_it_runs(fake_comfy, monkeypatch):
+    """A run whose first seconds say it takes minutes says so on the node as well as in the console: a third
+    text, between the forecast and the final one, with what sets the step (thresholds set to 0 here)."""
+    import importlib
+
+    from physmotion_core.types import Material
+
+    S = importlib.import_module("physmotion_core.sim.simulate")
+    monkeypatch.setattr(S, "PACE_CHECK_S", 0.0)
+    monkeypatch.setattr(S, "PACE_WARN_S", 0.0)
+    NODES["PhysMotionMPMSimulate"]().run(_block(), Material.preset("jelly"), 4, 24.0, "standard", 8, 8, 0.4, 1.0,
+                                         "cpu", 0, unique_id="17")
+    texts = [t for _, t, _ in fake_comfy.texts]
+    assert len(texts) == 3
+    assert "At the pace so far this simulation takes about" not in texts[0]
+    assert "warning: At the pace so far this simulation takes about" in texts[1] and "carries waves at" in texts[1]
+    assert texts[2].startswith(texts[1])

@@ -13,7 +13,7 @@ import torch
 
 from ..errors import InputError
 from ..memory import device_available_bytes, host_available_bytes
-from ..progress import ProgressFn, Throttle
+from ..progress import ProgressFn, Throttle, duration_words
 from ..types.camera import Camera
 from ..types.conditions import Anchor, Conditions, InitialVelocity, ObjectContact, Torque
 from ..types.gaussians import Gaussians
@@ -48,11 +48,12 @@ def _as_materials(material, n_objects: int) -> list[Material]:
 
 
 def _check_cost(solver: MPMSolver, settings: SimSettings, materials: Sequence[Material], frame_dt: float,
-                peak_accel: float, peak_speed: float, load_speed: float = 0.0, start_speed: float = 0.0) -> None:
+                peak_accel: float, peak_speed: float, load_speed: float = 0.0, start_speed: float = 0.0) -> str:
     """Refuse, before the first substep, a run whose step would be above the stability limit or
     whose substep count per frame would exceed ``settings.max_substeps_per_frame``. ``peak_speed``: what
     anchors drive; ``load_speed``: what the forces and torques would reach (``LoadSchedule.impulse_speed``);
-    ``start_speed``: the fastest initial velocity (the solver starts from it too)."""
+    ``start_speed``: the fastest initial velocity (the solver starts from it too). Returns what sets the
+    step, in words (for ``_Pace``'s forecast)."""
     dt0, why = solver.estimate_dt(peak_accel, max(peak_speed, load_speed))
     stiff = max(materials, key=lambda m: m.wave_speed())
     speeds = {"moving at": start_speed, "driven by an anchor at": peak_speed,
@@ -77,6 +78,7 @@ def _check_cost(solver: MPMSolver, settings: SimSettings, materials: Sequence[Ma
         raise InputError(f"This run would need about {per_frame} substeps per frame (step {step:.3g} s), more than "
                          f"max_substeps_per_frame={settings.max_substeps_per_frame}: {cause} on a grid of "
                          f"dx={solver.domain.dx:.3g} m. {fix}, or raise max_substeps_per_frame if you mean to wait.")
+    return f"{cause} on a grid of dx={solver.domain.dx:.3g} m"
 
 
 def _object_ids(gaussians: Gaussians) -> tuple[np.ndarray, np.ndarray]:
@@ -274,6 +276,59 @@ class _Recorder:
             self.energy[key].append(self.energy[key][-1])
 
 
+#: Progress steps per frame: the bar moves within a frame too (a stiff material's frame can take minutes).
+PROGRESS_PER_FRAME = 100
+#: Substeps run in launches of about this many seconds (``MPMSolver.advance``): progress and Cancel between them.
+LAUNCH_SECONDS = 0.2
+#: After this many seconds of stepping the run's pace is known well enough to forecast its length; a forecast of
+#: PACE_WARN_S or more is said once (a warning: what sets the step and what makes it quicker).
+PACE_CHECK_S = 3.0
+PACE_WARN_S = 120.0
+
+
+class _Pace:
+    """The frame loop's progress as a fraction of the simulated time (``PROGRESS_PER_FRAME`` steps per frame),
+    and once, after PACE_CHECK_S s of stepping, a forecast of how long the whole run takes at the pace so far:
+    a warning when it is PACE_WARN_S or more, with what sets the step (``cause``) and what makes it quicker."""
+
+    def __init__(self, solver: MPMSolver, frames: int, frame_dt: float, tick: Throttle, cause: str = "",
+                 on_pace: Optional[Callable[[str], None]] = None):
+        self.solver, self.frames, self.frame_dt, self.tick, self.cause = solver, frames, frame_dt, tick, cause
+        self.on_pace = on_pace
+        self.total = max(1, (frames - 1) * PROGRESS_PER_FRAME)
+        self.t0, self.sim_t0 = time.perf_counter(), float(solver.t)
+        self.steps0 = int(solver.substeps)
+        self.forecast_s: Optional[float] = None
+
+    def __call__(self, k: int) -> None:
+        """During frame ``k`` (from 1): report where the solver's clock is, and forecast once."""
+        t = float(self.solver.t)
+        within = min(max((t - (k - 1) * self.frame_dt) / self.frame_dt, 0.0), 1.0)
+        self.tick(min((k - 1) * PROGRESS_PER_FRAME + int(within * PROGRESS_PER_FRAME + 1e-6), self.total), self.total)
+        if self.forecast_s is None:
+            self._forecast(t)
+
+    def _forecast(self, t: float) -> None:
+        wall = time.perf_counter() - self.t0
+        done = t - self.sim_t0
+        if wall < PACE_CHECK_S or done <= 0.0:
+            return
+        end = (self.frames - 1) * self.frame_dt
+        self.forecast_s = wall * (end - self.sim_t0) / done
+        if self.forecast_s < PACE_WARN_S:
+            return
+        steps = int(self.solver.substeps) - self.steps0
+        dt = done / max(steps, 1)
+        msg = (f"At the pace so far this simulation takes about {duration_words(self.forecast_s)} ({wall:.1f} s for "
+               f"{done:.3g} s of {end - self.sim_t0:.3g} s simulated, in steps of {dt:.2g} s"
+               f"{': ' + self.cause if self.cause else ''}). For a quicker run: a coarser grid (quality draft, or a "
+               "lower grid_res), a softer material (lower E), a larger object height (the steps grow with the grid's "
+               "cells), or fewer frames.")
+        log.warning("%s", msg)
+        if self.on_pace is not None:
+            self.on_pace(msg)
+
+
 def _advance_frame(solver: MPMSolver, schedule: LoadSchedule, state: dict, t_frame: float, k: int,
                    progress: Callable[[], None]) -> None:
     """Substeps up to ``t_frame``, handing the solver each change of the active loads."""
@@ -286,19 +341,23 @@ def _advance_frame(solver: MPMSolver, schedule: LoadSchedule, state: dict, t_fra
         # Substeps run on the device up to the frame's end or the next change of the forces; the
         # step is chosen there from the CFL limits (MPMSolver.advance). Between launches (a fraction
         # of a second each) the progress callback lets Cancel act mid-frame.
-        solver.advance(min(t_frame, schedule.next_edge(solver.t)), frame=k, progress=progress)
+        solver.advance(min(t_frame, schedule.next_edge(solver.t)), frame=k, progress=progress,
+                       launch_seconds=LAUNCH_SECONDS)
 
 
 def run_frames(solver: MPMSolver, schedule: LoadSchedule, settings: SimSettings, recorded: np.ndarray,
-               x0: np.ndarray, progress: Optional[ProgressFn]) -> tuple[_Recorder, Optional[int], float]:
+               x0: np.ndarray, progress: Optional[ProgressFn], cause: str = "",
+               on_pace: Optional[Callable[[str], None]] = None) -> tuple[_Recorder, Optional[int], float]:
     """The frame loop: frames at t = k / fps; once the scene is at rest (REST_FRAMES still frames
-    with no load still to come) later frames repeat its state. Returns the recording, the frame the
-    rest began (or None) and the seconds the loop took."""
+    with no load still to come) later frames repeat its state. Progress goes by the simulated time
+    (``_Pace``, which also forecasts a long run once; ``cause``: what sets the step). Returns the recording, the
+    frame the rest began (or None) and the seconds the loop took."""
     frames = settings.frames
     frame_dt = 1.0 / settings.fps
     rec = _Recorder(solver, frames, recorded, x0)
     tick = Throttle(progress, 0.2)
-    tick(0, frames - 1)
+    pace = _Pace(solver, frames, frame_dt, tick, cause, on_pace)
+    tick(0, pace.total)
     state = {"active": None}
     still_frames = 0
     rest_from = None
@@ -307,16 +366,16 @@ def run_frames(solver: MPMSolver, schedule: LoadSchedule, settings: SimSettings,
     for k in range(1, frames):
         if rest_from is not None:
             rec.repeat(k)
-            tick(k, frames - 1)
+            tick(k * PROGRESS_PER_FRAME, pace.total)
             continue
-        _advance_frame(solver, schedule, state, k * frame_dt, k, lambda: tick(k - 1, frames - 1))
+        _advance_frame(solver, schedule, state, k * frame_dt, k, lambda: pace(k))
         still = settings.rest_speed > 0 and solver.frame_rms < settings.rest_speed
         still_frames = still_frames + 1 if still and not schedule.pending(solver.t) else 0
         if still_frames >= REST_FRAMES:
             rest_from = k  # at rest: later frames repeat this state without substepping
             log.info("scene at rest from frame %d (RMS speed %.2g m/s): substepping stops", k, solver.frame_rms)
         rec.record(k)
-        tick(k, frames - 1)
+        tick(k * PROGRESS_PER_FRAME, pace.total)
     return rec, rest_from, time.perf_counter() - t_loop
 
 
@@ -331,6 +390,7 @@ def simulate(
     record_all: bool = False,
     make_room: Optional[Callable[[int, str], None]] = None,
     on_start: Optional[Callable] = None,
+    on_pace: Optional[Callable[[str], None]] = None,
 ) -> SimResult:
     """Simulate the object(s) the Gaussians describe and return their trajectory.
 
@@ -342,7 +402,8 @@ def simulate(
     called on CUDA with the device memory the run needs before it checks that it fits (ComfyUI's
     nodes free cached models there). ``on_start(facts)`` is called once the objects are filled and
     weighed, before the first substep, with a ``feedback.BodyFacts`` (particle positions and masses):
-    what the user is told before the wait.
+    what the user is told before the wait. ``on_pace(message)`` is called (besides a logged warning) when the
+    pace of the first seconds says the run takes minutes or more (``_Pace``).
 
     The steps: fill the objects with particles (``fill_objects``), check the run fits in memory
     (``check_memory``), turn the Conditions into per-particle arrays (``initial_state``) and a
@@ -381,14 +442,15 @@ def simulate(
                        threads=settings.cpu_threads, objects=parts.particle_object, object_contact=object_contact)
     schedule = LoadSchedule.compile(conditions, x0, solver.mass_np, init.torque_mask, init.anchor_sel, region)
     frame_dt = 1.0 / settings.fps
-    _check_cost(solver, settings, materials, frame_dt, schedule.peak_accel(solver.mass_np),
+    cause = _check_cost(solver, settings, materials, frame_dt, schedule.peak_accel(solver.mass_np),
                 schedule.peak_anchor_speed(), schedule.impulse_speed(x0, solver.mass_np),
                 float(np.linalg.norm(np.asarray(init.v0), axis=1).max()) if init.v0 is not None and len(x0) else 0.0)
     solver.set_limits(max_dt=min(frame_dt / settings.min_substeps, settings.fixed_dt or math.inf),
                       max_frame_substeps=settings.max_substeps_per_frame)
     plan = preload_plan(settings, conditions, parts, materials, init, res.dx)
     pre_tick = Throttle(progress, 0.2)
-    preload = solver.preload(*plan, on_step=lambda: pre_tick(0, settings.frames - 1)) if plan is not None else None
+    total = max(1, (settings.frames - 1) * PROGRESS_PER_FRAME)  # the frame loop's (``_Pace``)
+    preload = solver.preload(*plan, on_step=lambda: pre_tick(0, total)) if plan is not None else None
     if preload is not None and preload["applied"]:
         log.info("preload: the bodies settled under gravity in %d substeps (%.2f s, %.1f periods, sag %.3g m)",
                  preload["substeps"], preload["seconds"], preload["periods"], preload["sag"])
@@ -405,7 +467,7 @@ def simulate(
 
         on_start(BodyFacts(x0, solver.mass_np.astype(np.float64), float(res.dx), len(objects) == 1))
 
-    rec, rest_from, loop_s = run_frames(solver, schedule, settings, recorded, x0, progress)
+    rec, rest_from, loop_s = run_frames(solver, schedule, settings, recorded, x0, progress, cause, on_pace)
     wall = time.perf_counter() - t_start
     stats = _run_stats(solver, settings, res, domain, len(objects), rest_from, wall, loop_s, rec.energy)
     stats["preload"] = preload
