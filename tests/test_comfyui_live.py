@@ -97,7 +97,8 @@ def test_api_workflow_runs_on_comfyui_and_its_video_moves(comfy_server, path, tm
     # The websocket reported the simulation's progress.
     sim = [nid for nid, n in prompt.items() if n["class_type"] == "PhysMotionMPMSimulate"]
     progress = [d for k, d in events if k == "progress" and d.get("node") in sim]
-    assert progress and all(d["max"] == 5 and 0 <= d["value"] <= 5 for d in progress), progress[-3:]
+    # (by the simulated time: 100 steps a frame, physmotion_core.sim.simulate.PROGRESS_PER_FRAME)
+    assert progress and all(d["max"] == 500 and 0 <= d["value"] <= 500 for d in progress), progress[-3:]
 
 
 def test_previews_are_in_the_history_and_served(comfy_server, tmp_path):

@@ -202,8 +202,12 @@ def _simulate(frames, grid_res=8):
 def test_simulate_reports_progress_to_comfyui(fake_comfy):
     (sim,) = _simulate(6)
     assert sim.num_frames == 6
-    assert fake_comfy.updates and all(t == 5 for _, t in fake_comfy.updates)
-    assert fake_comfy.updates[-1] == (5, 5)
+    # by the simulated time: PROGRESS_PER_FRAME steps a frame, 5 frames after frame 0
+    import importlib
+
+    per = importlib.import_module("physmotion_core.sim.simulate").PROGRESS_PER_FRAME
+    assert fake_comfy.updates and all(t == 5 * per for _, t in fake_comfy.updates)
+    assert fake_comfy.updates[-1] == (5 * per, 5 * per)
     assert [v for v, _ in fake_comfy.updates] == sorted(v for v, _ in fake_comfy.updates)
 
 
