@@ -70,7 +70,7 @@ def test_a_run_whose_pace_says_minutes_says_so_once_with_the_cause(monkeypatch, 
     msg = said[0]
     assert "At the pace so far this simulation takes about" in msg
     assert "carries waves at" in msg and "on a grid of dx=" in msg  # what sets the step
-    assert "quality draft" in msg and "lower E" in msg and "object height" in msg
+    assert "quality draft" in msg and "lower E" in msg and "rigid material" in msg and "object height" in msg
 
 
 def test_the_forecast_scales_the_wall_time_by_the_simulated_time_left(monkeypatch, caplog):

@@ -322,8 +322,9 @@ class _Pace:
         msg = (f"At the pace so far this simulation takes about {duration_words(self.forecast_s)} ({wall:.1f} s for "
                f"{done:.3g} s of {end - self.sim_t0:.3g} s simulated, in steps of {dt:.2g} s"
                f"{': ' + self.cause if self.cause else ''}). For a quicker run: a coarser grid (quality draft, or a "
-               "lower grid_res), a softer material (lower E), a larger object height (the steps grow with the grid's "
-               "cells), or fewer frames.")
+               "lower grid_res), a softer material (lower E; or the rigid material for a body that should not bend, "
+               "whose step does not depend on E), a larger object height (the steps grow with the grid's cells), or "
+               "fewer frames.")
         log.warning("%s", msg)
         if self.on_pace is not None:
             self.on_pace(msg)
