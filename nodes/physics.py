@@ -425,7 +425,7 @@ class PhysMotionMPMSimulate:
         def told(facts) -> None:  # what the user reads before the wait: in the console and on the node
             mat = material[0] if isinstance(material, (list, tuple)) else material
             for line in forecast(conds, facts, mat, clip_s=(settings.frames - 1) / settings.fps, camera=camera,
-                                 held=held):
+                                 held=held, cfl=settings.cfl):
                 log.info("%s", line)
                 shown.append(line)
             node_text(unique_id, shown)

@@ -246,6 +246,34 @@ def thin_line(facts: BodyFacts) -> str:
             f"particles and {r ** 4:.0f}x the run time).")
 
 
+#: A run of at least this many particle-substeps is said to be long before it starts (``steps_line``): the bundled
+#: demo's 4,201 substeps of 38,157 particles (1.6e8) take about half a minute on 2 CPU cores (README), so this is
+#: several minutes there.
+LONG_RUN_WORK = 2.0e9
+#: The CFL number the simulation uses unless told (``SimSettings.cfl``).
+DEFAULT_CFL = 0.4
+
+
+def steps_line(material: Material, facts: BodyFacts, clip_s: float, cfl: float = DEFAULT_CFL,
+               start_speed: float = 0.0) -> str:
+    """A sentence before the wait when the material's wave speed on the grid makes the run long: the substeps it
+    needs (clip / (cfl dx / (c + v))), of how many particles, what sets the step, and what makes it quicker; ""
+    for a run under LONG_RUN_WORK particle-substeps (the step the run starts with: forces and speeds reached
+    later can only shorten it)."""
+    c = material.wave_speed()
+    if not (facts.dx > 0 and clip_s > 0 and c > 0 and len(facts.x)):
+        return ""
+    step = cfl * facts.dx / (c + max(0.0, start_speed))
+    steps = clip_s / step
+    if steps * len(facts.x) < LONG_RUN_WORK:
+        return ""
+    return (f"run time: this needs about {steps:,.0f} substeps of {len(facts.x):,} particles (steps of {step:.2g} s: "
+            f"{material.name} carries waves at {c:.3g} m/s on a grid of {facts.dx * 1000:.3g} mm), a long run on a "
+            f"CPU (the bundled demo's 4,201 substeps of 38,157 particles take about half a minute on 2 cores); it "
+            f"says how long once it has run a few seconds. Quicker: quality draft, a softer material (lower E; the "
+            f"rigid material for a body that should not bend), a larger object height, or fewer frames.")
+
+
 def _fmt_pa(p: float) -> str:
     return f"{p / 1000:.3g} kPa" if p >= 1000 else f"{p:.3g} Pa"
 
@@ -576,14 +604,21 @@ def _push_line(k: int, F: np.ndarray, fmag: float, dt: float, body: BodyFacts, g
 
 
 def forecast(conditions: Conditions, facts: BodyFacts, material: Material, *, clip_s: float,
-             camera: Optional[Camera] = None, held: bool = False) -> list[str]:
-    """Plain sentences: the mass and material, the separate pieces that nothing holds up, then what each
-    load will roughly do (a push on one of several pieces: on that piece)."""
+             camera: Optional[Camera] = None, held: bool = False, cfl: float = DEFAULT_CFL) -> list[str]:
+    """Plain sentences: the mass and material, a run long for its material's step (``steps_line``), the
+    separate pieces that nothing holds up, then what each load will roughly do (a push on one of several pieces:
+    on that piece)."""
     m = facts.total_mass
     g = float(np.linalg.norm(conditions.gravity()))
     ground = conditions.ground()
     lines = [f"object: {material.name}, {_fmt_mass(m)} ({len(facts.x)} particles); E = {material.E:.3g} Pa, "
              f"density {material.density:.4g} kg/m³."]
+    start = max((float(np.linalg.norm(v.velocity)) + float(np.linalg.norm(v.angular_velocity)) *
+                 float(np.ptp(facts.x, axis=0).max()) / 2 for v in conditions.of(InitialVelocity)), default=0.0) \
+        if len(facts.x) else 0.0
+    long_run = steps_line(material, facts, clip_s, cfl, start)
+    if long_run:
+        lines.append(long_run)
     if m <= 0:
         return lines
     # Standing on the ground only: a body held at the frame's edge or by an anchor hangs from it, which the

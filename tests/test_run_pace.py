@@ -124,3 +124,28 @@ def test_the_bar_says_how_long_is_left_from_its_pace(monkeypatch):
     assert last.startswith("simulate   [####") and "left" not in last
     assert last.rstrip("\n").endswith(" " * len(", about 6 min left"))
     assert P.duration_words(40) == "40 s" and P.duration_words(720) == "12 min" and P.duration_words(12600) == "3.5 h"
+
+
+def test_the_forecast_before_the_run_counts_the_substeps_the_run_takes(monkeypatch):
+    """``steps_line`` (said before the wait when a run is long): its substep count, clip / (cfl dx / c), against
+    the substeps a simulation of the same stiff block takes (within 5 %), and silent for a run under
+    LONG_RUN_WORK (the jelly block; the rigid material, whose step does not depend on E)."""
+    import re
+
+    from physmotion_core import feedback as FB
+    from physmotion_core.sim.mpm import resolve_device
+
+    settings = SimSettings(frames=3, fps=24, grid_res=10, domain_margin=2.0, rest_speed=0.0, device="cpu")
+    stiff = material_preset("rubber", E=1.0e7)
+    facts = FB.body_facts(block(), stiff, settings, Ground(0.0, "friction", 0.5), resolve_device("cpu"))
+    clip = (settings.frames - 1) / settings.fps
+    assert FB.steps_line(stiff, facts, clip) == ""  # 600-odd particles: a short run
+    monkeypatch.setattr(FB, "LONG_RUN_WORK", 1.0)
+    line = FB.steps_line(stiff, facts, clip, settings.cfl)
+    said = int(re.search(r"about ([\d,]+) substeps", line).group(1).replace(",", ""))
+    assert f"of {len(facts.x):,} particles" in line and "rubber carries waves at" in line
+    res = S.simulate(block(), stiff, Conditions([Ground(0.0, "friction", 0.5)]), settings)
+    assert said == pytest.approx(res.stats["substeps"], rel=0.05), (said, res.stats["substeps"])
+    assert FB.steps_line(material_preset("rigid"), facts, clip) == ""
+    lines = FB.forecast(Conditions([Ground(0.0, "friction", 0.5)]), facts, stiff, clip_s=clip)
+    assert lines[1] == line  # right after the mass and material
