@@ -27,6 +27,7 @@ import torch
 from .types.camera import Camera
 from .types.conditions import Anchor, Conditions, Force, Ground, InitialVelocity, Torque
 from .types.material import Material
+from .types.settings import SimSettings
 
 #: Below this many pixels of largest motion in the input view, "nothing moved" is reported.
 STILL_PX = 1.0
@@ -250,28 +251,34 @@ def thin_line(facts: BodyFacts) -> str:
 #: demo's 4,201 substeps of 38,157 particles (1.6e8) take about half a minute on 2 CPU cores (README), so this is
 #: several minutes there.
 LONG_RUN_WORK = 2.0e9
-#: The CFL number the simulation uses unless told (``SimSettings.cfl``).
-DEFAULT_CFL = 0.4
+#: What makes a long run quicker: said before it (``steps_line``) and when its pace says so (``sim.simulate._Pace``).
+QUICKER_RUN = ("a coarser grid (quality draft, or a lower grid_res), a softer material (lower E; or the rigid material "
+               "for a body that should not bend, whose step does not depend on E), a larger object height (the steps "
+               "grow with the grid's cells), or fewer frames")
 
 
-def steps_line(material: Material, facts: BodyFacts, clip_s: float, cfl: float = DEFAULT_CFL,
-               start_speed: float = 0.0) -> str:
+def steps_line(material: Material, facts: BodyFacts, clip_s: float, cfl: float = SimSettings.cfl,
+               conditions: Optional[Conditions] = None) -> str:
     """A sentence before the wait when the material's wave speed on the grid makes the run long: the substeps it
-    needs (clip / (cfl dx / (c + v))), of how many particles, what sets the step, and what makes it quicker; ""
-    for a run under LONG_RUN_WORK particle-substeps (the step the run starts with: forces and speeds reached
-    later can only shorten it)."""
+    needs (clip / (cfl dx / (c + v)), v the fastest start of ``conditions``' throws: their speed plus their spin
+    at half the object's extent), of how many particles, what sets the step, and what makes it quicker; "" for a
+    run under LONG_RUN_WORK particle-substeps (the step the run starts with: forces and speeds reached later can
+    only shorten it)."""
     c = material.wave_speed()
     if not (facts.dx > 0 and clip_s > 0 and c > 0 and len(facts.x)):
         return ""
-    step = cfl * facts.dx / (c + max(0.0, start_speed))
+    half = float(np.ptp(facts.x, axis=0).max()) / 2
+    throws = conditions.of(InitialVelocity) if conditions is not None else []
+    v = max((float(np.linalg.norm(t.velocity)) + float(np.linalg.norm(t.angular_velocity)) * half for t in throws),
+            default=0.0)
+    step = cfl * facts.dx / (c + v)
     steps = clip_s / step
     if steps * len(facts.x) < LONG_RUN_WORK:
         return ""
     return (f"run time: this needs about {steps:,.0f} substeps of {len(facts.x):,} particles (steps of {step:.2g} s: "
             f"{material.name} carries waves at {c:.3g} m/s on a grid of {facts.dx * 1000:.3g} mm), a long run on a "
             f"CPU (the bundled demo's 4,201 substeps of 38,157 particles take about half a minute on 2 cores); it "
-            f"says how long once it has run a few seconds. Quicker: quality draft, a softer material (lower E; the "
-            f"rigid material for a body that should not bend), a larger object height, or fewer frames.")
+            f"says how long once it has run a few seconds. Quicker: {QUICKER_RUN}.")
 
 
 def _fmt_pa(p: float) -> str:
@@ -604,7 +611,7 @@ def _push_line(k: int, F: np.ndarray, fmag: float, dt: float, body: BodyFacts, g
 
 
 def forecast(conditions: Conditions, facts: BodyFacts, material: Material, *, clip_s: float,
-             camera: Optional[Camera] = None, held: bool = False, cfl: float = DEFAULT_CFL) -> list[str]:
+             camera: Optional[Camera] = None, held: bool = False, cfl: float = SimSettings.cfl) -> list[str]:
     """Plain sentences: the mass and material, a run long for its material's step (``steps_line``), the
     separate pieces that nothing holds up, then what each load will roughly do (a push on one of several pieces:
     on that piece)."""
@@ -613,10 +620,7 @@ def forecast(conditions: Conditions, facts: BodyFacts, material: Material, *, cl
     ground = conditions.ground()
     lines = [f"object: {material.name}, {_fmt_mass(m)} ({len(facts.x)} particles); E = {material.E:.3g} Pa, "
              f"density {material.density:.4g} kg/m³."]
-    start = max((float(np.linalg.norm(v.velocity)) + float(np.linalg.norm(v.angular_velocity)) *
-                 float(np.ptp(facts.x, axis=0).max()) / 2 for v in conditions.of(InitialVelocity)), default=0.0) \
-        if len(facts.x) else 0.0
-    long_run = steps_line(material, facts, clip_s, cfl, start)
+    long_run = steps_line(material, facts, clip_s, cfl, conditions)
     if long_run:
         lines.append(long_run)
     if m <= 0:

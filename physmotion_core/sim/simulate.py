@@ -286,6 +286,11 @@ PACE_CHECK_S = 3.0
 PACE_WARN_S = 120.0
 
 
+def progress_total(frames: int) -> int:
+    """The progress total of a simulation of ``frames`` frames (PROGRESS_PER_FRAME steps per frame after frame 0)."""
+    return max(1, (frames - 1) * PROGRESS_PER_FRAME)
+
+
 class _Pace:
     """The frame loop's progress as a fraction of the simulated time (``PROGRESS_PER_FRAME`` steps per frame),
     and once, after PACE_CHECK_S s of stepping, a forecast of how long the whole run takes at the pace so far:
@@ -295,7 +300,7 @@ class _Pace:
                  on_pace: Optional[Callable[[str], None]] = None):
         self.solver, self.frames, self.frame_dt, self.tick, self.cause = solver, frames, frame_dt, tick, cause
         self.on_pace = on_pace
-        self.total = max(1, (frames - 1) * PROGRESS_PER_FRAME)
+        self.total = progress_total(frames)
         self.t0, self.sim_t0 = time.perf_counter(), float(solver.t)
         self.steps0 = int(solver.substeps)
         self.forecast_s: Optional[float] = None
@@ -319,12 +324,11 @@ class _Pace:
             return
         steps = int(self.solver.substeps) - self.steps0
         dt = done / max(steps, 1)
+        from ..feedback import QUICKER_RUN
+
         msg = (f"At the pace so far this simulation takes about {duration_words(self.forecast_s)} ({wall:.1f} s for "
                f"{done:.3g} s of {end - self.sim_t0:.3g} s simulated, in steps of {dt:.2g} s"
-               f"{': ' + self.cause if self.cause else ''}). For a quicker run: a coarser grid (quality draft, or a "
-               "lower grid_res), a softer material (lower E; or the rigid material for a body that should not bend, "
-               "whose step does not depend on E), a larger object height (the steps grow with the grid's cells), or "
-               "fewer frames.")
+               f"{': ' + self.cause if self.cause else ''}). For a quicker run: {QUICKER_RUN}.")
         log.warning("%s", msg)
         if self.on_pace is not None:
             self.on_pace(msg)
@@ -450,8 +454,8 @@ def simulate(
                       max_frame_substeps=settings.max_substeps_per_frame)
     plan = preload_plan(settings, conditions, parts, materials, init, res.dx)
     pre_tick = Throttle(progress, 0.2)
-    total = max(1, (settings.frames - 1) * PROGRESS_PER_FRAME)  # the frame loop's (``_Pace``)
-    preload = solver.preload(*plan, on_step=lambda: pre_tick(0, total)) if plan is not None else None
+    preload = (solver.preload(*plan, on_step=lambda: pre_tick(0, progress_total(settings.frames)))
+               if plan is not None else None)
     if preload is not None and preload["applied"]:
         log.info("preload: the bodies settled under gravity in %d substeps (%.2f s, %.1f periods, sag %.3g m)",
                  preload["substeps"], preload["seconds"], preload["periods"], preload["sag"])
