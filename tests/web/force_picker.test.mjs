@@ -6,7 +6,7 @@
 // creates no timer, redraws when the node's widgets, its links or the rest of the graph change or its
 // canvas resizes (and not when nothing changed), and lets go of everything when the node is removed.
 import assert from "node:assert/strict";
-import { mkdtempSync, readFileSync, writeFileSync } from "node:fs";
+import { mkdtempSync, readFileSync, rmSync, writeFileSync } from "node:fs";
 import { tmpdir } from "node:os";
 import path from "node:path";
 import { test } from "node:test";
@@ -116,7 +116,12 @@ async function loadPicker(fakes) {
     src = src.replace(from, to);
   }
   writeFileSync(path.join(dir, "force_picker.mjs"), src);
-  await import(pathToFileURL(path.join(dir, "force_picker.mjs")).href);
+  try {
+    await import(pathToFileURL(path.join(dir, "force_picker.mjs")).href);
+  } finally {
+    // The module stays loaded; its copy on disk is not needed any more.
+    rmSync(dir, { recursive: true, force: true });
+  }
   assert.equal(fakes.app.extensions.length, 1, "the file registers one extension");
   return fakes.app.extensions[0];
 }

@@ -6,7 +6,7 @@
 // widgets (clicks, Shift-clicks, drags, clicks on a point, the clear button, the SAM node's format),
 // that the picker redraws from widgets changed by hand, and that removal lets go of everything.
 import assert from "node:assert/strict";
-import { mkdtempSync, readFileSync, writeFileSync } from "node:fs";
+import { mkdtempSync, readFileSync, rmSync, writeFileSync } from "node:fs";
 import { tmpdir } from "node:os";
 import path from "node:path";
 import { test } from "node:test";
@@ -109,7 +109,12 @@ async function loadExtension(fakes) {
     src = src.replace(from, to);
   }
   writeFileSync(path.join(dir, "segment_picker.mjs"), src);
-  await import(pathToFileURL(path.join(dir, "segment_picker.mjs")).href);
+  try {
+    await import(pathToFileURL(path.join(dir, "segment_picker.mjs")).href);
+  } finally {
+    // The module stays loaded; its copy on disk is not needed any more.
+    rmSync(dir, { recursive: true, force: true });
+  }
   assert.equal(fakes.app.extensions.length, 1, "one extension registered");
   return fakes.app.extensions[0];
 }
