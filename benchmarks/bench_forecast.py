@@ -185,16 +185,17 @@ NOTES = """How the forecast decides (`feedback.tipping`, `lean`, `balance`, `sta
   what it stands on, towards the push: its lowest layer of particles, whose footprint reaches half a lattice
   spacing past their centres. (Until 2026-12-06 the base was every particle within 5 % of the height of the
   lowest: for a flat base the same, but a rounded bottom then counted a base half as wide again as the layer it
-  stands on, and the rigid disc, forecast to need 60 N, rolled over at 42 N; with the lowest layer it needs 37 N,
-  and it rocks 4° at 26 N and goes over at 46 N.)
+  stands on, and the rigid disc, forecast to need 55 N, rolled over at 42 N; with the lowest layer it needs 34 N,
+  and it rocks 3° at 24 N and goes over at 42 N. Masses here are the fill's since 2026-12-06, ninth session:
+  docs/accuracy.md, "Mass of a filled object".)
 - **Sliding**, the ground holds the base with μ·m·g at most, so a body pushed at its centre of mass turns with
   μ·m·g·h_c only: one wider than μ times its height slides rather than tips however hard it is pushed (the rigid
-  cup at 151 N slid 0.4 m upright; the forecast before said it would tip). Within 20 % of m·g·b it says it may.
+  cup at 135 N slid upright; the forecast before said it would tip). Within 20 % of m·g·b it says it may.
 - **A soft body leans** into the push before it tips: its centre of mass moves c·F towards the edge, c from
   Timoshenko's beam through its slices (bending and shear, each slice's own area and second moment), with its own
   weight's sway (P-Δ), and a push switched on at once swings it up to twice as far (a rectangular pulse on an
-  undamped oscillator, 2·sin(π·t/T), T = 2π·√(m·c)). It tips from m·g·b/(h + m·g·D·c): the jelly cup from 73 N
-  instead of 121 N, the jelly disc from 14 N instead of 37 N.
+  undamped oscillator, 2·sin(π·t/T), T = 2π·√(m·c)). It tips from m·g·b/(h + m·g·D·c): the jelly cup from 65 N
+  instead of 108 N, the jelly disc from 13 N instead of 34 N.
 - **Too soft to stand**: when the body's weight reaches what buckles it (the largest eigenvalue of the weight's
   sway through the same beam; Greenhill's (L/L_c)³ for a uniform column), it falls with no push at all, and the
   forecast says so and what stiffness or height lets it stand: the 0.3 m jelly bar (20 kPa) falls with no push,
@@ -205,7 +206,7 @@ NOTES = """How the forecast decides (`feedback.tipping`, `lean`, `balance`, `sta
   mass 4 cm past a 6 cm foot; checked through the simulation in `test_a_drawn_table_on_a_leg_at_its_end_tips_over...`).
 
 The two misses are "may tip" for a soft body that then rocked hard without going over (the stiffer jelly cup at
-135 N, 23°; the jelly disc at 18 N, 41°): the lean's estimate errs on the side of warning. Also tried (2026-12-06)
+121 N, 23°; the jelly disc at 16 N, 41°): the lean's estimate errs on the side of warning. Also tried (2026-12-06)
 and not taken: walking the outline over its edge tilt by tilt (the part of its hull within a lattice spacing of
 the ground) and a rigid rocking model (Housner's: the body turning about its contact point under the push and its
 weight, integrated in time); both kept the disc's base wider than its lowest layer.
