@@ -412,20 +412,20 @@ class PhysMotionMPMSimulate:
                                domain_margin=float(domain_margin), device=sim_device(device), seed=int(seed))
         g = as_pm_gaussians(gaussians, axes=splat_axes)
         conds = _chain(conditions)
-        held = False
+        held, held_edges = False, ()
         shown: list[str] = []  # also on the node itself in ComfyUI (node_text), before the wait and after it
         if hold_cut_edges and camera is not None and (g.object_ids is None or len(set(g.object_ids.tolist())) == 1):
-            anchor, _, line = edge_hold(g, camera, material if not isinstance(material, (list, tuple)) else None)
+            anchor, edges, line = edge_hold(g, camera, material if not isinstance(material, (list, tuple)) else None)
             log.info("%s", line)
             shown.append(line)
             if anchor is not None:
                 conds = conds + anchor
-                held = True
+                held, held_edges = True, edges
 
         def told(facts) -> None:  # what the user reads before the wait: in the console and on the node
             mat = material[0] if isinstance(material, (list, tuple)) else material
             for line in forecast(conds, facts, mat, clip_s=(settings.frames - 1) / settings.fps, camera=camera,
-                                 held=held, cfl=settings.cfl):
+                                 held=held, cfl=settings.cfl, held_edges=held_edges):
                 log.info("%s", line)
                 shown.append(line)
             node_text(unique_id, shown)

@@ -19,7 +19,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Optional
+from typing import Optional, Sequence
 
 import numpy as np
 import torch
@@ -507,28 +507,32 @@ def balance_line(facts: BodyFacts, camera: Optional[Camera] = None) -> str:
 STAND_WARN = 0.6
 
 
-def stand_line(material: Material, facts: BodyFacts, g: float) -> str:
+def stand_line(material: Material, facts: BodyFacts, g: float, held: bool = False) -> str:
     """For an elastic solid (``LEAN_MODELS``) that is too soft for its height: a sentence saying that it cannot
     stand under its own weight (a soft column buckles: ``lean``'s weight over buckling weight, in the weaker of
     the two horizontal directions, 1 or more) and what stiffness or height lets it, or that it stands only just
     (``STAND_WARN`` or more); "" otherwise. The ratio grows as E falls (1/E) and as the body is scaled up
     (proportionally to its size: its weight grows as size³, its bending stiffness as size⁴ over a column's
     size³ lever). Checked against the simulation: a 0.3 m jelly bar 1:4 wide falls over with no push at
-    E = 20 and 50 kPa and stands at 100 kPa (docs/accuracy.md)."""
+    E = 20 and 50 kPa and stands at 100 kPa (docs/accuracy.md). ``held``: the frame's bottom edge holds the body
+    (a bust, a figure cut off below): clamped at its base, the same column, which cannot tip but folds over or sways."""
     if material.model not in LEAN_MODELS or len(facts.x) < 2 or not g > 0 or facts.total_mass <= 0:
         return ""
     share = facts.mass / facts.total_mass
     ratio = max(lean(facts.x, facts.mass, material, np.array(d, np.float64), share, g).buckling
                 for d in ((1.0, 0.0), (0.0, 1.0)))
     height = float(np.ptp(facts.x[:, 1])) + facts.dx / 2
+    on = " on the base the frame's bottom edge holds" if held else ""
     if ratio >= 1.0:
         return (f"stability: {material.name} this soft (E = {material.E:.3g} Pa) cannot hold up a body {height:.2g} m "
-                f"tall: its weight is {ratio:.2g} times what buckles it, so it bends over and falls from the first "
+                f"tall{on}: its weight is {ratio:.2g} times what buckles it, so it "
+                f"{'folds over' if held else 'bends over and falls'} from the first "
                 f"frame without any push. It stands with E above about {material.E * ratio / STAND_WARN:.2g} Pa, or "
                 f"at under {height * STAND_WARN / ratio:.2g} m tall (the object height).")
     if ratio >= STAND_WARN:
         return (f"stability: {material.name} this soft (E = {material.E:.3g} Pa) only just holds up a body {height:.2g} m "
-                f"tall (its weight is {ratio:.0%} of what buckles it): it sways far and tips easily.")
+                f"tall{on} (its weight is {ratio:.0%} of what buckles it): it sways far"
+                f"{' under its own weight, with no push' if held else ' and tips easily'}.")
     return ""
 
 
@@ -611,10 +615,11 @@ def _push_line(k: int, F: np.ndarray, fmag: float, dt: float, body: BodyFacts, g
 
 
 def forecast(conditions: Conditions, facts: BodyFacts, material: Material, *, clip_s: float,
-             camera: Optional[Camera] = None, held: bool = False, cfl: float = SimSettings.cfl) -> list[str]:
+             camera: Optional[Camera] = None, held: bool = False, cfl: float = SimSettings.cfl,
+             held_edges: Sequence[str] = ()) -> list[str]:
     """Plain sentences: the mass and material, a run long for its material's step (``steps_line``), the
     separate pieces that nothing holds up, then what each load will roughly do (a push on one of several pieces:
-    on that piece)."""
+    on that piece). ``held``: the frame's edges ``held_edges`` hold the object (``support``)."""
     m = facts.total_mass
     g = float(np.linalg.norm(conditions.gravity()))
     ground = conditions.ground()
@@ -627,10 +632,13 @@ def forecast(conditions: Conditions, facts: BodyFacts, material: Material, *, cl
         return lines
     # Standing on the ground only: a body held at the frame's edge or by an anchor hangs from it, which the
     # column that buckles from the ground up does not describe.
+    # A body the frame's bottom edge alone holds is the same column clamped at its base: it cannot tip, but it can
+    # fold over or sway under its own weight.
     standing = ground is not None and not held and not conditions.of(Anchor)
+    on_base = held and tuple(held_edges) == ("bottom",) and len(conditions.of(Anchor)) <= 1
     tilted = balance_line(facts, camera) if standing and facts.single else ""
     for extra in (thin_line(facts), flow_line(material, facts, g), tilted,
-                  stand_line(material, facts, g) if standing and not tilted else ""):
+                  stand_line(material, facts, g, held=on_base) if (standing or on_base) and not tilted else ""):
         if extra:
             lines.append(extra)
     parts = pieces(facts, conditions, camera) if facts.dx > 0 and facts.single else []

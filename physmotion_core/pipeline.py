@@ -519,7 +519,8 @@ def prepare(
         facts = body_facts(lift.gaussians, mat, settings, conditions.ground(), resolve_device(settings.device))
         prep.mass_kg = facts.total_mass
         for line in forecast(conditions, facts, mat, clip_s=(settings.frames - 1) / settings.fps,
-                             camera=lift.camera, held=support.anchor is not None, cfl=settings.cfl):
+                             camera=lift.camera, held=support.anchor is not None, cfl=settings.cfl,
+                             held_edges=support.edges):
             say(line)
     return prep
 
@@ -617,7 +618,8 @@ def generate(
 
         prep.mass_kg = facts.total_mass
         for line in forecast(conditions, facts, mat, clip_s=(settings.frames - 1) / settings.fps,
-                             camera=lift.camera, held=prep.support.anchor is not None, cfl=settings.cfl):
+                             camera=lift.camera, held=prep.support.anchor is not None, cfl=settings.cfl,
+                             held_edges=prep.support.edges):
             say(line)
 
     t = time.perf_counter()

@@ -167,6 +167,28 @@ def test_forecast_for_a_held_object_says_the_push_bends_it():
     assert "held" in text and "will not slide" not in text
 
 
+def test_a_soft_body_held_on_its_base_by_the_frame_is_told_it_folds_over():
+    """A figure cut off by the frame's bottom edge is a column clamped at its base: the stability line that a body
+    standing on the ground gets applies (until 2026-12-06 a held body got none, and a held jelly astronaut swayed
+    with no push and no word). Held at the top (hanging) or at a side, the column's buckling does not describe it."""
+    s = 0.01  # a 10 cm square column 0.4 m tall on a 1 cm lattice, 1000 kg/m³: jelly of 20 kPa buckles
+    x = np.stack(np.meshgrid(*[np.arange(n) * s + s / 2 for n in (10, 40, 10)], indexing="ij"), -1).reshape(-1, 3)
+    column = BodyFacts(x, np.full(len(x), 1000.0 * s**3), dx=2 * s)
+    conds = Conditions([Ground(-0.3, "friction", 0.5)])
+    jelly = Material.preset("jelly")
+
+    def said(**kw):
+        return " ".join(forecast(conds, column, jelly, clip_s=1.0, **kw))
+
+    assert "folds over from the first frame without any push" in said(held=True, held_edges=("bottom",))
+    assert "on the base the frame's bottom edge holds" in said(held=True, held_edges=("bottom",))
+    for edges in (("top",), ("left",), ("bottom", "left")):
+        assert "stability:" not in said(held=True, held_edges=edges), edges
+    stiff = " ".join(forecast(conds, column, Material.preset("jelly", E=1e7), clip_s=1.0, held=True,
+                              held_edges=("bottom",)))
+    assert "stability:" not in stiff
+
+
 def test_forecast_warns_when_the_push_throws_it_off_screen():
     facts = slab(size=(0.1, 0.1, 0.1), mass=0.1)
     cam = Camera.from_fov(160, 120, 40.0, c2w=torch.tensor([[1.0, 0, 0, 0], [0, 1, 0, 0.05], [0, 0, 1, 1.0],

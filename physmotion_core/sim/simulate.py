@@ -21,7 +21,7 @@ from ..types.material import Material
 from ..types.results import SimResult
 from ..types.settings import SimSettings
 from .fill import FilledObjects, fill_objects
-from .mpm import MAX_TORQUES, PRELOAD_MAX_STRAIN, PRELOAD_MODELS, Domain, MPMSolver, cpu_chunks, estimate_bytes, resolve_device
+from .mpm import MAX_TORQUES, PRELOAD_MAX_SAG, PRELOAD_MAX_STRAIN, PRELOAD_MODELS, Domain, MPMSolver, cpu_chunks, estimate_bytes, resolve_device
 from .regions import select
 from .schedule import LoadSchedule
 
@@ -207,28 +207,58 @@ def initial_state(conditions: Conditions, parts: FilledObjects, materials: Seque
     return InitialState(v0, C0, anchor_sel, body, torque_mask)
 
 
+#: A body held still from the start (a frame edge, an anchor) cannot tip or slide away under its own weight: its
+#: relaxation may bend it this far (a fraction of its height) before the preload is given up; its strain limit
+#: (PRELOAD_MAX_STRAIN) still decides whether the photo's shape with that stress is near equilibrium.
+PRELOAD_MAX_SAG_HELD = 0.3
+
+
+def held_at_start(conditions: Conditions, init: InitialState) -> Optional[np.ndarray]:
+    """The particles the anchors hold still from the start, (P,) bool; None when an anchor active at the start
+    moves (a hand that drags: no equilibrium to start in)."""
+    held = np.zeros(len(init.v0), bool)
+    for a, sel in zip(conditions.of(Anchor), init.anchor_sel):
+        if a.t_start > 0 or not sel.any():
+            continue
+        if np.any(np.asarray(a.velocity, np.float64) != 0):
+            return None
+        held |= sel
+    return held
+
+
 def preload_plan(settings: SimSettings, conditions: Conditions, parts: FilledObjects, materials: Sequence[Material],
                  init: InitialState, dx: float) -> Optional[tuple[float, float]]:
     """Whether the scene starts in equilibrium under gravity (``MPMSolver.preload``), and if so the
-    (height m, shear wave speed m/s) that set its slowest ringing: the tallest body's height above the
-    ground and the slowest shear speed. It applies when ``settings.preload`` is on, gravity pulls
-    towards a ground, every object is an elastic solid (PRELOAD_MODELS) whose lowest particle lies
-    within a cell of the ground, and nothing moves, is anchored or rigid at the start. Otherwise None
-    (no cost): sand, snow, clay, fluids and plastic bodies flow to their own rest, rigid bodies carry
-    no stress, a body in the air or thrown starts unloaded, and anchored scenes are not handled."""
+    (height m, shear wave speed m/s) that set its slowest ringing: the tallest body's height above what
+    holds it up (the ground; for a body held still from the start, as a photo's frame edge holds what it
+    cuts, its largest extent) and the slowest shear speed. It applies when ``settings.preload`` is on,
+    gravity pulls downwards, every object is an elastic solid (PRELOAD_MODELS) whose lowest particle lies
+    within a cell of the ground or that an anchor holds still from the start, and nothing moves or is
+    rigid at the start. Otherwise None (no cost): sand, snow, clay, fluids and plastic bodies flow to their
+    own rest, rigid bodies carry no stress, a body in the air or thrown starts unloaded, and a body dragged
+    by a moving anchor has no rest to start from. The relaxation holds the anchored particles
+    (``simulate`` sets them first)."""
     ground = conditions.ground()
     g = np.asarray(conditions.gravity(), np.float64)
-    if not settings.preload or ground is None or not g[1] < 0 or len(parts.x) == 0:
+    if not settings.preload or not g[1] < 0 or len(parts.x) == 0:
         return None
-    if np.any(init.body >= 0) or any(sel.any() for sel in init.anchor_sel) or init.C0 is not None \
-            or np.any(init.v0 != 0):
+    if np.any(init.body >= 0) or init.C0 is not None or np.any(init.v0 != 0):
+        return None
+    held = held_at_start(conditions, init)
+    if held is None:
         return None
     height, speed = 0.0, math.inf
     for o, mat in enumerate(materials):
-        y = parts.x[parts.particle_object == o, 1]
-        if mat.model not in PRELOAD_MODELS or len(y) == 0 or y.min() - ground.height > dx:
+        mine = parts.particle_object == o
+        x = parts.x[mine]
+        if mat.model not in PRELOAD_MODELS or len(x) == 0:
             return None
-        height = max(height, float(y.max() - ground.height))
+        if held[mine].any():
+            height = max(height, float(np.ptp(x, axis=0).max()))
+        elif ground is not None and x[:, 1].min() - ground.height <= dx:
+            height = max(height, float(x[:, 1].max() - ground.height))
+        else:
+            return None
         speed = min(speed, math.sqrt(mat.mu / mat.density))
     return (height, speed) if height > 0 and speed > 0 else None
 
@@ -454,7 +484,13 @@ def simulate(
                       max_frame_substeps=settings.max_substeps_per_frame)
     plan = preload_plan(settings, conditions, parts, materials, init, res.dx)
     pre_tick = Throttle(progress, 0.2)
-    preload = (solver.preload(*plan, on_step=lambda: pre_tick(0, progress_total(settings.frames)))
+    sag = PRELOAD_MAX_SAG
+    if plan is not None:
+        held = held_at_start(conditions, init)
+        if held.any():  # the relaxation holds what holds the body up (the run's schedule sets them again)
+            solver.set_anchors(held, np.zeros((len(x0), 3)))
+            sag = PRELOAD_MAX_SAG_HELD
+    preload = (solver.preload(*plan, max_sag=sag, on_step=lambda: pre_tick(0, progress_total(settings.frames)))
                if plan is not None else None)
     if preload is not None and preload["applied"]:
         log.info("preload: the bodies settled under gravity in %d substeps (%.2f s, %.1f periods, sag %.3g m)",
