@@ -500,7 +500,7 @@ def simulate(
         # nothing to change; `-v` shows it, and stats["preload"] records it.
         log.info("preload given up after %d substeps (%.2f s): under gravity the bodies %s; they start "
                  "stress-free", preload["substeps"], preload["seconds"],
-                 f"moved {preload['sag']:.3g} m (they tip or slide)" if preload["sag"] > 0.1 * plan[0]
+                 f"moved {preload['sag']:.3g} m (they tip or slide)" if preload["sag"] > sag * plan[0]
                  else f"strain by {preload['strain']:.0%} (too far from the photo for its stress to hold it)"
                  if preload["strain"] > PRELOAD_MAX_STRAIN else "did not settle")
     if on_start is not None:
