@@ -145,7 +145,7 @@ def test_a_shell_of_surface_splats_weighs_what_it_encloses_at_every_spacing(shap
 def test_a_lifted_photo_weighs_about_the_same_at_every_quality():
     """scikit-image's horse, lifted from its silhouette, weighed at draft, standard and high quality: before the
     fill cut a surface splat's solid at its plane (2026-12-06), draft weighed 1.31 times high, and the stability
-    verdict moved with it; now the draft's excess is a few per cent (docs/accuracy.md)."""
+    verdict moved with it; now 1.12 times (2.63 against 2.36 kg; docs/accuracy.md)."""
     from benchmarks.bench_mass import photo_masses
 
     m = {q: kg for q, (kg, _) in photo_masses("horse").items()}
