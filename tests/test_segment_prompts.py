@@ -635,6 +635,27 @@ def test_grabcut_run_stops_where_until_says_and_that_is_the_shorter_cut():
     assert asked == [0, 1] and np.array_equal(stopped, run(2))
 
 
+def count_iterations(monkeypatch, record):
+    """Call ``record()`` at the start of every GrabCut iteration, on either engine (``GRABCUT_ENGINE``): each
+    ``GrabCutGraph.iterate`` and each ``cv2.grabCut`` that iterates (OpenCV's k-means start, iterCount 0, is no
+    iteration)."""
+    from physmotion_core.segment import gridflow
+
+    real_cv, real_it = cv2.grabCut, gridflow.GrabCutGraph.iterate
+
+    def cv(*a):
+        if a[5] > 0:
+            record()
+        return real_cv(*a)
+
+    def it(self, *a):
+        record()
+        return real_it(self, *a)
+
+    monkeypatch.setattr(cv2, "grabCut", cv)
+    monkeypatch.setattr(gridflow.GrabCutGraph, "iterate", it)
+
+
 def test_a_growing_click_box_decides_early_and_ends_on_the_same_mask(monkeypatch):
     """A pass of the click's growing box that will grow stops once GROW_DECIDE iterations in a row reach the
     same sides; the pass the chain ends on runs all its iterations. Here (an L clicked at the end of an arm, so
@@ -644,8 +665,7 @@ def test_a_growing_click_box_decides_early_and_ends_on_the_same_mask(monkeypatch
     img, obj, click = _shape("L")
     pts, labels = np.array([click], float), np.array([1])
     calls = []
-    real = cv2.grabCut
-    monkeypatch.setattr(cv2, "grabCut", lambda *a: calls.append(1) or real(*a))
+    count_iterations(monkeypatch, lambda: calls.append(1))
     runs = {}
     for decide in (0, C.GROW_DECIDE):
         monkeypatch.setattr(C, "GROW_DECIDE", decide)
@@ -688,13 +708,7 @@ def test_cancel_during_a_click_stops_both_of_its_threads(monkeypatch):
 
     img = cv2.resize(_big_flower()[0], (400, 300), interpolation=cv2.INTER_AREA)
     starts, state = [], {"raised": None}
-    real = cv2.grabCut
-
-    def counted(*a):
-        starts.append(threading.current_thread().name)
-        return real(*a)
-
-    monkeypatch.setattr(cv2, "grabCut", counted)
+    count_iterations(monkeypatch, lambda: starts.append(threading.current_thread().name))
 
     def cancel(done, total):
         if done >= 2:

@@ -100,18 +100,17 @@ def _grabcut_run(bgr: np.ndarray, gc: np.ndarray, rect, bgd: np.ndarray, fgd: np
     but the last whether the labels already answer its caller's question; True stops the cut there
     (``_grown_click``). Returns the graph (None on OpenCV)."""
     cv2.setRNGSeed(GRABCUT_SEED)
-    initial = mode in (cv2.GC_INIT_WITH_RECT, cv2.GC_INIT_WITH_MASK)
+    if graph is None and int(iters) > 0:
+        graph = _new_graph(bgr)
+    if graph is not None and int(iters) > 0 and mode in (cv2.GC_INIT_WITH_RECT, cv2.GC_INIT_WITH_MASK):
+        cv2.grabCut(bgr, gc, rect, bgd, fgd, 0, mode)  # OpenCV's k-means: the first colour models, no iteration
     for i in range(int(iters)):
         fn = getattr(_TICK, "fn", None)
         if fn is not None:
-            fn()
-        if graph is None and i == 0:
-            graph = _new_graph(bgr)
+            fn()  # just before the iteration: after a Cancel no iteration starts
         if graph is None:
             cv2.grabCut(bgr, gc, rect if i == 0 else None, bgd, fgd, 1, mode if i == 0 else cv2.GC_EVAL)
         else:
-            if i == 0 and initial:
-                cv2.grabCut(bgr, gc, rect, bgd, fgd, 0, mode)  # OpenCV's k-means: the first colour models
             graph.iterate(gc, bgd, fgd)
         if until is not None and i + 1 < int(iters) and until(gc, i):
             break

@@ -423,7 +423,7 @@ def _inverse_and_det(c: list, fix: float) -> tuple[list, float]:
         c[4] += fix
         c[8] += fix
         det = c[0] * (c[4] * c[8] - c[5] * c[7]) - c[1] * (c[3] * c[8] - c[5] * c[6]) + c[2] * (c[3] * c[7] - c[4] * c[6])
-    if not det > 1e-6:
+    if not det > np.finfo(np.float64).eps:  # what OpenCV asserts
         raise ValueError("a colour model's covariance is singular (GrabCut cannot go on)")
     r = 1.0 / det
     inv = [(c[4] * c[8] - c[5] * c[7]) * r, -(c[1] * c[8] - c[2] * c[7]) * r, (c[1] * c[5] - c[2] * c[4]) * r,
