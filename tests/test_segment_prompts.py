@@ -741,3 +741,56 @@ def test_a_caption_goes_above_the_overlay_and_wraps_to_its_width():
     starts = np.flatnonzero(rows[1:] & ~rows[:-1])
     assert len(starts) >= 3  # the long line wrapped: three or more lines of text for two captions
     assert with_caption(ov, ["short"]).shape[0] < out.shape[0]
+
+
+def _person_by_a_wall(seed=4):
+    """A navy 'person' with a patch of light-blue wall beside it, both unlike the grey around the box: GrabCut
+    with a box takes the two as one part (the Grace Hopper portrait's blue wall beside her shoulder)."""
+    rng = np.random.default_rng(seed)
+    h, w = 170, 220
+    img = np.full((h, w, 3), 0.55, np.float32) + rng.normal(0, 0.015, (h, w, 3)).astype(np.float32)
+    yy, xx = np.mgrid[:h, :w]
+    person = (xx >= 50) & (xx < 120) & (yy >= 40) & (yy < 150)
+    wall = (xx >= 120) & (xx < 175) & (yy >= 40) & (yy < 110)
+    img[person] = (0.1, 0.12, 0.3)
+    img[wall] = (0.45, 0.6, 0.85) + rng.normal(0, 0.01, (int(wall.sum()), 3))
+    return np.clip(img, 0, 1), person, wall
+
+
+def test_a_background_click_beside_the_object_takes_the_wall_not_the_object():
+    """A background click on the patch of wall GrabCut joined to the object: before, the whole joined part
+    (object and wall) was dropped as 'the thing the click is on' and a speck was left; now the object stays
+    and the wall goes (the click grows into a stroke over the wall's colour, and GrabCut cuts again)."""
+    from physmotion_core.segment import classic as C
+
+    img, person, wall = _person_by_a_wall()
+    box = (40, 30, 185, 160)
+    both = grabcut(img, box=box)
+    assert (both & wall).sum() > 0.8 * wall.sum() and (both & person).sum() > 0.9 * person.sum()
+    m = segment(img, box=box, points=[(160, 70)], point_labels=[0]).mask.numpy() > 0.5
+    assert (m & person).sum() > 0.9 * person.sum()
+    assert (m & wall).sum() < 0.1 * wall.sum()
+    # the stroke is what removes the wall: without it the object stays (it holds most of the mask) but the
+    # wall stays with it
+    old = C.BG_STROKE_REACH
+    try:
+        C.BG_STROKE_REACH = 0.0
+        kept = grabcut(img, box=box, points=[(160, 70)], point_labels=[0])
+    finally:
+        C.BG_STROKE_REACH = old
+    assert (kept & person).sum() > 0.9 * person.sum() and (kept & wall).sum() > 0.5 * wall.sum()
+
+
+def test_a_part_holding_most_of_the_mask_is_not_dropped_by_a_background_click_beside_it():
+    from physmotion_core.segment.classic import _drop_clicked_background
+
+    fg = np.zeros((60, 80), np.uint8)
+    fg[10:50, 10:50] = 1  # the object, with the clicked wall joined to it
+    fg[5:8, 70:75] = 1  # a speck elsewhere
+    out = _drop_clicked_background(fg, np.zeros((0, 2)), np.array([[52.0, 30.0]]), 2)
+    assert np.array_equal(out, fg)
+    # a separate, smaller part the click lands on still goes
+    fg2 = fg.copy()
+    fg2[30:45, 60:75] = 1
+    out2 = _drop_clicked_background(fg2, np.zeros((0, 2)), np.array([[67.0, 37.0]]), 2)
+    assert not out2[30:45, 60:75].any() and out2[10:50, 10:50].all()

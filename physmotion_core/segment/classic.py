@@ -563,7 +563,7 @@ def _box_window(box: tuple[int, int, int, int], W: int, H: int) -> Optional[tupl
 
 
 def _grabcut_in_window(img: np.ndarray, window, box, pts: np.ndarray, labels: np.ndarray, iters: int,
-                       max_side, _click: str, _tight: bool) -> np.ndarray:
+                       max_side, _click: str, _tight: bool, _strokes: bool = True) -> np.ndarray:
     """``grabcut`` of a box prompt run on ``window`` only (``_box_window``); clicks outside the window
     lie outside the box, which is background anyway, and are dropped (object clicks outside the box
     are refused as before)."""
@@ -581,7 +581,7 @@ def _grabcut_in_window(img: np.ndarray, window, box, pts: np.ndarray, labels: np
     sp = pts[inside] - [wx0, wy0] if len(pts) else pts
     m = grabcut(sub, box=(x0 - wx0, y0 - wy0, x1 - wx0, y1 - wy0), points=sp if len(sp) else None,
                 point_labels=labels[inside] if len(sp) else None, iters=iters, max_side=max_side,
-                _click=_click, _tight=_tight, _window=False)
+                _click=_click, _tight=_tight, _window=False, _strokes=_strokes)
     out = np.zeros((H, W), bool)
     out[wy0:wy1, wx0:wx1] = m
     return out
@@ -652,6 +652,39 @@ def _labels_to_mask(gc: np.ndarray, fg_pts: np.ndarray, bg_pts: np.ndarray, radi
     return fg > 0.5
 
 
+#: A background click that GrabCut's object still borders after the cut (it took only the click's disk out
+#: of, say, a patch of wall joined to the object) grows into a stroke: the pixels labelled object around it,
+#: within BG_STROKE_REACH of the short side, that the click reaches through colour steps of at most
+#: BG_STROKE_STEP per channel (8-bit, on the photo blurred by one pixel) become certain background, and
+#: GrabCut cuts again from its colour models.
+BG_STROKE_REACH = 0.15
+BG_STROKE_STEP = 3
+
+
+def _background_strokes(bgr: np.ndarray, gc: np.ndarray, bg_pts: np.ndarray, radius: int) -> np.ndarray:
+    """The pixels (bool (h, w)) the background clicks that still border the object mean (``BG_STROKE_*``)."""
+    h, w = gc.shape
+    obj = (gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)
+    out = np.zeros((h, w), bool)
+    reach = max(2 * int(radius), int(BG_STROKE_REACH * min(h, w)))
+    smooth = cv2.GaussianBlur(bgr, (0, 0), 1.0)
+    for x, y in bg_pts:
+        xi, yi = int(x), int(y)
+        ring = np.zeros((h, w), np.uint8)
+        cv2.circle(ring, (xi, yi), int(radius) + 2, 1, -1)
+        if not (obj & (ring > 0)).any():
+            continue
+        area = np.zeros((h, w), np.uint8)
+        cv2.circle(area, (xi, yi), reach, 1, -1)
+        allowed = (area > 0) & ((gc == cv2.GC_PR_FGD) | (ring > 0))
+        fill = np.ones((h + 2, w + 2), np.uint8)  # floodFill stops at non-zero mask pixels
+        fill[1:-1, 1:-1][allowed] = 0
+        step = (BG_STROKE_STEP,) * 3
+        cv2.floodFill(smooth.copy(), fill, (xi, yi), 0, step, step, 8 | cv2.FLOODFILL_MASK_ONLY | (2 << 8))
+        out |= (fill[1:-1, 1:-1] == 2) & obj & (gc != cv2.GC_FGD)
+    return out
+
+
 def _paint_seeds(gc: np.ndarray, fg_pts: np.ndarray, bg_pts: np.ndarray, radius: int) -> None:
     for pts, value in ((bg_pts, cv2.GC_BGD), (fg_pts, cv2.GC_FGD)):
         for x, y in pts:
@@ -660,7 +693,7 @@ def _paint_seeds(gc: np.ndarray, fg_pts: np.ndarray, bg_pts: np.ndarray, radius:
 
 def grabcut(image, *, box=None, init_mask=None, points=None, point_labels=None, iters: int = 5,
             max_side: Optional[int] = None, progress=None, _click: str = "choose", _tight: bool = True,
-            _window: bool = True, _until=None) -> np.ndarray:
+            _window: bool = True, _until=None, _strokes: bool = True) -> np.ndarray:
     """GrabCut foreground (bool (H,W)) of an image, seeded by a box, a rough mask and/or clicks.
 
     - ``box`` (x0, y0, x1, y1): everything outside it is certainly background, and GrabCut learns
@@ -693,7 +726,7 @@ def grabcut(image, *, box=None, init_mask=None, points=None, point_labels=None, 
         ticker = _CutProgress(progress, n + 1)
         with _ticking(ticker):
             m = grabcut(img, box=box, init_mask=init_mask, points=points, point_labels=point_labels, iters=iters,
-                        max_side=max_side, _click=_click, _tight=_tight, _window=_window)
+                        max_side=max_side, _click=_click, _tight=_tight, _window=_window, _strokes=_strokes)
         report(progress, ticker.total, ticker.total)
         return m
     if click:
@@ -701,11 +734,11 @@ def grabcut(image, *, box=None, init_mask=None, points=None, point_labels=None, 
     if box is not None and init_mask is None and _window:
         window = _box_window(_check_box(box, W, H), W, H)
         if window is not None:
-            return _grabcut_in_window(img, window, box, pts, labels, iters, max_side, _click, _tight)
+            return _grabcut_in_window(img, window, box, pts, labels, iters, max_side, _click, _tight, _strokes)
     work_side = GRABCUT_MAX_SIDE if max_side is None else int(max_side)
     if COARSE_SIDE and min(work_side, max(H, W)) > COARSE_TRIGGER:
         coarse = grabcut(img, box=box, init_mask=init_mask, points=points, point_labels=point_labels, iters=iters,
-                         max_side=COARSE_SIDE, _click=_click, _tight=_tight, _window=False)
+                         max_side=COARSE_SIDE, _click=_click, _tight=_tight, _window=False, _strokes=_strokes)
         if coarse.any() and not coarse.all():
             return _refine_band(img, coarse, box, pts, labels, work_side)
         return coarse
@@ -767,6 +800,10 @@ def grabcut(image, *, box=None, init_mask=None, points=None, point_labels=None, 
             until = (None if _until is None else
                      lambda g, i: _until(_labels_to_mask(g, fg_pts, bg_pts, radius, (H, W)), i))
             graph = _grabcut_run(bgr, gc, None, bgd, fgd, iters, cv2.GC_INIT_WITH_MASK, until)
+            stroke = _background_strokes(bgr, gc, bg_pts, radius) if len(bg_pts) and _strokes else None
+            if stroke is not None and stroke.any():
+                gc[stroke] = cv2.GC_BGD
+                graph = _grabcut_run(bgr, gc, None, bgd, fgd, iters, cv2.GC_EVAL, graph=graph)
             if box is not None and _tight:
                 _tighten_to_box(bgr, gc, bgd, fgd, (sx0, sy0, sx1, sy1), iters, graph)
         else:
@@ -848,7 +885,7 @@ def _grow_pass(img: np.ndarray, pts: np.ndarray, labels: np.ndarray, iters: int,
     # object, where a window's ring is the object's own colour and the cut collapses onto the click (the
     # clock's click; the rocket's 0.525 -> 0.460).
     m = grabcut(img, box=[int(round(b)) for b in box], points=pts, point_labels=labels, iters=iters,
-                max_side=max_side, _click="whole", _tight=False, _window=False, _until=decided)
+                max_side=max_side, _click="whole", _tight=False, _window=False, _until=decided, _strokes=False)
     return _reach(m, box, fg, W, H)
 
 
@@ -944,7 +981,8 @@ def _click_prompted(img: np.ndarray, pts: np.ndarray, labels: np.ndarray, iters:
             cv.notify_all()
 
     def whole_cut(job):
-        whole = grabcut(img, points=pts, point_labels=labels, iters=iters, max_side=search, _click="whole")
+        whole = grabcut(img, points=pts, point_labels=labels, iters=iters, max_side=search, _click="whole",
+                        _strokes=False)
         return whole, (_clean_and_check(img, whole, fg_pts) if whole.any() else None)
 
     def grow_cut(job, box, depth):
@@ -1082,12 +1120,19 @@ def _drop_clicked_background(fg: np.ndarray, fg_pts: np.ndarray, bg_pts: np.ndar
     GrabCut only makes the clicked disk background; when the clicked thing has the object's
     colours too (a second object inside the box), the rest of it stays. A part of the result
     that touches a background click's disk and holds no object click is what the click meant;
-    it goes, unless nothing would be left.
+    it goes, unless nothing would be left. Without object clicks the part holding most of the
+    result stays too: a background click next to the object (on a patch of wall GrabCut joined to
+    it) must not take the object with it.
     """
     n, cc = cv2.connectedComponents(fg, connectivity=8)
     if n <= 1:
         return fg
     keep = {int(cc[int(y), int(x)]) for x, y in fg_pts} - {0}
+    if not keep:
+        sizes = np.bincount(cc.ravel(), minlength=n)
+        sizes[0] = 0
+        if sizes.max() * 2 > sizes.sum():
+            keep = {int(np.argmax(sizes))}
     near = np.zeros_like(fg)
     for x, y in bg_pts:
         cv2.circle(near, (int(x), int(y)), int(radius) + 2, 1, -1)
