@@ -772,12 +772,12 @@ def test_a_background_click_beside_the_object_takes_the_wall_not_the_object():
     assert (m & wall).sum() < 0.1 * wall.sum()
     # the stroke is what removes the wall: without it the object stays (it holds most of the mask) but the
     # wall stays with it
-    old = C.BG_STROKE_REACH
+    old = C.STROKE_REACH
     try:
-        C.BG_STROKE_REACH = 0.0
+        C.STROKE_REACH = 0.0
         kept = grabcut(img, box=box, points=[(160, 70)], point_labels=[0])
     finally:
-        C.BG_STROKE_REACH = old
+        C.STROKE_REACH = old
     assert (kept & person).sum() > 0.9 * person.sum() and (kept & wall).sum() > 0.5 * wall.sum()
 
 

@@ -652,21 +652,22 @@ def _labels_to_mask(gc: np.ndarray, fg_pts: np.ndarray, bg_pts: np.ndarray, radi
     return fg > 0.5
 
 
-#: A background click that GrabCut's object still borders after the cut (it took only the click's disk out
-#: of, say, a patch of wall joined to the object) grows into a stroke: the pixels labelled object around it,
-#: within BG_STROKE_REACH of the short side, that the click reaches through colour steps of at most
-#: BG_STROKE_STEP per channel (8-bit, on the photo blurred by one pixel) become certain background, and
-#: GrabCut cuts again from its colour models.
-BG_STROKE_REACH = 0.15
-BG_STROKE_STEP = 3
+#: A background click that GrabCut's object still borders after the cut (it took only the click's disk out of,
+#: say, a patch of wall joined to the object) grows into a stroke: the pixels labelled object around it, within
+#: STROKE_REACH of the short side, that the click reaches through colour steps of at most STROKE_STEP per channel
+#: (8-bit, on the photo blurred by one pixel), become certain background, and GrabCut cuts again from its colour
+#: models. (The same for object clicks was tried on the portrait's white cap: the cap's shading and embroidery
+#: stop such a fill within a few pixels, and it added a strip of the flag pole instead; not used.)
+STROKE_REACH = 0.15
+STROKE_STEP = 3
 
 
 def _background_strokes(bgr: np.ndarray, gc: np.ndarray, bg_pts: np.ndarray, radius: int) -> np.ndarray:
-    """The pixels (bool (h, w)) the background clicks that still border the object mean (``BG_STROKE_*``)."""
+    """The pixels (bool (h, w)) the background clicks that the object still borders mean (``STROKE_*``)."""
     h, w = gc.shape
     obj = (gc == cv2.GC_FGD) | (gc == cv2.GC_PR_FGD)
     out = np.zeros((h, w), bool)
-    reach = max(2 * int(radius), int(BG_STROKE_REACH * min(h, w)))
+    reach = max(2 * int(radius), int(STROKE_REACH * min(h, w)))
     smooth = cv2.GaussianBlur(bgr, (0, 0), 1.0)
     for x, y in bg_pts:
         xi, yi = int(x), int(y)
@@ -679,9 +680,9 @@ def _background_strokes(bgr: np.ndarray, gc: np.ndarray, bg_pts: np.ndarray, rad
         allowed = (area > 0) & ((gc == cv2.GC_PR_FGD) | (ring > 0))
         fill = np.ones((h + 2, w + 2), np.uint8)  # floodFill stops at non-zero mask pixels
         fill[1:-1, 1:-1][allowed] = 0
-        step = (BG_STROKE_STEP,) * 3
+        step = (STROKE_STEP,) * 3
         cv2.floodFill(smooth.copy(), fill, (xi, yi), 0, step, step, 8 | cv2.FLOODFILL_MASK_ONLY | (2 << 8))
-        out |= (fill[1:-1, 1:-1] == 2) & obj & (gc != cv2.GC_FGD)
+        out |= (fill[1:-1, 1:-1] == 2) & (gc == cv2.GC_PR_FGD)
     return out
 
 
