@@ -74,8 +74,8 @@ _engine_failed: list = []
 
 def _new_graph(bgr: np.ndarray):
     """A ``GrabCutGraph`` for ``bgr``, or None (OpenCV iterates) when the engine is "opencv" or Warp failed."""
-    if GRABCUT_ENGINE != "graph" or _engine_failed:
-        return None
+    if GRABCUT_ENGINE != "graph" or _engine_failed or bgr.shape[0] * bgr.shape[1] * 8 >= 2 ** 31:
+        return None  # (the kernels index the graph's links with 32-bit integers)
     try:
         from .gridflow import GrabCutGraph
 
