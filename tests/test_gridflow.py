@@ -120,6 +120,19 @@ def test_a_larger_grid_cut_matches_an_independent_max_flow():
     assert 0 < got.sum() < n
 
 
+def _started(bgr, box, seed):
+    """Labels (outside ``box``, given as fractions of the width and height, certain background; inside it
+    probably object) and OpenCV's first colour models (its seeded k-means, no iteration)."""
+    h, w = bgr.shape[:2]
+    labels = np.full((h, w), cv2.GC_BGD, np.uint8)
+    labels[int(box[1] * h):int(box[3] * h), int(box[0] * w):int(box[2] * w)] = cv2.GC_PR_FGD
+    labels[:1], labels[-1:], labels[:, :1], labels[:, -1:] = cv2.GC_BGD, cv2.GC_BGD, cv2.GC_BGD, cv2.GC_BGD
+    bgd, fgd = np.zeros((1, 65)), np.zeros((1, 65))
+    cv2.setRNGSeed(seed)
+    cv2.grabCut(bgr, labels, None, bgd, fgd, 0, cv2.GC_INIT_WITH_MASK)
+    return labels, bgd, fgd
+
+
 def _photo(name="coffee", side=160):
     import skimage.data
 
@@ -137,13 +150,7 @@ def test_grabcut_on_the_kept_flow_is_opencvs_grabcut_bit_for_bit(name, box):
     colour models (OpenCV's k-means, seeded): the same labels and the same colour models, bit for bit,
     after every iteration, on real photos."""
     bgr = _photo(name)
-    h, w = bgr.shape[:2]
-    labels = np.full((h, w), cv2.GC_BGD, np.uint8)
-    labels[int(box[1] * h):int(box[3] * h), int(box[0] * w):int(box[2] * w)] = cv2.GC_PR_FGD
-    labels[:1], labels[-1:], labels[:, :1], labels[:, -1:] = cv2.GC_BGD, cv2.GC_BGD, cv2.GC_BGD, cv2.GC_BGD
-    bgd, fgd = np.zeros((1, 65)), np.zeros((1, 65))
-    cv2.setRNGSeed(7)
-    cv2.grabCut(bgr, labels, None, bgd, fgd, 0, cv2.GC_INIT_WITH_MASK)
+    labels, bgd, fgd = _started(bgr, box, 7)
     a, ab, af = labels.copy(), bgd.copy(), fgd.copy()
     b, bb, bf = labels.copy(), bgd.copy(), fgd.copy()
     graph = GrabCutGraph(bgr)
@@ -159,11 +166,7 @@ def test_new_sure_pixels_between_iterations_give_opencvs_cut():
     and models stay OpenCV's."""
     bgr = _photo("rocket")
     h, w = bgr.shape[:2]
-    labels = np.full((h, w), cv2.GC_BGD, np.uint8)
-    labels[int(0.26 * h):h - 2, int(0.44 * w):int(0.56 * w)] = cv2.GC_PR_FGD
-    bgd, fgd = np.zeros((1, 65)), np.zeros((1, 65))
-    cv2.setRNGSeed(3)
-    cv2.grabCut(bgr, labels, None, bgd, fgd, 0, cv2.GC_INIT_WITH_MASK)
+    labels, bgd, fgd = _started(bgr, (0.44, 0.26, 0.56, 0.99), 3)
     a, ab, af = labels.copy(), bgd.copy(), fgd.copy()
     b, bb, bf = labels.copy(), bgd.copy(), fgd.copy()
     graph = GrabCutGraph(bgr)

@@ -52,6 +52,15 @@ def _build(wp):
         yy = y + dy[d]
         return xx >= 0 and xx < w and yy >= 0 and yy < h
 
+    @wp.func
+    def orphan_front(node: int, parent: wp.array(dtype=wp.int32), orphans: wp.array(dtype=wp.int32), head: int,
+                     ring: int):
+        # mark ``node`` an orphan and put it at the front of the orphan ring; returns the new front
+        parent[node] = ORPHAN
+        front = (head + ring - 1) % ring
+        orphans[front] = node
+        return front
+
     @wp.kernel(enable_backward=False)
     def maxflow(cap: wp.array(dtype=wp.float64), tr: wp.array(dtype=wp.float64), parent: wp.array(dtype=wp.int32),
                 pdir: wp.array(dtype=wp.int32), tree: wp.array(dtype=wp.int32), ts: wp.array(dtype=wp.int32),
@@ -165,15 +174,11 @@ def _build(wp):
                 up = c * 8 + (e + 4) % 8
                 cap[up] = cap[up] - bn
                 if cap[up] <= zero:
-                    parent[b] = ORPHAN
-                    oh = (oh + ring - 1) % ring
-                    orphans[oh] = b
+                    oh = orphan_front(b, parent, orphans, oh, ring)
                 b = c
             tr[b] = tr[b] - bn
             if tr[b] <= zero:
-                parent[b] = ORPHAN
-                oh = (oh + ring - 1) % ring
-                orphans[oh] = b
+                oh = orphan_front(b, parent, orphans, oh, ring)
             b = fb
             while parent[b] != TERMINAL:
                 c = parent[b]
@@ -181,15 +186,11 @@ def _build(wp):
                 cap[c * 8 + (e + 4) % 8] = cap[c * 8 + (e + 4) % 8] + bn
                 cap[b * 8 + e] = cap[b * 8 + e] - bn
                 if cap[b * 8 + e] <= zero:
-                    parent[b] = ORPHAN
-                    oh = (oh + ring - 1) % ring
-                    orphans[oh] = b
+                    oh = orphan_front(b, parent, orphans, oh, ring)
                 b = c
             tr[b] = tr[b] + bn
             if tr[b] >= zero:
-                parent[b] = ORPHAN
-                oh = (oh + ring - 1) % ring
-                orphans[oh] = b
+                oh = orphan_front(b, parent, orphans, oh, ring)
             total = total + bn
             # adopt the orphans: a new parent in the same tree whose path still reaches the terminal
             while oh != ot:
