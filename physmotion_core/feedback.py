@@ -352,6 +352,7 @@ class Lean:
 
     compliance: float
     buckling: float
+    at_load: float = 0.0  # m/N: how far the loaded particles themselves move (load-weighted), per newton
 
 
 def lean(x: np.ndarray, mass: np.ndarray, material: Material, direction: np.ndarray, load: np.ndarray,
@@ -403,7 +404,7 @@ def lean(x: np.ndarray, mass: np.ndarray, material: Material, direction: np.ndar
     if ratio >= 1.0:
         return Lean(math.inf, ratio)
     u = np.linalg.solve(np.eye(n) - weight, u_push)
-    return Lean(float((m_slice * u).sum() / max(float(mass.sum()), 1e-30)), ratio)
+    return Lean(float((m_slice * u).sum() / max(float(mass.sum()), 1e-30)), ratio, float((w * u).sum()))
 
 
 def dynamic_factor(mass: float, compliance: float, duration: float) -> float:
@@ -536,10 +537,40 @@ def stand_line(material: Material, facts: BodyFacts, g: float, held: bool = Fals
     return ""
 
 
+#: A held body's bend at the push (``bend_note``) counts as folding over past this fraction of the pushed part's
+#: height above the held base.
+FOLD_FRACTION = 0.5
+
+
+def bend_note(F: np.ndarray, fmag: float, dt: float, body: BodyFacts, sel: np.ndarray, material: Optional[Material],
+              g: float) -> str:
+    """For a soft body the frame's bottom edge holds (a bust, a figure cut off below) pushed sideways: how far the
+    push swings the part it acts on, as ``lean``'s beam clamped at the held base (the static bend at the load times
+    ``dynamic_factor``'s swing); past ``FOLD_FRACTION`` of that part's height above the base, it folds over there.
+    A sketch that leaves out any hold at the frame's sides (they stiffen it: the bend is an upper estimate). '' for
+    other materials or no sideways push."""
+    fh = float(math.hypot(F[0], F[2]))
+    if material is None or material.model not in LEAN_MODELS or fh <= 1e-12 or not sel.any():
+        return ""
+    load = body.mass * sel
+    give = lean(body.x, body.mass, material, F[[0, 2]] / fh, load / max(float(load.sum()), 1e-30), g)
+    height = float(body.x[sel, 1].mean() - body.x[:, 1].min())
+    if math.isinf(give.compliance):
+        return (f"{material.name} this soft cannot hold the body up on its held base: it folds over with or "
+                "without the push")
+    swing = dynamic_factor(body.total_mass, give.compliance, dt) * give.at_load * fh
+    if swing > FOLD_FRACTION * height:
+        return (f"{material.name} this soft bends about {swing:.2g} m where it is pushed, more than half of its "
+                f"{height:.2g} m above the held base: it folds over there (a smaller force, a larger --radius "
+                "lower down or a stiffer material keeps it up)")
+    return f"it bends about {100 * swing:.2g} cm where it is pushed and springs back"
+
+
 def _push_line(k: int, F: np.ndarray, fmag: float, dt: float, body: BodyFacts, g: float, ground: Optional[Ground],
                anchored: bool, camera: Optional[Camera], clip_s: float, t1: float, f, what: str,
-               material: Optional[Material] = None, tilted: bool = False) -> str:
-    """What push ``k`` does to ``body`` (the whole object, or the pieces it touches)."""
+               material: Optional[Material] = None, tilted: bool = False, clamped: bool = False) -> str:
+    """What push ``k`` does to ``body`` (the whole object, or the pieces it touches); ``clamped``: the frame's
+    bottom edge holds it (``bend_note``)."""
     m = body.total_mass
     room = frame_room(body, camera)
     friction_limit = None
@@ -550,6 +581,9 @@ def _push_line(k: int, F: np.ndarray, fmag: float, dt: float, body: BodyFacts, g
     notes = []
     if anchored:
         notes.append("the object is held, so the push bends or shears it rather than moving it away")
+        bend = bend_note(F, fmag, dt, body, _region_sel(f, body, camera), material, g) if clamped else ""
+        if bend:
+            notes.append(bend)
     fh = float(math.hypot(F[0], F[2]))
     if ground is not None and not anchored and fh > 1e-12:
         if math.isinf(friction_limit):
@@ -679,7 +713,8 @@ def forecast(conditions: Conditions, facts: BodyFacts, material: Material, *, cl
                 if not any(p.supported for p in touched):
                     what += "; nothing holds that piece up, so it also falls"
         lines.append(_push_line(k, F, fmag, dt, body, g, on_ground, anch, camera, clip_s, t1, f, what,
-                                material, tilted=bool(tilted) and body is facts))
+                                material, tilted=bool(tilted) and body is facts,
+                                clamped=held and "bottom" in tuple(held_edges) and body is facts))
     for k, tq in enumerate(conditions.of(Torque), 1):
         t0, t1 = _window(tq, clip_s)
         T = np.asarray(tq.vector, np.float64)

@@ -210,3 +210,50 @@ def test_a_drawn_table_on_a_leg_at_its_end_tips_over_with_no_push_and_on_a_middl
         drop = float(y[0].mean() - y[-1].mean())  # the centre of mass comes down as it tips
         assert said == falls, lines
         assert (drop > 0.02) == falls, drop
+
+
+def test_a_load_on_the_top_bends_the_top_as_timoshenkos_cantilever():
+    """``lean(...).at_load``: where the load itself moves, per newton. A load on the top slice of a uniform block
+    clamped at its base band moves it by the cantilever's tip deflection L³/(3·E·I) + L/(κ·G·A)."""
+    a, t, s = 0.08, 0.06, 0.005
+    x, m = block(a=a, t=t, s=s)
+    mat = Material.preset("jelly")
+    top = x[:, 1] >= x[:, 1].max() - 0.5 * s
+    load = m * top
+    got = lean(x, m, mat, np.array([1.0, 0.0]), load / load.sum(), g=0.0)
+    _, L = _beam_part(x, s)
+    I, A = t * a ** 3 / 12, a * t
+    want = L ** 3 / (3 * mat.E * I) + L / (5 / 6 * mat.mu * A)
+    assert got.at_load == pytest.approx(want, rel=0.08)
+    # the load's own point moves more than the centre of mass does
+    assert got.at_load > 2 * got.compliance
+
+
+def test_a_held_soft_body_pushed_at_its_top_is_told_how_far_it_bends_and_when_it_folds_over():
+    """A body the frame's bottom edge holds (a bust), pushed sideways at its top: a small push is told its bend
+    (the beam's bend at the load times the swing of a sudden push), a large one that it folds over; a push
+    straight down, a body held at the top, or sand are told nothing of the sort."""
+    from physmotion_core.feedback import FOLD_FRACTION, bend_note, dynamic_factor
+
+    x, m = block(a=0.08, t=0.06, L=0.3, s=0.005)
+    body = BodyFacts(x, m, 0.01)
+    mat = Material.preset("jelly", E=2e5)  # stands under its own weight (Greenhill's height 0.44 m)
+    top = x[:, 1] >= x[:, 1].max() - 0.03
+    give = lean(x, m, mat, np.array([1.0, 0.0]), (m * top) / (m * top).sum(), 9.81)
+    per_n = dynamic_factor(body.total_mass, give.compliance, 0.25) * give.at_load
+    height = float(x[top, 1].mean() - x[:, 1].min())
+    small = 0.2 * FOLD_FRACTION * height / per_n
+    note = bend_note(np.array([small, 0.0, 0.0]), small, 0.25, body, top, mat, 9.81)
+    assert "springs back" in note and f"{100 * per_n * small:.2g} cm" in note
+    big = 3 * FOLD_FRACTION * height / per_n
+    assert "folds over" in bend_note(np.array([big, 0.0, 0.0]), big, 0.25, body, top, mat, 9.81)
+    assert bend_note(np.array([0.0, -big, 0.0]), big, 0.25, body, top, mat, 9.81) == ""
+    assert bend_note(np.array([big, 0.0, 0.0]), big, 0.25, body, top, Material.preset("sand"), 9.81) == ""
+    # too soft to hold itself up on its base (Greenhill's height 0.26 m at 20 kPa): it folds over anyway
+    assert "with or without the push" in bend_note(np.array([small, 0.0, 0.0]), small, 0.25, body, top,
+                                                   Material.preset("jelly", E=2e4), 9.81)
+    conds = Conditions([Force((big, 0.0, 0.0))])
+    held_below = forecast(conds, body, mat, clip_s=1.0, held=True, held_edges=("bottom", "right"))
+    assert any("folds over" in line for line in held_below if line.startswith("force 1"))
+    held_above = forecast(conds, body, mat, clip_s=1.0, held=True, held_edges=("top",))
+    assert not any("folds over" in line or "bends about" in line for line in held_above)
