@@ -53,7 +53,7 @@ Machine: {machine_description()}. Measured {datetime.date.today().isoformat()}.
 | --- | ---: |
 | **total, command start to mp4** | **{wall:.1f}** |
 | set-up: virtual environment, installs, imports | {setup:.1f} |
-| segmentation (GrabCut + inpainting) | {t['segment_s']:.1f} |
+| segmentation (GrabCut + inpainting; on a first run it compiles GrabCut's max-flow kernels, about 3 s) | {t['segment_s']:.1f} |
 | silhouette lift (incl. colour fit) | {t['lift_s']:.1f} |
 | Warp kernel compilation (first run only; cached afterwards) | {sim['kernel_load_s']:.1f} |
 | MPM simulation ({sim['particles']} particles, grid_res {sim['grid_res']}, {sim['substeps']} substeps) | {t['simulate_s'] - sim['kernel_load_s']:.1f} |
