@@ -548,7 +548,7 @@ class GrabCutGraph(GridCut):
         wp = self.wp
         return tuple(wp.array(np.array(a, np.float64), dtype=wp.float64, device="cpu") for a in (coef, mean, inv, det))
 
-    def _learn(self, labels_wp, models: tuple) -> None:
+    def _learn(self, models: tuple) -> None:
         """OpenCV's learnGMMs: each model's Gaussians from the pixels assigned to them, written into the
         (1, 65) model arrays (weight, mean, covariance with the singular fix of 0.01)."""
         wp = self.wp
@@ -572,6 +572,7 @@ class GrabCutGraph(GridCut):
                 m[20 + 9 * ci:29 + 9 * ci] = cov
 
     def iterate(self, labels: np.ndarray, bgd_model: np.ndarray, fgd_model: np.ndarray) -> None:
+        """One GrabCut iteration (``GC_EVAL``): ``labels`` and the two models are updated in place."""
         wp = self.wp
         dev = "cpu"
         n = self.h * self.w
@@ -580,7 +581,7 @@ class GrabCutGraph(GridCut):
         models = (bgd_model, fgd_model)
         lab = wp.array(labels.reshape(-1), dtype=wp.uint8, device=dev, copy=False)
         wp.launch(self._assign, dim=n, device=dev, inputs=[self._img, lab, *self._model_arrays(models), self._comp])
-        self._learn(lab, models)
+        self._learn(models)
         coef, mean, inv, det = self._model_arrays(models)
         wp.launch(self._tlinks, dim=n, device=dev,
                   inputs=[self._img, lab, coef, mean, inv, det, LAMBDA, 0 if self._solved else 1, self._last, self._tr])
