@@ -301,7 +301,7 @@ def _generate(args) -> int:
 def _add_check_parsers(sub) -> None:
     v = sub.add_parser("validate", help="compare the simulator with analytic and published answers",
                        description="Run the accuracy suite (free fall, projectile, momentum, torque spin-up, elastic "
-                                   "bar period, convergence order, cantilever, friction, bouncing ball, granular "
+                                   "bar period, convergence order, cantilever, friction, bouncing ball, landing on the ground, granular "
                                    "column collapse) and print measured vs expected with each tolerance.")
     v.add_argument("--quick", action="store_true", help="only the cases that take seconds")
     v.add_argument("--case", action="append", help="run only this case (repeatable); see --list")

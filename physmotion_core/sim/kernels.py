@@ -88,6 +88,7 @@ class Boundary:
     pad: int  # cells of padding at each wall: nodes closer than this to a face are wall nodes
     object_contact: int  # between objects' velocity fields (multi-field): CONTACT_* (see field_contact)
     object_friction: float
+    ground_impact: float  # m/s: a ground column with a gap meets the ground when it approaches faster (ground_column)
 
 
 @wp.struct
@@ -548,7 +549,7 @@ def update_node_fields(
         grid_m[f, li, lj, lk] = 0.0
         grid_mv[f, li, lj, lk] = wp.vec3(0.0, 0.0, 0.0)
         grid_g[f, li, lj, lk] = wp.vec3(0.0, 0.0, 0.0)
-        if bc.has_ground != 0 and j <= bc.ground_node:
+        if bc.has_ground != 0 and j <= bc.ground_node + 1:
             ground_m[f, i, j, k] = m
         if m > 0.0:
             if present > 1 and fill >= grid.dx * grid.dx * grid.dx:
@@ -611,7 +612,7 @@ def update_node(
             grid_fix[l, li, lj, lk] = 0.0
             grid_fix_v[l, li, lj, lk] = wp.vec3(0.0, 0.0, 0.0)
     v = wp.vec3(0.0, 0.0, 0.0)
-    if bc.has_ground != 0 and j <= bc.ground_node:
+    if bc.has_ground != 0 and j <= bc.ground_node + 1:
         ground_m[0, i, j, k] = m
     if m > 0.0:
         v = mv / m + dt * gravity
@@ -729,6 +730,7 @@ def ground_column(
     anchor_hi: wp.vec3i,
     ground_credit: wp.array3d(dtype=float),
     decay: float,
+    touch: float,
 ):
     m = float(0.0)
     p = wp.vec3(0.0, 0.0, 0.0)
@@ -741,6 +743,12 @@ def ground_column(
         ground_credit[f, i, k] = 0.0
         return
     v = p / m
+    if m < touch * ground_m[f, i, bc.ground_node + 1, k] and -v[1] <= bc.ground_impact:
+        # A gap: the material's underside lies above the plane, within the nodes' reach but not on it,
+        # and it approaches no faster than a fall through that reach gives. The column moves freely (its
+        # unused friction budget fades as it would in contact).
+        ground_credit[f, i, k] = ground_credit[f, i, k] * decay
+        return
     if bc.ground_contact == CONTACT_FRICTION:
         r = static_friction(v, m, bc.ground_friction, ground_credit[f, i, k], decay)
         v = wp.vec3(r[0], r[1], r[2])
@@ -770,6 +778,7 @@ def ground_contact(
     ground_credit: wp.array3d(dtype=float),
     dt_arr: wp.array(dtype=float),
     ctl: wp.array(dtype=wp.float64),
+    field_touch: wp.array(dtype=float),
 ):
     """The ground's contact, one decision per column of nodes at and below the ground plane (a
     thread per (i, k) of the span; the span's lowest node row is ``lo[1]``, at or below the ground).
@@ -784,7 +793,17 @@ def ground_contact(
     of the column with mass moves at the result (issue 37). For a body sliding uniformly nothing
     changes (every node of a column then has the same velocity). With one velocity field per object,
     each field's column is a contact of its own. Coulomb friction keeps each column's unused budget
-    for about one period of the bodies' vertical ringing (``ground_credit``, static_friction)."""
+    for about one period of the bodies' vertical ringing (``ground_credit``, static_friction).
+
+    The gap test (ground_column): the nodes at the plane carry mass from particles up to 1.5 cells
+    above it, so a column was held wherever a body came within that reach, and a stiff body, which
+    the held nodes carry whole, rested a cell above the ground after a drop and hovered near its peak
+    after a throw from the ground, for ever. A column now meets the ground only when its mass at and
+    below the plane is at least ``field_touch[f]`` times the mass of the row above (the underside
+    within MPMSolver.ground_gap cells of the plane; mpm.ground_touch_ratio; 0 for fields of flows,
+    mpm.FLOW_MODELS, which keep the plain contact), or when it approaches
+    faster than a fall through the reach gives (``bc.ground_impact``; an impact is met where the
+    nodes first reach it, as before, which keeps the bounce)."""
     a, c = wp.tid()
     i = lo[0] + a
     k = lo[2] + c
@@ -794,7 +813,7 @@ def ground_contact(
         decay = wp.exp(-dt_arr[0] / tau)
     for f in range(ground_m.shape[0]):
         ground_column(grid_v, ground_m, grid_mv, f, i, k, lo, bc, layer_lo, anchors, anchor_lo, anchor_hi,
-                      ground_credit, decay)
+                      ground_credit, decay, field_touch[f])
 
 
 # ----------------------------------------------------------------------------------------------

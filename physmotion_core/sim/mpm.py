@@ -33,6 +33,14 @@ CONTACT_PIC_MODELS = ("fixed_corotated", "neo_hookean", "fracture")
 # periods of the bodies' slowest vertical ringing, 4 H / c (H: the active box's height above the ground,
 # c: the stiffest wave speed); 0 = none, Coulomb's law on each substep's impulses alone (issue 37).
 FRICTION_MEMORY = 1.0
+# The ground acts on a column of nodes only where the material's underside lies within this many cells of
+# the plane (kernels.ground_column; None = wherever the nodes at the plane have mass, the plain grid
+# contact, which held a stiff body that the nodes' B-splines reached, up to 1.5 cells above the plane).
+GROUND_GAP = 0.15
+# ... for bodies that keep their shape. Flows settle onto the plane under the plain contact anyway (a sand
+# block dropped 45 mm: its lowest particle at -0.1 mm, honey -0.8 mm), and the gap test shortened the sand
+# column's run-out, which the plain contact matches to experiments (docs/accuracy.md, "Landing on the ground").
+FLOW_MODELS = ("drucker_prager", "viscoplastic", "fluid")
 # Gravity preload (MPMSolver.preload): the elastic solid models a photographed body's loaded shape is
 # restored for, the most periods of its slowest vertical ringing it may relax for, and the RMS speed
 # (a fraction of g / ω, the release ringing's speed) at which it counts as settled.
@@ -144,6 +152,37 @@ class Domain:
             ground_node = PAD
         dims = tuple(int(math.ceil((box_hi[a] - origin[a]) / dx)) + PAD + 1 for a in range(3))
         return cls(origin=origin.astype(np.float64), dx=float(dx), dims=dims, ground_node=ground_node)
+
+
+def _bspline(d: np.ndarray) -> np.ndarray:
+    """The quadratic B-spline of MPM's transfers at distance d (cells)."""
+    d = np.abs(d)
+    return np.where(d < 0.5, 0.75 - d * d, np.where(d < 1.5, 0.5 * (1.5 - d) ** 2, 0.0))
+
+
+@functools.lru_cache(maxsize=None)
+def ground_touch_ratio(gap: Optional[float]) -> float:
+    """The ground's contact test (kernels.ground_column, ``MPMSolver.field_touch``): for material filling
+    the space above a height s (cells) over the ground plane's node row, the mass that the rows at and
+    below the plane hold over the mass of the row above, as a function of s, is this ratio at s = ``gap``.
+    A column whose ratio is at least that has its underside within ``gap`` cells of the plane. The ratio
+    falls as the gap opens (0.53 at s = 0, 0.45 at 0.1, 0.20 at half a cell, 0 from 1.5) and depends on
+    the particles' spacing only through the sampling (particles of spacing dx/2 at s = 0: 0.52).
+    ``gap`` None: 0, a contact wherever the plane's nodes have mass."""
+    if gap is None:
+        return 0.0
+    y = np.linspace(gap, gap + 3.0, 30001)
+    low = np.trapezoid(_bspline(y) + _bspline(y + 1.0), y)
+    up = np.trapezoid(_bspline(y - 1.0), y)
+    return float(low / up)
+
+
+def ground_impact_speed(g: float, dx: float) -> float:
+    """The approach speed (m/s) above which a ground column within the nodes' reach but not touching
+    meets the ground anyway (kernels.ground_column): the speed of a fall through that reach, √(2 g 1.5 dx).
+    A body that settles or hops within the reach falls to the plane; one that comes in faster is met
+    where the nodes first reach it, as plain grid contact does, which keeps its bounce."""
+    return math.sqrt(2.0 * g * 1.5 * dx)
 
 
 def _launch_all(cmds: list) -> None:
@@ -276,8 +315,12 @@ class MPMSolver:
         objects: Optional[np.ndarray] = None,
         object_contact: Optional[ObjectContact] = None,
         friction_memory: float = FRICTION_MEMORY,
+        ground_gap: Optional[float] = GROUND_GAP,
     ):
         _check_materials(materials, transfer)
+        if ground_gap is not None and not (math.isfinite(ground_gap) and 0.0 <= ground_gap <= 1.0):
+            raise InputError(f"ground_gap must be None or a number of cells in [0, 1]; got {ground_gap}")
+        self.ground_gap = ground_gap
         if not (math.isfinite(friction_memory) and friction_memory >= 0.0):
             raise InputError(f"friction_memory must be a finite number >= 0; got {friction_memory}")
         self.friction_memory = float(friction_memory)
@@ -422,6 +465,12 @@ class MPMSolver:
         fmass = np.bincount(self.field_np, weights=mass.astype(np.float64), minlength=self.fields)
         fvol = np.bincount(self.field_np, weights=vol, minlength=self.fields)
         self.field_inv_rho = wp.array((fvol / np.maximum(fmass, 1e-30)).astype(np.float32), dtype=float)
+        # Each field's ground test (kernels.ground_column): the gap test where every particle of the field is
+        # of a body that keeps its shape; flows (FLOW_MODELS) keep the plain grid contact.
+        flows = np.array([m.model in FLOW_MODELS for m in self.materials], bool)
+        has_flow = np.bincount(self.field_np, weights=flows[mat_index].astype(np.float64), minlength=self.fields) > 0
+        self.field_touch = wp.array(np.where(has_flow, 0.0, ground_touch_ratio(self.ground_gap)).astype(np.float32),
+                                    dtype=float)
         self.f_static = wp.zeros(n, dtype=wp.vec3)
         self.f_total = wp.zeros(n, dtype=wp.vec3)
         self.material_table = wp.array([kernel_params(m) for m in materials], dtype=K.MaterialParams)
@@ -432,8 +481,9 @@ class MPMSolver:
         _fit_layers at the first launch."""
         wp, dims = self.wp, self.domain.dims
         self.grid_v = wp.zeros((self.fields,) + tuple(dims), dtype=wp.vec3)  # one velocity field per object
-        # The masses of the nodes at and below the ground plane (kernels.ground_contact), per field.
-        self.ground_m = wp.zeros((self.fields, dims[0], max(self.domain.ground_node + 1, 1), dims[2]), dtype=float)
+        # The masses of the nodes at and below the ground plane and of the row above it
+        # (kernels.ground_contact), per field.
+        self.ground_m = wp.zeros((self.fields, dims[0], max(self.domain.ground_node + 2, 1), dims[2]), dtype=float)
         # Per ground column and field, the friction budget (an impulse) its substeps left unused
         # (kernels.static_friction).
         self.ground_credit = wp.zeros((self.fields, dims[0], dims[2]), dtype=float)
@@ -503,6 +553,9 @@ class MPMSolver:
         oc = self.object_contact
         bc.object_contact = _CONTACT_IDS.get(oc.contact, K.CONTACT_STICKY)
         bc.object_friction = float(oc.friction)
+        # What a fall through the nodes' reach (1.5 cells) gives: a column approaching faster is an impact,
+        # met by the plain grid contact (a gap test there cost a stiff ball 0.07 of its bounce).
+        bc.ground_impact = ground_impact_speed(float(np.linalg.norm(self.gravity)), self.domain.dx)
         return bc
 
     def _init_host_mirrors(self, x: np.ndarray, v0: Optional[np.ndarray], mass: np.ndarray, flags: np.ndarray) -> None:
@@ -879,7 +932,7 @@ class MPMSolver:
         if self.ground is not None and span_lo[1] <= self.domain.ground_node:
             step(K.ground_contact, (dims[0], dims[2]), [self.grid_v, self.ground_m, self.grid_mv, lo, self.bc,
                                                         self._layer_lo_w, int(anchors), alo, ahi,
-                                                        self.ground_credit, self.dt_arr, self.ctl])
+                                                        self.ground_credit, self.dt_arr, self.ctl, self.field_touch])
         if anchors:
             # The anchored nodes, from the sums grid_update left in layer 0 (kernels.anchor_update), over the
             # anchor's span only: elsewhere no node is held or next to a held one, and these passes change nothing.

@@ -474,7 +474,8 @@ def simulate(
                        ground=ground, walls=conditions.walls(), cfl=settings.cfl, device=device, v0=init.v0,
                        C0=init.C0, body=init.body, torque_mask=init.torque_mask, transfer=settings.transfer,
                        graph={"auto": None, "on": True, "off": False}[settings.graph],
-                       threads=settings.cpu_threads, objects=parts.particle_object, object_contact=object_contact)
+                       threads=settings.cpu_threads, objects=parts.particle_object, object_contact=object_contact,
+                       ground_gap=settings.ground_gap if settings.ground_gap >= 0 else None)
     schedule = LoadSchedule.compile(conditions, x0, solver.mass_np, init.torque_mask, init.anchor_sel, region)
     frame_dt = 1.0 / settings.fps
     cause = _check_cost(solver, settings, materials, frame_dt, schedule.peak_accel(solver.mass_np),

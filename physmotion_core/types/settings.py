@@ -46,6 +46,9 @@ class SimSettings:
     preload: bool = True  # start elastic solids (fixed_corotated, neo_hookean, fracture) that rest on the ground
     #                       in equilibrium under gravity: their photographed shape is the loaded one (see
     #                       MPMSolver.preload; skipped, at no cost, where it does not apply)
+    ground_gap: float = 0.15  # cells: the ground acts on a column only where the material's underside lies within
+    #                           this of the plane (MPMSolver's ground_gap; a stiff body otherwise rested or hovered
+    #                           up to a cell above it); negative = off, the plain grid contact
     cpu_threads: int = 0  # threads for the CPU kernels; 0 = every core (PHYSMOTION_CPU_THREADS overrides 0).
     #                       The result does not depend on it (the work is split by particle count)
 
@@ -82,6 +85,8 @@ class SimSettings:
         if not (isinstance(self.max_substeps_per_frame, int) and 1 <= self.max_substeps_per_frame <= 10_000_000):
             raise InputError(f"max_substeps_per_frame must be an integer in [1, 10000000]; got "
                              f"{self.max_substeps_per_frame}")
+        if not (math.isfinite(self.ground_gap) and self.ground_gap <= 1.0):
+            raise InputError(f"ground_gap must be at most 1 cell (negative turns the gap test off); got {self.ground_gap}")
         if not (math.isfinite(self.rest_speed) and self.rest_speed >= 0):
             raise InputError(f"rest_speed must be a non-negative speed in m/s (0 turns rest detection off); "
                              f"got {self.rest_speed}")
