@@ -105,3 +105,14 @@ def test_flows_keep_the_plain_contact_and_solids_get_the_gap_test():
     assert shared.field_touch.numpy().tolist() == [0.0]
     off = MPMSolver(x, vol, np.array([1, 1, 1]), mats[:2], dom, ground=ground, ground_gap=None)
     assert off.field_touch.numpy().tolist() == [0.0]
+
+
+def test_the_settings_default_is_the_solvers_and_bad_values_are_refused():
+    # SimSettings (types, which do not import the simulator) repeats MPMSolver's default: they must agree.
+    from physmotion_core.errors import InputError
+
+    assert SimSettings().ground_gap == GROUND_GAP
+    with pytest.raises(InputError, match="ground_gap"):
+        SimSettings(ground_gap=2.0).validate()
+    with pytest.raises(InputError, match="ground_gap"):
+        SimSettings(ground_gap=float("nan")).validate()
