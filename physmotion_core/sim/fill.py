@@ -265,18 +265,20 @@ REACH_BACK = 1.0  # from this far before it (a centre past a surface splat's pla
 
 
 def _occupancy(boxes: _Boxes, origin: np.ndarray, dims: np.ndarray,
-               spacing: float) -> tuple[np.ndarray, np.ndarray]:
+               spacing: float) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Voxels whose centre lies in a Gaussian's solid (``_boxes``; module docstring, steps 1-2).
 
     Also returns ``reach`` (6, *dims) uint8: for voxels whose centre lies in a solid, how far along
     -x, +x, -y, +y, -z, +z the solid holding it goes on (the most over such solids), in
     1/REACH_STEPS of a voxel, at most one voxel; 0 where no solid holds the centre (``_volumes``).
+    And ``sheet`` (*dims) bool: voxels whose centre a surface splat's solid holds (``_surface_shift``).
     """
     occ = np.zeros(tuple(int(d) for d in dims), dtype=bool)
     reach = torch.zeros((6, int(np.prod(dims))), dtype=torch.uint8)
+    sheet = torch.zeros(int(np.prod(dims)), dtype=torch.bool)
     means, to_box, radius, limit = boxes.means, boxes.to_box, boxes.radius, boxes.limit
     if means.shape[0] == 0:
-        return occ, reach.reshape(6, *occ.shape).numpy()
+        return occ, reach.reshape(6, *occ.shape).numpy(), sheet.reshape(occ.shape).numpy()
     centre = torch.floor((means - torch.from_numpy(origin).float()) / spacing).long()
     dims_t = torch.from_numpy(np.asarray(dims)).long()
     o = torch.from_numpy(origin).float()
@@ -329,13 +331,14 @@ def _occupancy(boxes: _Boxes, origin: np.ndarray, dims: np.ndarray,
             else:
                 silent = torch.zeros_like(up, dtype=torch.bool)
             lin = ((vox[gi, ki, 0] * dims_t[1] + vox[gi, ki, 1]) * dims_t[2] + vox[gi, ki, 2])
+            sheet[lin[rh]] = True
             for j in range(3):
                 for side, t in ((0, down[:, j]), (1, up[:, j])):
                     val = (torch.round(((t / spacing).clamp(-REACH_BACK, 1.0) + REACH_BACK) * REACH_STEPS)
                            + 1).to(torch.uint8)
                     val = torch.where(silent[:, j], torch.zeros_like(val), val)
                     reach[2 * j + side].scatter_reduce_(0, lin, val, reduce="amax")
-    return occ, reach.reshape(6, *occ.shape).numpy()
+    return occ, reach.reshape(6, *occ.shape).numpy(), sheet.reshape(occ.shape).numpy()
 
 
 def _volumes(solid: np.ndarray, reach: np.ndarray, vox: np.ndarray, spacing: float,
@@ -372,6 +375,128 @@ def _volumes(solid: np.ndarray, reach: np.ndarray, vox: np.ndarray, spacing: flo
     others = np.where(np.arange(3)[None, :] == worst[:, None], 1.0, np.maximum(F, 0.0)).prod(axis=1)
     f = np.where(low < 0.0, low * others, F.prod(axis=1))
     return (f * spacing**3).astype(np.float32)
+
+
+CONFORM_MAX = 0.5  # voxels: the most an outer particle moves towards or away from the surface
+
+
+def _axis_reach(solid: np.ndarray, reach: np.ndarray, vox: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(lo, hi), each (n, 3): how far the solid goes from each voxel's centre along −j / +j (voxels, from
+    ``reach``) where that face neighbour is empty and a solid holding the centre says where it ends; NaN
+    elsewhere (a solid neighbour, or no solid that knows)."""
+    padded = np.pad(solid, 1)
+    held = reach.any(axis=0)[tuple(vox.T)]
+    out = []
+    for side, step in ((0, -1), (1, 1)):
+        r = np.full((vox.shape[0], 3), np.nan)
+        for j in range(3):
+            nb = vox + 1
+            nb[:, j] += step
+            code = reach[2 * j + side][tuple(vox.T)].astype(np.float64)
+            known = ~padded[tuple(nb.T)] & held & (code > 0)
+            r[known, j] = np.minimum((code[known] - 1) / REACH_STEPS - REACH_BACK, 1.0)
+        out.append(r)
+    return out[0], out[1]
+
+
+def _conform(solid: np.ndarray, reach: np.ndarray, sheet: np.ndarray,
+             vox: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """(keep, shift): which solid voxels get a particle, and where it goes (voxels from the centre,
+    ``_surface_shift``), for the voxels a surface splat's solid holds (``sheet``); others keep their
+    particle at the centre.
+
+    Dropped: voxels whose centre lies on or past the surface (a surface splat's plane) along an axis
+    where the body goes on behind them (the face neighbour opposite is solid). The voxel-thick sheet a
+    flat splat marks sticks out of the body by up to a voxel, and a particle there sat outside the
+    object (a 0.2 m sphere of splats: up to 0.8 spacings past its surface; a slab's faces 0.6 past).
+    Their neighbour behind, now on the surface, learns the plane from them (one voxel further on).
+    """
+    n = vox.shape[0]
+    on = sheet[tuple(vox.T)]
+    padded = np.pad(solid, 1)
+    lo, hi = _axis_reach(solid, reach, vox)
+    drop = np.zeros(n, dtype=bool)
+    index = np.full(padded.shape, -1, dtype=np.int64)
+    index[tuple((vox + 1).T)] = np.arange(n)
+    given = [np.full((n, 3), np.nan), np.full((n, 3), np.nan)]  # (lo, hi) the neighbour behind learns
+    for j in range(3):
+        for r, step, side in ((lo[:, j], 1, 0), (hi[:, j], -1, 1)):
+            nb = vox + 1
+            nb[:, j] += step
+            past = on & (r <= 0.0) & padded[tuple(nb.T)]
+            drop |= past
+            behind = index[tuple(nb[past].T)]
+            given[side][behind, j] = np.fmax(given[side][behind, j], 1.0 + r[past])
+    if drop.all():
+        drop[:] = False
+    keep = ~drop
+    kept = np.zeros_like(solid)
+    kept[tuple(vox[keep].T)] = True
+    klo, khi = _axis_reach(kept, reach, vox[keep])
+    klo = np.where(np.isnan(klo), given[0][keep], klo)
+    khi = np.where(np.isnan(khi), given[1][keep], khi)
+    learned = ~np.isnan(given[0]).all(axis=1) | ~np.isnan(given[1]).all(axis=1)
+    shift = _surface_shift(kept, klo, khi, vox[keep]) * (on | learned)[keep, None]
+    return keep, shift
+
+
+def _normals(solid: np.ndarray, vox: np.ndarray) -> np.ndarray:
+    """Unit outward normals at the voxels ``vox``: minus the gradient of the solid's indicator blurred by a
+    Gaussian of NORMAL_SIGMA voxels (central differences); (0, 0, 0) where it is flat."""
+    r = int(math.ceil(3 * NORMAL_SIGMA))
+    k = torch.exp(-0.5 * (torch.arange(-r, r + 1, dtype=torch.float32) / NORMAL_SIGMA) ** 2)
+    k = k / k.sum()
+    lo, hi = np.maximum(vox.min(axis=0) - r - 2, 0), np.minimum(vox.max(axis=0) + r + 3, solid.shape)
+    f = torch.from_numpy(solid[lo[0]:hi[0], lo[1]:hi[1], lo[2]:hi[2]].astype(np.float32))[None, None]
+    for ax in range(3):
+        shape = [1, 1, 1, 1, 1]
+        shape[2 + ax] = k.numel()
+        pad = [0, 0, 0, 0, 0, 0]
+        pad[2 * (2 - ax)] = pad[2 * (2 - ax) + 1] = r
+        f = torch.nn.functional.conv3d(torch.nn.functional.pad(f, pad), k.reshape(shape))
+    f = f[0, 0].numpy()
+    v = vox - lo
+    g = np.zeros((vox.shape[0], 3))
+    for ax in range(3):
+        up, dn = v.copy(), v.copy()
+        up[:, ax] += 1
+        dn[:, ax] -= 1
+        g[:, ax] = 0.5 * (f[tuple(dn.T)] - f[tuple(up.T)])
+    n = np.sqrt((g * g).sum(axis=1, keepdims=True))
+    return np.where(n > 1e-6, g / np.maximum(n, 1e-12), 0.0)
+
+
+NORMAL_SIGMA = 1.0  # voxels: the blur the surface normals are taken from
+
+
+def _surface_shift(solid: np.ndarray, lo: np.ndarray, hi: np.ndarray, vox: np.ndarray) -> np.ndarray:
+    """Per solid voxel, where its particle goes (in voxels, from the voxel's centre) so that the outer
+    layer lies half a spacing inside the surface, along the surface's normal; (0, 0, 0) inside.
+
+    A voxel centre on a lattice sits anywhere from 0 to about one voxel inside the surface, so a round
+    body's outer particles make a polygon of flats (a disc 16 cells across had a bottom row 75 mm wide:
+    rolling over its edge lifted the centre by half a spacing, more energy than a slow roll has, and a
+    rigid disc pushed along the ground rocked where it should roll; docs/accuracy.md, "Rolling").
+    The normal n comes from the blurred solid (``_normals``); the distance from the centre to the
+    surface from the solids' own ends (``lo``, ``hi``: ``_axis_reach``): along the axis j closest to n on whose side
+    the face neighbour is empty and the solids say where they end (r_j voxels away), the plane lies
+    d = r_j·|n_j| from the centre. The particle moves by (d − ½)·n, at most CONFORM_MAX. Along an
+    axis with both neighbours empty (a sheet one voxel thick) it goes to the middle of the solid
+    there instead. Voxels with no such axis (inside, or held by no solid that knows) stay.
+    """
+    both = ~np.isnan(lo) & ~np.isnan(hi)
+    out = np.where(both, 0.5 * (np.nan_to_num(hi) - np.nan_to_num(lo)), 0.0)
+    n = _normals(solid, vox)
+    r = np.where(n > 0, hi, lo)  # the reach on the side the normal points to
+    usable = ~np.isnan(r) & ~both & (np.abs(n) > 0.3)
+    score = np.where(usable, np.abs(n), -1.0)
+    j = score.argmax(axis=1)
+    rows = np.arange(vox.shape[0])
+    ok = score[rows, j] > 0
+    d = np.where(ok, np.nan_to_num(r[rows, j]) * np.abs(n[rows, j]), 0.5)
+    out = out + np.where(ok[:, None], (d - 0.5)[:, None] * n, 0.0)
+    size = np.sqrt((out * out).sum(axis=1, keepdims=True))
+    return out * np.minimum(1.0, CONFORM_MAX / np.maximum(size, 1e-12))
 
 
 def _nearest(q: np.ndarray, pts: np.ndarray) -> np.ndarray:
@@ -425,12 +550,17 @@ def fill_particles(
     fill_interior: bool = True,
     min_opacity: float = 0.1,
     floor: float | None = None,
+    conform: bool = False,
 ) -> ParticleSet:
     """Sample physics particles filling the solid the Gaussians enclose (see module docstring).
 
     ``floor`` (a height in metres, e.g. the ground's): no particle is placed below it. The splats
     of an object resting on the ground reach a little below it (a ball's lowest splat is centred on
     the ground), and particles there would start inside the ground.
+    ``conform`` (off by default; measured, not yet the pipeline's default: docs/accuracy.md, "Rolling"):
+    where surface splats bound the solid, no particle sits outside the surface and the outermost ones
+    sit half a spacing inside it along its normal (``_conform``), not at their voxels' centres, so a
+    round body's underside is round. Volume Gaussians (boxes, which tile a lattice) are left as they are.
     """
     if len(gaussians) == 0:
         raise InputError("Cannot simulate an empty set of Gaussians: the object has no Gaussians")
@@ -454,7 +584,7 @@ def fill_particles(
         margin = max(boxes.limit, MAX_STAMP_RADIUS)  # voxels: room for the stencils around the centres
         origin = lo - 3.0 * spacing - margin * spacing  # (a stencil reaches at most margin voxels)
         dims = np.ceil((hi - origin) / spacing).astype(np.int64) + 4 + margin
-        occ, reach = _occupancy(boxes, origin, dims, spacing)
+        occ, reach, sheet = _occupancy(boxes, origin, dims, spacing)
         occ = _close(occ)
         solid = occ | _interior(occ) if fill_interior else occ
         if floor is not None:
@@ -468,12 +598,18 @@ def fill_particles(
         # Coarsen rather than run out of memory; the caller logs the adaptation via the returned spacing.
         spacing = spacing * (count / max_particles) ** (1.0 / 3.0) * 1.02
 
-    vox = np.argwhere(solid)
+    vox_all = np.argwhere(solid)
+    vox = vox_all
+    if conform:  # no particle outside the surface; the outer ones half a spacing inside it
+        keep, shift = _conform(solid, reach, sheet, vox_all)
+        vox = vox_all[keep]
     # Particle index of every solid voxel, for binding.
     index_grid = np.full(tuple(dims), -1, dtype=np.int64)
     index_grid[vox[:, 0], vox[:, 1], vox[:, 2]] = np.arange(vox.shape[0])
     rng = np.random.default_rng(seed)
     x = origin + (vox + 0.5 + rng.uniform(-jitter, jitter, size=vox.shape)) * spacing
+    if conform:
+        x = x + shift * spacing
     if floor is not None:
         x[:, 1] = np.maximum(x[:, 1], float(floor))  # the jitter must not push a particle under it
 
@@ -485,11 +621,11 @@ def fill_particles(
 
     neighbours, weights = _interpolation(means, binding, x, index_grid, origin, spacing, dims)
     # The solid's volume, shared equally: every particle of an object weighs the same.
-    below = None if floor is None else (origin[1] + (vox[:, 1] + 0.5) * spacing - float(floor)) / spacing
-    total = float(_volumes(solid, reach, vox, spacing, below).astype(np.float64).sum())
+    below = None if floor is None else (origin[1] + (vox_all[:, 1] + 0.5) * spacing - float(floor)) / spacing
+    total = float(_volumes(solid, reach, vox_all, spacing, below).astype(np.float64).sum())
     # Flat splats that enclose nothing (a sparse or open cloud of them) cut their voxels down to nearly nothing:
     # every solid voxel stands for MIN_VOXEL_SHARE of itself at least, so no object weighs nothing.
-    total = max(total, MIN_VOXEL_SHARE * vox.shape[0] * spacing**3)
+    total = max(total, MIN_VOXEL_SHARE * vox_all.shape[0] * spacing**3)
     volume = np.full(vox.shape[0], total / vox.shape[0], dtype=np.float32)
     return ParticleSet(
         x=x.astype(np.float32),
