@@ -66,7 +66,7 @@ def body_facts(gaussians, material: Material, settings, ground: Optional[Ground]
     res = Resolution.of(means, settings, device)
     obj_ids, objects = _object_ids(gaussians)
     parts = fill_objects(gaussians, obj_ids, objects, res.spacing, res.dx, settings.max_particles, settings.seed,
-                         ground)
+                         ground, conform=[material.model == "rigid"] * len(objects))  # as simulate() fills
     return BodyFacts(parts.x, (parts.volume * float(material.density)).astype(np.float64), float(res.dx),
                      len(objects) == 1)
 

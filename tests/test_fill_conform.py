@@ -109,3 +109,25 @@ def test_a_rigid_disc_of_splats_pushed_along_the_ground_rolls():
     travel, rolled = got[True]
     assert 0.7 * want <= travel <= 1.05 * want, (travel, want)  # measured 0.084 m of 0.101
     assert rolled == pytest.approx(travel, rel=0.1), got  # it rolls: the turn matches the travel
+
+
+def test_simulate_fills_rigid_bodies_to_their_surface_and_deformable_ones_on_the_lattice():
+    """simulate() (and the preview's body_facts, which must weigh what it simulates) turns conform on for rigid
+    bodies only: a deformable body's stress wants the lattice's equal spacing (docs/accuracy.md, "Rolling")."""
+    from physmotion_core.feedback import body_facts
+    from physmotion_core.sim import simulate
+    from physmotion_core.types import Conditions, Ground, SimSettings
+    from physmotion_core.types.material import material_preset
+
+    g, _, _ = sphere_shell()
+    g.means[:, 1] += 0.1  # resting on y = 0
+    R, ground = 0.1, Ground(0.0, "friction", 0.5)
+    for name, inside in (("rigid", True), ("jelly", False)):
+        st = SimSettings(frames=1, device="cpu")
+        res = simulate(g, material_preset(name), Conditions([ground]), st, record_all=True)
+        x = res.rest_particles.numpy().astype(np.float64)
+        s = float(res.stats["particle_spacing"])
+        r = np.linalg.norm(x - [0.0, 0.1, 0.0], axis=1)
+        assert (r.max() <= R) == inside, (name, (r.max() - R) / s)  # the lattice's layer sticks out
+        facts = body_facts(g, material_preset(name), st, ground)
+        assert np.array_equal(facts.x, res.rest_particles.numpy()), name

@@ -52,7 +52,7 @@ from __future__ import annotations
 import logging
 import math
 from dataclasses import dataclass
-from typing import Optional
+from typing import Optional, Sequence
 
 import numpy as np
 import torch
@@ -400,10 +400,11 @@ def _axis_reach(solid: np.ndarray, reach: np.ndarray, vox: np.ndarray) -> tuple[
 
 
 def _conform(solid: np.ndarray, reach: np.ndarray, sheet: np.ndarray,
-             vox: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """(keep, shift): which solid voxels get a particle, and where it goes (voxels from the centre,
-    ``_surface_shift``), for the voxels a surface splat's solid holds (``sheet``); others keep their
-    particle at the centre.
+             vox: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """(keep, shift, normal, probe): which solid voxels get a particle, and where it goes (voxels from
+    the centre, ``_surface_shift``) along which normal, for the voxels a surface splat's solid holds
+    (``sheet``); others keep their particle at the centre (normal 0). ``probe``: the blurred normal of
+    the other kept voxels on the surface (0 elsewhere), for ``_splat_planes``.
 
     Dropped: voxels whose centre lies on or past the surface (a surface splat's plane) along an axis
     where the body goes on behind them (the face neighbour opposite is solid). The voxel-thick sheet a
@@ -436,8 +437,64 @@ def _conform(solid: np.ndarray, reach: np.ndarray, sheet: np.ndarray,
     klo = np.where(np.isnan(klo), given[0][keep], klo)
     khi = np.where(np.isnan(khi), given[1][keep], khi)
     learned = ~np.isnan(given[0]).all(axis=1) | ~np.isnan(given[1]).all(axis=1)
-    shift = _surface_shift(kept, klo, khi, vox[keep]) * (on | learned)[keep, None]
-    return keep, shift
+    kvox = vox[keep]
+    shift, normal = _surface_shift(kept, klo, khi, kvox)
+    moved = (on | learned)[keep, None]
+    shift, normal = shift * moved, normal * moved
+    # The rest of the surface (voxels the closing added, or that no splat's solid says where it ends):
+    # the splats near them may still place them (``_splat_planes``); their blurred normal to start from.
+    pk = np.pad(kept, 1)
+    surface = np.zeros(kvox.shape[0], dtype=bool)
+    for j in range(3):
+        for step in (-1, 1):
+            nb = kvox + 1
+            nb[:, j] += step
+            surface |= ~pk[tuple(nb.T)]
+    probe = surface & (np.abs(normal).sum(axis=1) == 0)
+    blurred = np.zeros_like(normal)
+    if probe.any():
+        blurred[probe] = _normals(kept, kvox[probe])
+    return keep, shift, normal, blurred
+
+
+def _splat_planes(centre: np.ndarray, shift: np.ndarray, normal: np.ndarray, probe: np.ndarray, means: np.ndarray,
+                  normals: np.ndarray, spacing: float) -> tuple[np.ndarray, np.ndarray]:
+    """Refine the outer particles' (those with a ``normal``, or a ``probe`` one) shift from the surface splats near them: the
+    planes of the SPLAT_PLANES nearest within 1.5 spacings (each splat's normal turned to agree with
+    the voxel's), averaged with weights 1 / (distance + spacing / 10), give the normal and the signed
+    height h of the voxel's centre over the surface; the particle goes to half a spacing under it,
+    (−h/s − ½)·n in voxels, at most CONFORM_MAX + ½. Where no splat is that near, the voxel estimate
+    (``_surface_shift``) stays. The voxel estimate reads the surface off the solids' ends (1/64 voxel
+    steps, one axis) and a blurred normal; the splats are the surface."""
+    from scipy.spatial import cKDTree
+
+    guide = np.where((np.abs(normal).sum(axis=1) > 0)[:, None], normal, probe)
+    todo = np.nonzero(np.abs(guide).sum(axis=1) > 0)[0]
+    if todo.size == 0 or means.shape[0] == 0:
+        return shift, normal
+    k = min(SPLAT_PLANES, means.shape[0])
+    dist, idx = cKDTree(means).query(centre[todo], k=k, distance_upper_bound=1.5 * spacing)
+    dist, idx = dist.reshape(todo.size, k), idx.reshape(todo.size, k)
+    ok = np.isfinite(dist)
+    safe = np.where(ok, idx, 0)
+    nk = normals[safe]  # (t, k, 3)
+    nk = nk * np.where((nk * guide[todo, None, :]).sum(-1, keepdims=True) < 0, -1.0, 1.0)
+    w = np.where(ok, 1.0 / (np.where(ok, dist, 0.0) + 0.1 * spacing), 0.0)[..., None]
+    n = (w * nk).sum(1)
+    nn = np.sqrt((n * n).sum(-1, keepdims=True))
+    h = (w[..., 0] * (nk * (centre[todo, None, :] - means[safe])).sum(-1)).sum(1) / np.maximum(w[..., 0].sum(1), 1e-30)
+    good = ok.any(1) & (nn[:, 0] > 0.5 * w[..., 0].sum(1) / np.maximum(w[..., 0].sum(1), 1e-30))
+    n = n / np.maximum(nn, 1e-12)
+    step = (-h / spacing - 0.5)[:, None] * n
+    size = np.sqrt((step * step).sum(-1, keepdims=True))
+    step = step * np.minimum(1.0, (CONFORM_MAX + 0.5) / np.maximum(size, 1e-12))
+    shift, normal = shift.copy(), normal.copy()
+    shift[todo[good]] = step[good]
+    normal[todo[good]] = n[good]
+    return shift, normal
+
+
+SPLAT_PLANES = 4  # splats whose planes place an outer particle
 
 
 def _normals(solid: np.ndarray, vox: np.ndarray) -> np.ndarray:
@@ -469,9 +526,11 @@ def _normals(solid: np.ndarray, vox: np.ndarray) -> np.ndarray:
 NORMAL_SIGMA = 1.0  # voxels: the blur the surface normals are taken from
 
 
-def _surface_shift(solid: np.ndarray, lo: np.ndarray, hi: np.ndarray, vox: np.ndarray) -> np.ndarray:
+def _surface_shift(solid: np.ndarray, lo: np.ndarray, hi: np.ndarray,
+                   vox: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Per solid voxel, where its particle goes (in voxels, from the voxel's centre) so that the outer
-    layer lies half a spacing inside the surface, along the surface's normal; (0, 0, 0) inside.
+    layer lies half a spacing inside the surface, along the surface's normal; (0, 0, 0) inside. Also the
+    unit normal it moved along ((0, 0, 0) where it did not).
 
     A voxel centre on a lattice sits anywhere from 0 to about one voxel inside the surface, so a round
     body's outer particles make a polygon of flats (a disc 16 cells across had a bottom row 75 mm wide:
@@ -496,7 +555,7 @@ def _surface_shift(solid: np.ndarray, lo: np.ndarray, hi: np.ndarray, vox: np.nd
     d = np.where(ok, np.nan_to_num(r[rows, j]) * np.abs(n[rows, j]), 0.5)
     out = out + np.where(ok[:, None], (d - 0.5)[:, None] * n, 0.0)
     size = np.sqrt((out * out).sum(axis=1, keepdims=True))
-    return out * np.minimum(1.0, CONFORM_MAX / np.maximum(size, 1e-12))
+    return out * np.minimum(1.0, CONFORM_MAX / np.maximum(size, 1e-12)), np.where(ok[:, None], n, 0.0)
 
 
 def _nearest(q: np.ndarray, pts: np.ndarray) -> np.ndarray:
@@ -557,7 +616,7 @@ def fill_particles(
     ``floor`` (a height in metres, e.g. the ground's): no particle is placed below it. The splats
     of an object resting on the ground reach a little below it (a ball's lowest splat is centred on
     the ground), and particles there would start inside the ground.
-    ``conform`` (off by default; measured, not yet the pipeline's default: docs/accuracy.md, "Rolling"):
+    ``conform`` (off by default; ``simulate`` turns it on for rigid bodies: docs/accuracy.md, "Rolling"):
     where surface splats bound the solid, no particle sits outside the surface and the outermost ones
     sit half a spacing inside it along its normal (``_conform``), not at their voxels' centres, so a
     round body's underside is round. Volume Gaussians (boxes, which tile a lattice) are left as they are.
@@ -601,15 +660,22 @@ def fill_particles(
     vox_all = np.argwhere(solid)
     vox = vox_all
     if conform:  # no particle outside the surface; the outer ones half a spacing inside it
-        keep, shift = _conform(solid, reach, sheet, vox_all)
+        keep, shift, normal, probe = _conform(solid, reach, sheet, vox_all)
         vox = vox_all[keep]
     # Particle index of every solid voxel, for binding.
     index_grid = np.full(tuple(dims), -1, dtype=np.int64)
     index_grid[vox[:, 0], vox[:, 1], vox[:, 2]] = np.arange(vox.shape[0])
     rng = np.random.default_rng(seed)
-    x = origin + (vox + 0.5 + rng.uniform(-jitter, jitter, size=vox.shape)) * spacing
+    jit = rng.uniform(-jitter, jitter, size=vox.shape)
     if conform:
-        x = x + shift * spacing
+        flat = boxes.round.numpy()
+        if flat.any():  # where the splats themselves are near, their planes say where the surface is
+            shift, normal = _splat_planes(origin + (vox + 0.5) * spacing, shift, normal, probe,
+                                          boxes.means.numpy()[flat].astype(np.float64),
+                                          boxes.normal.numpy()[flat].astype(np.float64), spacing)
+        # an outer particle's jitter only along the surface: across it, it would be roughness
+        jit = jit - (jit * normal).sum(axis=1, keepdims=True) * normal + shift
+    x = origin + (vox + 0.5 + jit) * spacing
     if floor is not None:
         x[:, 1] = np.maximum(x[:, 1], float(floor))  # the jitter must not push a particle under it
 
@@ -680,9 +746,11 @@ class FilledObjects:
 
 
 def fill_objects(gaussians: Gaussians, obj_ids: np.ndarray, objects: np.ndarray, spacing: float, dx: float,
-                 max_particles: int, seed: int, ground: Optional[Ground]) -> FilledObjects:
+                 max_particles: int, seed: int, ground: Optional[Ground],
+                 conform: Optional[Sequence[bool]] = None) -> FilledObjects:
     """Fill each object on its own (``fill_particles``), so the gap between two objects is never
-    filled in; each gets a share of ``max_particles`` in proportion to its Gaussians."""
+    filled in; each gets a share of ``max_particles`` in proportion to its Gaussians. ``conform``: per
+    object (in the order of ``objects``), whether its outer particles follow its surface."""
     means = gaussians.means.detach().float().cpu().numpy()
     xs, vols, obj_of, binding = [], [], [], np.zeros(len(gaussians), np.int64)
     neighbours = np.zeros((len(gaussians), 1), np.int64)
@@ -691,14 +759,15 @@ def fill_objects(gaussians: Gaussians, obj_ids: np.ndarray, objects: np.ndarray,
     if ground is not None and float(means[:, 1].min()) < ground.height - 0.5 * dx:
         raise InputError(f"The object reaches below the ground (lowest Gaussian centre y={float(means[:, 1].min()):.4f} m, "
                          f"ground at {ground.height:.4f} m). Raise the object or lower the ground.")
-    for o in objects:
+    for k, o in enumerate(objects):
         sel = np.nonzero(obj_ids == o)[0]
         g_o = gaussians.subset(torch.from_numpy(sel))
         g_o.object_ids = None
         share = max(1, int(max_particles * len(sel) / len(gaussians)))
         # Splats resting on the ground reach below it; the particles start at the ground.
         parts = fill_particles(g_o, spacing, max_particles=share, seed=seed + int(o),
-                               floor=None if ground is None else ground.height)
+                               floor=None if ground is None else ground.height,
+                               conform=bool(conform[k]) if conform is not None else False)
         if parts.spacing > spacing * 1.001:
             log.warning("object %d: particle count capped (max_particles=%d): spacing raised from %.4g m to %.4g m",
                         o, max_particles, spacing, parts.spacing)

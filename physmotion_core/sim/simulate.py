@@ -457,8 +457,10 @@ def simulate(
     means = gaussians.means.detach().float().cpu().numpy()
     res = Resolution.of(means, settings, device)
     ground = conditions.ground()
+    # A rigid body's outer particles follow its surface (no lattice flats: a ball or a wheel rolls; fill._conform).
+    # Deformable bodies keep the lattice, whose equal spacing their stress needs (docs/accuracy.md, "Rolling").
     parts = fill_objects(gaussians, obj_ids, objects, res.spacing, res.dx, settings.max_particles, settings.seed,
-                         ground)
+                         ground, conform=[m.model == "rigid" for m in materials])
     x0 = parts.x
     domain = Domain.around(x0.min(0), x0.max(0), res.dx, settings.domain_margin, ground)
     recorded = np.arange(len(x0)) if record_all else np.unique(parts.neighbours)
