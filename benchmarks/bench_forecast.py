@@ -207,9 +207,9 @@ NOTES = """How the forecast decides (`feedback.tipping`, `lean`, `balance`, `sta
 
 The two misses (since the ground's gap test, 2026-12-07) are "rocks" for the stiffer jelly (E = 100 kPa) where the
 run tipped: the cup at 58 N, the disc at 16 N, about half of what tips them at rest. A push switched on at once makes
-a stiff elastic body's base unload and its heel lift from under half that force, and the heel, no longer held,
-lets it rock over; Housner's rigid rocking block (docs/accuracy.md, "Rolling") says the contact layer's losses at
-an impact are about right, so this is not taken as an error of the run. Also tried (2026-12-06)
+an elastic body's base pressure overshoot (up to twice the static, like the lean), so its heel may lift from about
+half that force, and once lifted nothing holds it; whether the run or the forecast is nearer the truth is open (the
+two references for rocking disagree: docs/accuracy.md, "Rocking against a reference"). Also tried (2026-12-06)
 and not taken: walking the outline over its edge tilt by tilt (the part of its hull within a lattice spacing of
 the ground) and a rigid rocking model (Housner's: the body turning about its contact point under the push and its
 weight, integrated in time); both kept the disc's base wider than its lowest layer.
