@@ -10,6 +10,8 @@ from the silhouette the way sketch-based modelling tools inflate a drawn outline
   like a sphere of radius R and flattens the middle into a plateau, so a wide blob becomes a
   pillow about 0.75 of its half-width deep rather than a ball as deep as it is wide, while thin
   parts (handles, legs, d < R everywhere) stay round tubes.
+* A ball. A round outline with a round bottom (``is_ball``) is lifted as deep as it is wide (R = max d,
+  a sphere for a disc) with the principal point at its centre and no flat base, so that it rolls.
 * Flat base. With ``on_ground`` the mask's lowest row is the contact with the ground, not a
   silhouette edge: the distance transform is taken on the mask mirrored below that row, so the
   solid keeps its full thickness down to the ground and stands on a flat base (an upright solid
@@ -641,10 +643,34 @@ def _fit(gaussians: Gaussians, layer: torch.Tensor, grid_rc: np.ndarray, stride:
 # ----------------------------------------------------------------------------------------------
 
 
+CAP_FRACTION = 0.75  # the rounding radius over the deepest point's distance to the outline (a pillow)
+BALL_ROUNDNESS = 0.85  # 4πA/P² of an outline read as a ball (a disc 1.0, an ellipse 2:1 0.84, a square 0.79)
+BALL_BASE = 0.5  # ... whose width 5 % of its height above its lowest row is at most this share of its widest
+
+
+def is_ball(mask: np.ndarray) -> bool:
+    """Whether the silhouette lift reads the outline as a ball: one round outline (4πA/P² at least
+    BALL_ROUNDNESS, P the outer contour's length) with a round bottom (its width 5 % of its height above its
+    lowest row at most BALL_BASE of its widest: a disc 0.44, a dome cut flat at the bottom 1)."""
+    m = (np.asarray(mask) > 0.5).astype(np.uint8)
+    contours, _ = cv2.findContours(m, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+    if len(contours) != 1 or len(contours[0]) < 16:
+        return False
+    area = float(m.sum())
+    perimeter = float(cv2.arcLength(contours[0], True))
+    if perimeter <= 0 or 4.0 * math.pi * area / perimeter**2 < BALL_ROUNDNESS:
+        return False
+    rows = np.nonzero(m.any(axis=1))[0]
+    height = int(rows[-1] - rows[0] + 1)
+    widths = m.sum(axis=1)
+    near_base = int(rows[-1] - max(1, int(round(0.05 * height))))
+    return float(widths[near_base]) <= BALL_BASE * float(widths.max())
+
+
 def silhouette_lift(image, mask, *, object_height: float = 0.3, fov_y_deg: float = 40.0,
                     thickness: float = 1.0, max_gaussians: int = 60000, on_ground: bool = True,
-                    ground_height: float = 0.0, fit_colors: bool = True, cap_fraction: float = 0.75,
-                    flat_base: bool = True,
+                    ground_height: float = 0.0, fit_colors: bool = True, cap_fraction: Optional[float] = None,
+                    flat_base: bool = True, ball: Optional[bool] = None,
                     opacity: float = 0.97, fit_steps: int = 0, fit_lr: float = 0.05,
                     fit_time_budget: float = 10.0, progress: Optional[ProgressFn] = None) -> LiftResult:
     """Lift the masked object of ``image`` (H,W,3) to a closed shell of 3D Gaussians.
@@ -655,6 +681,13 @@ def silhouette_lift(image, mask, *, object_height: float = 0.3, fov_y_deg: float
     as a fraction of the deepest point's distance to the outline. ``max_gaussians`` bounds the
     count (front, back and rim together; see ``choose_strides``). With ``on_ground`` the lowest
     Gaussian sits on y = ``ground_height``; otherwise the object is centred vertically on it.
+
+    ``ball`` (None: from the outline, ``is_ball``): a round outline whose bottom is round too is lifted as a
+    ball, not a pillow: ``cap_fraction`` 1 unless given (as deep as its outline is wide), no flat base, and
+    the principal point at the outline's centre, so that its front and back shrink towards its centre by
+    perspective and not towards its base. A pillow with the principal point on its base line is
+    bottom-heavy (a weeble) and thinner than wide: a photographed ball thrown along the ground rolled back
+    or fell over onto its face (docs/accuracy.md, "Rolling").
     """
     t_start = time.perf_counter()
     img = as_image_array(image)
@@ -675,6 +708,11 @@ def silhouette_lift(image, mask, *, object_height: float = 0.3, fov_y_deg: float
         "opacity": (opacity, lambda x: 0 < x <= 1, "in (0, 1]"),
         "ground_height": (ground_height, math.isfinite, "a finite height in metres"),
     }
+    if ball is None:
+        ball = is_ball(m)
+    if cap_fraction is None:
+        cap_fraction = 1.0 if ball else CAP_FRACTION
+    checks["cap_fraction"] = (cap_fraction, lambda x: math.isfinite(x) and 0 < x <= 1, "in (0, 1]")
     for name, (value, ok, what) in checks.items():
         try:
             good = ok(float(value))
@@ -686,7 +724,7 @@ def silhouette_lift(image, mask, *, object_height: float = 0.3, fov_y_deg: float
         raise InputError(f"silhouette_lift: max_gaussians must be at least 64; got {max_gaussians}")
 
     prof = inflation_profile(m, thickness=float(thickness), cap_fraction=float(cap_fraction),
-                             flat_base=bool(on_ground and flat_base))
+                             flat_base=bool(on_ground and flat_base and not ball))
     base_cam = Camera.from_fov(W, H, float(fov_y_deg))
     f, cx, cy = float(base_cam.fy), float(base_cam.cx), float(base_cam.cy)
     rows_any = np.nonzero(m.any(axis=1))[0]
@@ -697,6 +735,9 @@ def silhouette_lift(image, mask, *, object_height: float = 0.3, fov_y_deg: float
         # flat base. With a centred principal point those rays slope downwards, the back of the
         # base hangs lower than its front, and the object would stand on its back edge and tip.
         cy = float(rows_any[-1] + 1)
+    if ball:  # (the base is a point: nothing to keep level) its slices shrink towards its own centre
+        ys, xs = np.nonzero(m)
+        cx, cy = 0.5 * float(xs.min() + xs.max() + 1), 0.5 * float(ys.min() + ys.max() + 1)
     mask_height_px = int(rows_any[-1] - rows_any[0] + 1)
     D = float(object_height) * f / mask_height_px
     s = D / f  # metres per pixel on the mid-plane
@@ -754,7 +795,7 @@ def silhouette_lift(image, mask, *, object_height: float = 0.3, fov_y_deg: float
     source_px = torch.from_numpy(np.stack([np.concatenate([fc, bc, rc]), np.concatenate([fr, br, rr])], -1)
                                  .astype(np.int64))
     info = {"stride_front": kf, "stride_back": kb, "R_px": prof.R, "distance": D, "pixel_size": s,
-            "n_front": len(fr), "n_back": len(br), "n_rim": len(rr), "y_cam": y_cam}
+            "n_front": len(fr), "n_back": len(br), "n_rim": len(rr), "y_cam": y_cam, "ball": bool(ball)}
     mask_t = torch.from_numpy(m.astype(np.float32))
     if fit_colors:
         info.update(_fit(gaussians, layer, np.stack([(fr - kf // 2) // kf, (fc - kf // 2) // kf], -1), kf,
