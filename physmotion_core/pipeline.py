@@ -498,6 +498,8 @@ def prepare(
                                max_gaussians=max_gaussians, on_ground=user_ground is not None,
                                ground_height=user_ground.height if user_ground is not None else 0.0)
         stages["lift"] = "silhouette"
+        if lift.info.get("ball"):
+            say("lift: the outline is round, its bottom too: lifted as a ball, as deep as it is wide (so it rolls).")
     timings["lift_s"] = time.perf_counter() - t
     if support.anchor is not None:
         from .support import anchor_reaches

@@ -199,3 +199,4 @@ def test_a_cli_run_on_a_cpu_machine_prints_no_warp_driver_warning(red_ball_png, 
     assert proc.returncode == 0, proc.stderr
     assert "preview: stopped before simulating" in proc.stdout + proc.stderr
     assert "Could not find or load the NVIDIA CUDA driver" not in proc.stderr
+    assert "lifted as a ball" in proc.stdout + proc.stderr  # a disk: the user is told how it was read
