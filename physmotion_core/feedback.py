@@ -736,17 +736,42 @@ def forecast(conditions: Conditions, facts: BodyFacts, material: Material, *, cl
         line = f"throw {k}: starts at {float(np.linalg.norm(v)):.3g} m/s"
         if np.any(w != 0):
             line += f", spinning at {float(np.linalg.norm(w)):.3g} rad/s"
-        line += _throw_travel(v, facts, camera, ground, g, clip_s, anchored)
+        line += _throw_travel(v, facts, camera, ground, g, clip_s, anchored,
+                              rolls=material.model == "rigid" and rolls_along(facts, v))
         lines.append(line + ".")
     return lines
 
 
+#: A body rolls along a direction when its outline in the plane of that direction and the vertical is a circle
+#: about its centre of mass: its largest radius in each of ROLL_BINS directions within ROLL_ROUND of their mean.
+ROLL_BINS = 16
+ROLL_ROUND = 0.12
+
+
+def rolls_along(facts: BodyFacts, v: np.ndarray) -> bool:
+    """Whether the body is round about the horizontal axis across ``v`` (a ball, a wheel seen face-on): its
+    particles' largest distance from the centre of mass, in the plane of v's horizontal part and the vertical,
+    the same in every direction within ROLL_ROUND (a cup or a block is not)."""
+    h = np.array([float(v[0]), 0.0, float(v[2])])
+    if float(np.linalg.norm(h)) <= 0 or len(facts.x) < 8 * ROLL_BINS:
+        return False
+    h = h / np.linalg.norm(h)
+    r = facts.x.astype(np.float64) - facts.com
+    a, b = r @ h, r[:, 1]
+    ang = np.floor((np.arctan2(b, a) + np.pi) / (2 * np.pi) * ROLL_BINS).astype(np.int64) % ROLL_BINS
+    rad = np.hypot(a, b)
+    top = np.zeros(ROLL_BINS)
+    np.maximum.at(top, ang, rad)
+    return bool(top.min() > 0 and (top.max() - top.min()) <= ROLL_ROUND * top.mean())
+
+
 def _throw_travel(v: np.ndarray, facts: BodyFacts, camera: Optional[Camera], ground: Optional[Ground], g: float,
-                  clip_s: float, anchored: bool) -> str:
+                  clip_s: float, anchored: bool, rolls: bool = False) -> str:
     """Whether a throw takes the object out of the frame: up, to its apex v_y²/2g, and sideways, in the air
     for the flight time 2·v_y/g (landing where it started) and then sliding v_x²/2μg on a friction ground
-    (for the clip's length at most; no ground or a slip one: v_x for the whole clip). Spin and bounces are
-    left out: a rough answer, for a throw that is far too fast."""
+    (for the clip's length at most; no ground or a slip one: v_x for the whole clip). A body that ``rolls``
+    (``rolls_along``) is not stopped by friction: it rolls on at 5/7 of v_x (a ball) for the rest of the clip.
+    Spin and bounces are left out: a rough answer, for a throw that is far too fast."""
     room = frame_room(facts, camera, top=True)
     if room is None or anchored:
         return ""
@@ -760,12 +785,14 @@ def _throw_travel(v: np.ndarray, facts: BodyFacts, camera: Optional[Camera], gro
         else:
             flight = min(clip_s, 2 * vy / g) if vy > 0 else 0.0
             travel = vx * flight
-            if flight < clip_s and ground.contact != "sticky" and float(ground.friction) > 0:
+            if flight < clip_s and rolls and ground.contact != "slip":
+                travel += 5.0 / 7.0 * vx * (clip_s - flight)  # it rolls on: friction does not stop it
+            elif flight < clip_s and ground.contact != "sticky" and float(ground.friction) > 0:
                 travel += min(vx * (clip_s - flight), vx * vx / (2 * float(ground.friction) * g))
         side = room[1] if v[0] > 0 else room[0]
         if travel > side:
-            notes.append(f"it travels about {travel:.2g} m sideways against {side:.2g} m of room on the "
-                         f"{'right' if v[0] > 0 else 'left'}")
+            notes.append(f"it {'rolls' if rolls else 'travels'} about {travel:.2g} m sideways against {side:.2g} m "
+                         f"of room on the {'right' if v[0] > 0 else 'left'}")
     return ("; it may leave the frame: " + " and ".join(notes) + " (a slower throw keeps it in)") if notes else ""
 
 
