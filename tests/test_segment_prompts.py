@@ -437,9 +437,21 @@ def test_a_clicks_cuts_give_the_same_mask_one_at_a_time_or_guessed_ahead_on_two_
             calls = {"grow": [], "recut": 0}
 
             def grow_pass(img_, pts, labels, iters, max_side, box, on_reach=None):
-                if mode == "wrong" and on_reach is not None:
-                    inner = on_reach
-                    on_reach = lambda r: inner(None if r is None else tuple(not x for x in r))  # noqa: E731
+                if on_reach is not None:
+                    inner, flip = on_reach, mode == "wrong"
+                    # On two threads the chain's first pass holds (up to 60 s) after telling the sides it
+                    # reaches until the pass guessed from them has started: whether a guess gets a free
+                    # thread in time otherwise depends on the machine's load (it did not once in CI).
+                    hold = name == "L" and mode != "one" and not calls["grow"]
+
+                    def on_reach(r, inner=inner, flip=flip, hold=hold):
+                        if flip and r is not None:
+                            r = tuple(not x for x in r)
+                        inner(r)
+                        if hold and r is not None and any(r):
+                            until = time.monotonic() + 60
+                            while len(calls["grow"]) < 2 and time.monotonic() < until:
+                                time.sleep(0.01)
                 entry = [tuple(box), time.monotonic(), float("inf")]  # a pass called off never ends
                 calls["grow"].append(entry)
                 out = real_pass(img_, pts, labels, iters, max_side, box, on_reach)
