@@ -373,7 +373,9 @@ class PhysMotionMPMSimulate:
                 "cfl": ("FLOAT", {"default": 0.4, "min": 0.05, "max": 0.7, "step": 0.05,
                                   "tooltip": "Fraction of the stability limit each time step uses."}),
                 "domain_margin": ("FLOAT", {"default": 1.0, "min": 0.1, "max": 20.0, "step": 0.1,
-                                            "tooltip": "Free space around the object, in object sizes."}),
+                                            "tooltip": "Free space around the object, in object sizes: the least the "
+                                                       "simulation box holds. It also reaches one object size past "
+                                                       "what the camera sees, so nothing meets its walls in view."}),
                 "device": (["auto", "cpu", "cuda"], {"default": "auto",
                                                      "tooltip": "Where the simulation runs (auto follows ComfyUI)."}),
                 "seed": ("INT", {"default": 0, "min": 0, "max": 2**31 - 1,

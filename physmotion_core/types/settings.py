@@ -27,7 +27,8 @@ class SimSettings:
     grid_res: int = 0  # cells across the object; 0 = auto (24 on CPU, 48 on CUDA: see AUTO_GRID_RES)
     particles_per_cell: int = 8
     cfl: float = 0.4
-    domain_margin: float = 1.0  # free space around the object, in object sizes, for it to move into
+    domain_margin: float = 1.0  # free space around the object, in object sizes, for it to move into (the least:
+    #                             given the camera, simulate() also holds its view: simulate.view_domain)
     max_particles: int = 200_000
     device: str = "auto"  # "cpu", "cuda", "cuda:N" or "auto"
     min_substeps: int = 8  # per frame, whatever the CFL allows: bounds the integrator's O(dt) drift
