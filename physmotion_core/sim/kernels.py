@@ -335,6 +335,7 @@ def p2g(
     fields: int,
     grid_g: wp.array4d(dtype=wp.vec3),
     contact_row: int,
+    spin: wp.array(dtype=wp.mat33),
 ):
     """Scatter particles offset .. offset + launch dim into accumulator layer ``layer`` (see
     ``grid_update``: the layers of one substep are summed there). The layers start at node
@@ -347,8 +348,8 @@ def p2g(
     normal there (field_contact).
 
     A particle whose stencil reaches a node row at or below ``contact_row`` (on Coulomb-friction
-    ground the row above the ground plane's, MPMSolver._contact_row; −1 otherwise) transfers without
-    its affine velocity (PIC): on such
+    ground the row above the ground plane's, MPMSolver._contact_row; −1 otherwise) transfers with its
+    body's spin ``spin[field]`` as its affine velocity (spin_solve) instead of its own C: on such
     ground a stiff jelly block on a μ = 0.5 slope at 0.9 μ crept downhill at ~60 mm/s, hopping at
     ~11 Hz with most contact columns alternately slipping and lifting, an oscillation the bottom
     particles' C (which holds the velocity jump the friction makes between the stuck ground nodes and
@@ -357,7 +358,10 @@ def p2g(
     keeps its momentum exactly (the affine part sums to zero over the stencil); only the particle's
     share of spin, ½ m dx² ω, is not carried (PIC's dissipation, in the contact layer only). Only
     elastic solids' particles (FLAG_CONTACT_PIC): a granular front a cell or two thick flowing over
-    the ground would be all contact layer, and PIC there cut the sand column's run-out by a third."""
+    the ground would be all contact layer, and PIC there cut the sand column's run-out by a third.
+    Plain PIC there (C = 0) also took the particles' share of a rolling body's spin every substep: a
+    rubber disc pushed along the ground rocked to a stop instead of rolling (docs/accuracy.md,
+    "Rolling"). The body's spin, a rigid turn, carries no shear: the slope tests hold as with PIC."""
     p = wp.tid() + offset
     dt = dt_arr[0]
     base = stencil_base(ps.x[p], grid)
@@ -383,10 +387,10 @@ def p2g(
     # MLS-MPM: the stress enters as an affine momentum term -dt * V * (4/dx^2) * tau. The particle's
     # affine velocity m C is transferred with APIC (apic = 1) and dropped with PIC (apic = 0).
     fl = ps.flags[p]
-    ap = apic
+    Cp = ps.C[p]
     if base[1] <= contact_row and (fl & FLAG_CONTACT_PIC) != 0:
-        ap = 0.0
-    affine = (-dt * ps.vol[p] * 4.0 * grid.inv_dx * grid.inv_dx) * ps.tau[p] + (ap * m) * ps.C[p]
+        Cp = spin[ps.field[p]]  # the body's own spin, not the particle's C (spin_solve)
+    affine = (-dt * ps.vol[p] * 4.0 * grid.inv_dx * grid.inv_dx) * ps.tau[p] + (apic * m) * Cp
     mv = m * ps.v[p]
     if (fl & FLAG_RIGID) == 0:
         mv = mv + dt * f_ext[p]  # a rigid body takes its external forces directly (rigid_reduce)
@@ -1559,3 +1563,56 @@ def apply_torques(
 def zero_sums(sums: wp.array2d(dtype=float)):
     i, j = wp.tid()
     sums[i, j] = 0.0
+
+
+# Each velocity field's spin, for the contact layer's transfer (p2g): sums over its elastic solids' particles
+SPIN_MASS, SPIN_MOMENT, SPIN_MOMENTUM, SPIN_ANGULAR, SPIN_SECOND = 0, 1, 4, 7, 10
+N_SPIN_SUMS = 19
+
+
+@wp.kernel
+def spin_reduce(ps: Particles, sums: wp.array2d(dtype=float), stride: int, n: int):
+    """Per field, over every ``stride``-th particle of the elastic solids (FLAG_CONTACT_PIC): mass, Σ m x,
+    Σ m v, Σ m x × v and Σ m x xᵀ (spin_solve). The stride keeps the atomic adds on these few addresses
+    to about SPIN_SAMPLES particles' worth whatever the scene's size; the fill orders particles through
+    the body, so a stride samples all of it."""
+    p = wp.tid() * stride
+    if p >= n:
+        return
+    if (ps.flags[p] & FLAG_CONTACT_PIC) == 0:
+        return
+    f = ps.field[p]
+    m = ps.mass[p]
+    xp = ps.x[p]
+    vp = ps.v[p]
+    L = wp.cross(xp, vp)
+    wp.atomic_add(sums, f, SPIN_MASS, m)
+    for a in range(3):
+        wp.atomic_add(sums, f, SPIN_MOMENT + a, m * xp[a])
+        wp.atomic_add(sums, f, SPIN_MOMENTUM + a, m * vp[a])
+        wp.atomic_add(sums, f, SPIN_ANGULAR + a, m * L[a])
+        for b in range(3):
+            wp.atomic_add(sums, f, SPIN_SECOND + 3 * a + b, m * xp[a] * xp[b])
+
+
+@wp.kernel
+def spin_solve(sums: wp.array2d(dtype=float), spin: wp.array(dtype=wp.mat33)):
+    """Each field's angular velocity ω = I⁻¹ L about its centre of mass, from spin_reduce's sums, as the
+    velocity gradient of that rigid turn, [ω]× (what p2g gives the contact layer's particles for C:
+    a rolling body keeps its spin there, the friction's velocity jump is not carried); clears the sums."""
+    f = wp.tid()
+    M = sums[f, SPIN_MASS]
+    w = wp.vec3(0.0, 0.0, 0.0)
+    if M > 0.0:
+        c = wp.vec3(sums[f, SPIN_MOMENT], sums[f, SPIN_MOMENT + 1], sums[f, SPIN_MOMENT + 2]) / M
+        P = wp.vec3(sums[f, SPIN_MOMENTUM], sums[f, SPIN_MOMENTUM + 1], sums[f, SPIN_MOMENTUM + 2])
+        L = wp.vec3(sums[f, SPIN_ANGULAR], sums[f, SPIN_ANGULAR + 1], sums[f, SPIN_ANGULAR + 2]) - wp.cross(c, P)
+        S = wp.mat33(sums[f, SPIN_SECOND], sums[f, SPIN_SECOND + 1], sums[f, SPIN_SECOND + 2],
+                     sums[f, SPIN_SECOND + 3], sums[f, SPIN_SECOND + 4], sums[f, SPIN_SECOND + 5],
+                     sums[f, SPIN_SECOND + 6], sums[f, SPIN_SECOND + 7], sums[f, SPIN_SECOND + 8]) - M * wp.outer(c, c)
+        I = wp.trace(S) * wp.identity(n=3, dtype=float) - S
+        if wp.determinant(I) > 0.0:
+            w = wp.inverse(I) * L
+    spin[f] = wp.mat33(0.0, -w[2], w[1], w[2], 0.0, -w[0], -w[1], w[0], 0.0)
+    for k in range(N_SPIN_SUMS):
+        sums[f, k] = 0.0

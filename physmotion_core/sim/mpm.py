@@ -29,6 +29,10 @@ MAX_TORQUES = 30  # torque regions are a per-particle bit mask
 # Models whose particles transfer without the affine velocity next to Coulomb-friction ground (kernels.p2g):
 # the elastic solids, which otherwise crept on a slope at 0.9 μ; flowing materials keep APIC there.
 CONTACT_PIC_MODELS = ("fixed_corotated", "neo_hookean", "fracture")
+# ... but with their body's spin as the affine part (kernels.spin_solve): a stiff disc pushed along the ground
+# otherwise lost its spin there every substep and rocked to a stop instead of rolling (False: C = 0 there).
+CONTACT_SPIN = True
+SPIN_SAMPLES = 4096  # particles at most that each substep's spin estimate sums (kernels.spin_reduce)
 # How long the ground's Coulomb friction keeps the budget a column left unused (kernels.static_friction), in
 # periods of the bodies' slowest vertical ringing, 4 H / c (H: the active box's height above the ground,
 # c: the stiffest wave speed); 0 = none, Coulomb's law on each substep's impulses alone (issue 37).
@@ -430,9 +434,11 @@ class MPMSolver:
             raise InputError("rigid particles need a body index (one per rigid object)")
         body_np[~rigid_model] = -1
         flags[rigid_model] |= K.FLAG_RIGID
-        # Elastic solids transfer without APIC's affine part next to Coulomb ground (kernels.p2g).
+        # Elastic solids next to Coulomb ground transfer with their body's spin as the affine part, not their own
+        # (kernels.p2g, spin_solve).
         elastic = np.array([m.model in CONTACT_PIC_MODELS for m in self.materials])[mat_index]
         flags[elastic] |= K.FLAG_CONTACT_PIC
+        self._contact_spin = bool(elastic.any()) and CONTACT_SPIN
         self.body_np = body_np
         self.n_bodies = int(body_np.max()) + 1 if (body_np >= 0).any() else 0
         tmask = np.zeros(n, np.int32) if torque_mask is None else np.asarray(torque_mask, np.int32)
@@ -519,6 +525,9 @@ class MPMSolver:
         wp = self.wp
         self.torque_mask = wp.array(tmask, dtype=int)
         self.torque_sums = wp.zeros((max(self.n_torques, 1), K.N_TORQUE_SUMS), dtype=float)
+        # Each field's spin for the ground's contact layer (kernels.spin_reduce, spin_solve, p2g)
+        self.spin_sums = wp.zeros((self.fields, K.N_SPIN_SUMS), dtype=float)
+        self.spin = wp.zeros(self.fields, dtype=wp.mat33)
         self.torque_taus = wp.zeros(max(self.n_torques, 1), dtype=wp.vec3)
         self._torques_on = False
 
@@ -912,13 +921,17 @@ class MPMSolver:
             step(K.apply_torques, self.n, [self.particles, self.torque_mask, self.n_torques, self.torque_sums,
                                            self.torque_taus, self.f_static, self.f_total])
             forces = self.f_total
+        if self._contact_row() >= 0 and self._contact_spin:
+            stride = max(1, -(-self.n // SPIN_SAMPLES))
+            step(K.spin_reduce, -(-self.n // stride), [self.particles, self.spin_sums, stride, self.n])
+            step(K.spin_solve, self.fields, [self.spin_sums, self.spin])
         chunks = list(enumerate(self._chunk_ranges))
         # Each layer's chunks scatter into it one after another, in chunk order; the layers fill concurrently.
         layer_of = [layer_of_chunk(c, self.chunks, self.layers) for c in range(self.chunks)]
         scatter = [self._cmd(K.p2g, count, [
             self.particles, forces, self.grid, self.dt_arr, self.grid_m, self.grid_mv, self.grid_fix,
             self.grid_fix_v, self.apic, start, layer_of[c], self.layer_box, self._layer_lo_w, self.fields,
-            self.grid_g, self._contact_row()])
+            self.grid_g, self._contact_row(), self.spin])
             for c, (start, count) in chunks]
         prog.append((K.p2g, [_InOrder([cmd for c, cmd in enumerate(scatter) if layer_of[c] == layer])
                              for layer in range(self.layers)], self.layers > 1))
