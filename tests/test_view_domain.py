@@ -36,7 +36,7 @@ def _object(size=0.06):
 def test_the_box_holds_the_cameras_view_at_the_objects_depths_plus_room():
     x, cam, ground, dx = _object(), _camera(), Ground(0.0, "friction", 0.5), 0.004
     margin = Domain.around(x.min(0), x.max(0), dx, 1.0, ground)
-    dom = S.view_domain(margin, x, cam, dx, ground)
+    dom = S.view_domain(margin, x, cam)
     size = float(np.max(x.max(0) - x.min(0)))
     # the frame's corners at the nearest and farthest depth of the object, computed here from the pinhole model
     _, z = cam.project(torch.as_tensor(x, dtype=torch.float32))
@@ -60,19 +60,19 @@ def test_the_box_holds_the_cameras_view_at_the_objects_depths_plus_room():
 def test_the_view_room_stays_within_the_node_budget_and_a_view_behind_the_camera_changes_nothing(monkeypatch):
     x, cam, ground, dx = _object(), _camera(fov=90.0, eye=(0.0, 0.1, 6.0)), Ground(0.0, "friction", 0.5), 0.004
     margin = Domain.around(x.min(0), x.max(0), dx, 1.0, ground)
-    full = S.view_domain(margin, x, cam, dx, ground)
+    full = S.view_domain(margin, x, cam)
     monkeypatch.setattr(S, "VIEW_MAX_NODES", 400_000)
-    capped = S.view_domain(margin, x, cam, dx, ground)
+    capped = S.view_domain(margin, x, cam)
     n = int(np.prod(capped.dims))
     assert int(np.prod(margin.dims)) < n <= 400_000 < int(np.prod(full.dims))
     assert np.all(capped.lo <= margin.lo + 1e-9) and np.all(capped.hi >= margin.hi - 1e-9)
     assert np.all(capped.lo >= full.lo - 1e-9) and np.all(capped.hi <= full.hi + 1e-9)
     # a budget under the margin box keeps the margin box
     monkeypatch.setattr(S, "VIEW_MAX_NODES", 10)
-    _same(S.view_domain(margin, x, cam, dx, ground), margin)
+    _same(S.view_domain(margin, x, cam), margin)
     # the object behind the camera: no view to hold
     behind = _camera(eye=(0.0, 0.1, -1.5), target=(0.0, 0.1, -3.0))
-    _same(S.view_domain(margin, x, behind, dx, ground), margin)
+    _same(S.view_domain(margin, x, behind), margin)
 
 
 def _same(a, b):

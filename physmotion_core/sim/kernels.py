@@ -355,8 +355,9 @@ def p2g(
     particles' C (which holds the velocity jump the friction makes between the stuck ground nodes and
     the free row above) carried from substep to substep. Without it there the block settles and
     holds (issue 37; docs/accuracy.md, "Friction on a slope"). Dropping C for the whole particle
-    keeps its momentum exactly (the affine part sums to zero over the stencil); only the particle's
-    share of spin, ½ m dx² ω, is not carried (PIC's dissipation, in the contact layer only). Only
+    keeps its momentum exactly (the affine part sums to zero over the stencil); what the particle's
+    own C holds beyond its body's turn (the shear, and its share of spin differing from the body's) is
+    not carried (a PIC-like dissipation, in the contact layer only). Only
     elastic solids' particles (FLAG_CONTACT_PIC): a granular front a cell or two thick flowing over
     the ground would be all contact layer, and PIC there cut the sand column's run-out by a third.
     Plain PIC there (C = 0) also took the particles' share of a rolling body's spin every substep: a

@@ -127,7 +127,7 @@ def view_box(x: np.ndarray, camera: Camera, room: float) -> Optional[tuple[np.nd
     return corners.min(0) - room, corners.max(0) + room
 
 
-def view_domain(domain: Domain, x: np.ndarray, camera: Camera, dx: float, ground) -> Domain:
+def view_domain(domain: Domain, x: np.ndarray, camera: Camera) -> Domain:
     """``domain`` (the margin box around the particles ``x``) grown by whole cells (the grid under the object stays
     where it was) to hold the camera's view at the object's depths plus VIEW_ROOM object sizes (``view_box``),
     within VIEW_MAX_NODES nodes (all sides' room then shrinks by the same share). The floor stays the ground.
@@ -136,9 +136,9 @@ def view_domain(domain: Domain, x: np.ndarray, camera: Camera, dx: float, ground
     view = view_box(x, camera, VIEW_ROOM * float(np.max(hi - lo)))
     if view is None:
         return domain
-    add_lo = np.ceil(np.maximum(domain.lo - view[0], 0.0) / dx).astype(np.int64)
-    add_hi = np.ceil(np.maximum(view[1] - domain.hi, 0.0) / dx).astype(np.int64)
-    if ground is not None:
+    add_lo = np.ceil(np.maximum(domain.lo - view[0], 0.0) / domain.dx).astype(np.int64)
+    add_hi = np.ceil(np.maximum(view[1] - domain.hi, 0.0) / domain.dx).astype(np.int64)
+    if domain.ground_node >= 0:
         add_lo[1] = 0
 
     def grown(f: float) -> Domain:
@@ -521,7 +521,7 @@ def simulate(
     x0 = parts.x
     domain = Domain.around(x0.min(0), x0.max(0), res.dx, settings.domain_margin, ground)
     if camera is not None:
-        domain = view_domain(domain, x0, camera, res.dx, ground)
+        domain = view_domain(domain, x0, camera)
     recorded = np.arange(len(x0)) if record_all else np.unique(parts.neighbours)
     object_contact = _object_contact(conditions, len(objects))
     fields = len(objects) if len(objects) > 1 and object_contact.contact != "shared" else 1
