@@ -806,3 +806,95 @@ def test_a_part_holding_most_of_the_mask_is_not_dropped_by_a_background_click_be
     fg2[30:45, 60:75] = 1
     out2 = _drop_clicked_background(fg2, np.zeros((0, 2)), np.array([[67.0, 37.0]]), 2)
     assert not out2[30:45, 60:75].any() and out2[10:50, 10:50].all()
+
+
+# ---- a click's candidate in two parts; the re-cut that leaks ----------------------------------
+
+
+def _figure(collar, wall=(0.75, 0.73, 0.70), seed=0):
+    """A head above a suit with a collar band between them, on a wall; and a click candidate (the cleaned
+    mask) that holds the suit and the head as two parts, the collar left out."""
+    rng = np.random.default_rng(seed)
+    H, W = 200, 240
+    img = np.full((H, W, 3), wall, np.float32)
+    yy, xx = np.mgrid[:H, :W]
+    head = (xx - 120) ** 2 / 32 ** 2 + (yy - 40) ** 2 / 34 ** 2 <= 1  # over a fifth of the suit (clean_mask)
+    neck = (np.abs(xx - 120) <= 30) & (yy > 70) & (yy <= 95) & ~head
+    suit = (np.abs(xx - 120) <= 70) & (yy > 95) & (yy < 185)
+    img[head] = (0.85, 0.6, 0.45)
+    img[neck] = collar
+    img[suit] = (0.9, 0.35, 0.15)
+    return np.clip(img + rng.normal(0, 0.02, img.shape), 0, 1).astype(np.float32), head, neck, suit
+
+
+def test_a_part_across_a_collar_of_another_colour_joins_the_clicked_part():
+    import cv2
+
+    from physmotion_core.segment import classic as C
+
+    img, head, neck, suit = _figure(collar=(0.08, 0.08, 0.12))
+    out = C._join_near_parts(img, head | suit, suit)
+    # the head and the collar between (what lies within the gap's width of both), in one piece
+    assert out[head].all() and out[suit].all()
+    assert cv2.connectedComponents(out.astype(np.uint8), connectivity=8)[0] == 2
+    # the bridge is the band along the shortest way between the two (under the head's round chin, half the
+    # collar's width), and next to nothing of the wall
+    assert out[neck].mean() > 0.4
+    assert out[~(head | neck | suit)].sum() < 0.1 * neck.sum()
+    # the clean-up of a click candidate does it (the parts the clean-up keeps, then the join)
+    cleaned, ok = C._clean_and_check(img, head | suit, np.array([[120.0, 150.0]]))
+    assert cleaned[head].all() and ok
+
+
+def test_two_objects_apart_on_the_ground_stay_apart():
+    from physmotion_core.segment import classic as C
+
+    # the same gap with the wall's own colour in it: two objects; the click chose one
+    img, head, neck, suit = _figure(collar=(0.75, 0.73, 0.70))
+    assert np.array_equal(C._join_near_parts(img, head | suit, suit), suit)
+    # two discs on a plain, a two-tone and a noisy ground
+    yy, xx = np.mgrid[:300, :400]
+    discs = [(xx - cx) ** 2 + (yy - 150) ** 2 < 55 ** 2 for cx in (130, 270)]
+    rng = np.random.default_rng(0)
+    for ground in ("plain", "two-tone", "noisy"):
+        im = np.full((300, 400, 3), 0.5, np.float32)
+        if ground == "two-tone":
+            im[150:] = (0.35, 0.27, 0.2)
+        elif ground == "noisy":
+            im = rng.uniform(0.25, 0.8, im.shape).astype(np.float32)
+        for d in discs:
+            im[d] = (0.8, 0.15, 0.1)
+        assert np.array_equal(C._join_near_parts(im, discs[0] | discs[1], discs[0]), discs[0]), ground
+    # and a part too far away (over JOIN_GAP of the short side) is not joined, whatever lies between
+    img, head, neck, suit = _figure(collar=(0.08, 0.08, 0.12))
+    far = np.zeros_like(head)
+    far[5:25, 5:25] = True  # 80+ px from the suit, over 0.15 * 200
+    img[far] = (0.9, 0.35, 0.15)
+    assert not C._join_near_parts(img, suit | far, suit)[far].any()
+
+
+def test_a_click_whose_box_nearly_fills_the_photo_is_not_cut_again(monkeypatch):
+    from physmotion_core.segment import classic as C
+
+    H, W = 120, 160
+    img = np.full((H, W, 3), 0.5, np.float32)
+    pts, labels = np.array([[80.0, 60.0]]), np.array([1])
+    boxes = []
+
+    def cut(image, **k):
+        boxes.append(k["box"])
+        return np.ones((H, W), bool)
+
+    monkeypatch.setattr(C, "grabcut", cut)
+    # room around the box (its window adds 0.75 of its area): cut again, in the candidate's box grown by
+    # CLICK_RECUT_GROW + 2 px
+    cand = np.zeros((H, W), bool)
+    cand[40:80, 50:110] = True
+    assert C._click_recut(img, cand, pts, labels, 5, None).all()
+    assert boxes == [[45, 36, 115, 84]]
+    # from the left and top edges down to the bottom, its window adds only a strip on the right (0.16 of the
+    # box): the candidate stands, and no GrabCut runs
+    big = np.zeros((H, W), bool)
+    big[0:H, 0:120] = True
+    assert C._click_recut(img, big, pts, labels, 5, None) is big
+    assert len(boxes) == 1

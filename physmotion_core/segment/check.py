@@ -216,15 +216,27 @@ def _outline_measures(image, m: np.ndarray) -> tuple[float, float]:
     sel = (outline > 0) & (wa > 1e-3) & (wb > 1e-3)
     step = float(np.median(np.linalg.norm(a[sel] - b[sel], axis=1))) if sel.sum() >= 10 else float("nan")
     inb, outb, _ = bands(0.05)
-    bins = 8
+    return step, colour_overlap(lab, inb > 0, outb > 0)
+
+
+def lab_histogram(lab: np.ndarray, sel: np.ndarray, bins: int = 8) -> np.ndarray:
+    """The colours of a region: the normalised ``bins``^3-bin histogram of ``lab`` (float CIE Lab,
+    (H, W, 3), as OpenCV gives for a float RGB image in 0..1) over ``sel`` (bool (H, W)); all zeros
+    when the region is empty."""
     q = np.stack([lab[:, :, 0] / 100.0, (lab[:, :, 1] + 128.0) / 256.0, (lab[:, :, 2] + 128.0) / 256.0], -1)
     q = np.clip((q * bins).astype(np.int64), 0, bins - 1)
     idx = (q[:, :, 0] * bins + q[:, :, 1]) * bins + q[:, :, 2]
-    ha = np.bincount(idx[inb > 0], minlength=bins ** 3).astype(np.float64)
-    hb = np.bincount(idx[outb > 0], minlength=bins ** 3).astype(np.float64)
+    h = np.bincount(idx[sel], minlength=bins ** 3).astype(np.float64)
+    return h / h.sum() if h.sum() > 0 else h
+
+
+def colour_overlap(lab: np.ndarray, a: np.ndarray, b: np.ndarray, bins: int = 8) -> float:
+    """How alike the colours of two regions (bool (H, W)) are: the Bhattacharyya coefficient (0 none
+    alike, 1 the same) of their ``lab_histogram``s. NaN when a region is empty."""
+    ha, hb = lab_histogram(lab, a, bins), lab_histogram(lab, b, bins)
     if ha.sum() == 0 or hb.sum() == 0:
-        return step, float("nan")
-    return step, float(np.sqrt(ha / ha.sum() * hb / hb.sum()).sum())
+        return float("nan")
+    return float(np.sqrt(ha * hb).sum())
 
 
 def check_mask(mask, *, object_points=(), background_points=(), force_points=(), image=None) -> MaskReport:

@@ -828,6 +828,9 @@ GROW_PASSES = 6
 GROW_DECIDE = 3
 #: The click's last cut is a box prompt in its object's box grown by this fraction per side.
 CLICK_RECUT_GROW = 0.04
+#: The click's object is not cut again when its box's window (``_box_window``) adds less than this
+#: fraction of the box's area around it: the background the re-cut would learn from (``_click_recut``).
+CLICK_RECUT_MIN_RING = 0.2
 
 
 def _grow_start_box(pts: np.ndarray, labels: np.ndarray, W: int, H: int) -> tuple[float, float, float, float]:
@@ -1088,11 +1091,66 @@ def _click_prompted(img: np.ndarray, pts: np.ndarray, labels: np.ndarray, iters:
 
 
 def _clean_and_check(img: np.ndarray, cand: np.ndarray, fg_pts: np.ndarray) -> tuple[np.ndarray, bool]:
-    """A click candidate cleaned and cut down to its clicked part, and whether it passes ``check_mask``."""
+    """A click candidate cleaned and cut down to its clicked part (with the parts ``_join_near_parts``
+    joins to it), and whether it passes ``check_mask``."""
     from .check import check_mask
 
-    cleaned = _keep_clicked(clean_mask(cand).numpy() > 0.5, cand, fg_pts)
+    tidy = clean_mask(cand).numpy() > 0.5
+    cleaned = _join_near_parts(img, tidy, _keep_clicked(tidy, cand, fg_pts))
     return cleaned, check_mask(cleaned, object_points=[tuple(p) for p in fg_pts], image=img).ok
+
+
+#: A click's candidate can come apart at a band of a colour GrabCut did not give to the object (a
+#: dark collar between a face and a suit, a belt, a shadow line). Another part of the clean-up's
+#: result (at least a fifth of the largest, ``clean_mask``) at most JOIN_GAP of the short side from
+#: the clicked part is joined to it, with the gap between them, when the gap's colours are not the
+#: background's around the two (the share of the gap's colour histogram that the histogram of a ring
+#: around both, one gap wide, also holds, under JOIN_MAX_SHARED): a gap of the background's own colour
+#: parts two objects (two cups side by side), and the click chose one.
+JOIN_GAP = 0.15
+JOIN_MAX_SHARED = 0.7
+#: The gap between two parts: the pixels whose distances to the two add up to at most the gap's width
+#: by this much more (and 2 px), the band that a straight bridge between their nearest sides sweeps.
+JOIN_SLACK = 0.1
+
+
+def _distance_to(m: np.ndarray) -> np.ndarray:
+    """Each pixel's Euclidean distance (px) to the nearest pixel of ``m`` (bool (H, W))."""
+    return cv2.distanceTransform((~m).astype(np.uint8), cv2.DIST_L2, cv2.DIST_MASK_PRECISE)
+
+
+def _join_near_parts(img: np.ndarray, tidy: np.ndarray, clicked: np.ndarray) -> np.ndarray:
+    """``clicked`` (the clicked part of the cleaned mask ``tidy``) with the other parts of ``tidy`` that
+    belong to it joined on, gap included (JOIN_GAP, JOIN_MAX_SHARED). On the benchmark photos
+    (docs/quality.md) only the astronaut's candidate comes in two parts: her head, 66 px above her suit
+    across the black collar (shared 0.45), which a click on the suit lost; two discs on a plain, a
+    two-tone or a noisy ground share 0.93 or more."""
+    from .check import lab_histogram
+
+    if not clicked.any():
+        return clicked
+    n, cc = cv2.connectedComponents((tidy & ~clicked).astype(np.uint8), connectivity=8)
+    if n <= 1:
+        return clicked
+    H, W = tidy.shape
+    d_click = _distance_to(clicked)
+    out, lab = clicked.copy(), None
+    for i in range(1, n):
+        part = cc == i
+        gap = float(d_click[part].min())
+        if gap > JOIN_GAP * min(H, W):
+            continue
+        between = (d_click + _distance_to(part) <= gap * (1.0 + JOIN_SLACK) + 2.0) & ~tidy
+        d_both = _distance_to(clicked | part | between)
+        around = (d_both > 0) & (d_both <= max(gap, 3.0)) & ~tidy
+        if not between.any() or not around.any():
+            continue
+        if lab is None:
+            lab = cv2.cvtColor(img, cv2.COLOR_RGB2LAB)
+        shared = float(np.minimum(lab_histogram(lab, between), lab_histogram(lab, around)).sum())
+        if shared < JOIN_MAX_SHARED:
+            out |= part | between
+    return out
 
 
 def _click_recut(img: np.ndarray, clean: np.ndarray, pts: np.ndarray, labels: np.ndarray, iters: int,
@@ -1101,8 +1159,10 @@ def _click_recut(img: np.ndarray, clean: np.ndarray, pts: np.ndarray, labels: np
     clicked part's, grown by CLICK_RECUT_GROW) with the tightness prior and on the box's window
     (``_box_window``), so the background model learns what borders the object and not the far side of
     the photo. On the benchmark photos (docs/quality.md) this took the blurred clock's click from IoU
-    0.74 to 0.86 and the cameraman's from 0.89 to 0.91, and cost the astronaut's 0.67 -> 0.62 and the
-    cell's 1.00 -> 0.99 (5 of 8 at 0.75 instead of 4, on five clicks per photo)."""
+    0.74 to 0.86 and the cameraman's from 0.89 to 0.91, and cost the cell's 1.00 -> 0.99. A box whose
+    window leaves less than CLICK_RECUT_MIN_RING of its area around it is not cut again (the candidate
+    is returned): the astronaut's, her head and suit from the photo's left and top edge down to the
+    bottom, learnt the background from a strip on the right only and took in the wall (0.89 -> 0.64)."""
     fg_pts = pts[labels == 1]
     H, W = img.shape[:2]
     x0, y0, x1, y1 = mask_box(clean)
@@ -1111,6 +1171,12 @@ def _click_recut(img: np.ndarray, clean: np.ndarray, pts: np.ndarray, labels: np
     x1, y1 = max(x1, int(fg_pts[:, 0].max()) + 1), max(y1, int(fg_pts[:, 1].max()) + 1)
     gx, gy = CLICK_RECUT_GROW * (x1 - x0) + 2, CLICK_RECUT_GROW * (y1 - y0) + 2
     box = [max(0, int(x0 - gx)), max(0, int(y0 - gy)), min(W, int(math.ceil(x1 + gx))), min(H, int(math.ceil(y1 + gy)))]
+    # GrabCut learns the background from the box's window around it (``_box_window``). A box that nearly fills
+    # the photo leaves it too little: under CLICK_RECUT_MIN_RING of the box's area, the candidate stands.
+    window = _box_window(tuple(box), W, H) or (0, 0, W, H)
+    ring = (window[2] - window[0]) * (window[3] - window[1]) / max(1, (box[2] - box[0]) * (box[3] - box[1])) - 1.0
+    if ring < CLICK_RECUT_MIN_RING:
+        return clean
     return grabcut(img, box=box, points=pts, point_labels=labels, iters=iters, max_side=max_side, _click="whole",
                    _tight=True, _window=True)
 
