@@ -78,11 +78,13 @@ def tilts(x: np.ndarray) -> np.ndarray:
 
 
 def verdict(lines: list[str]) -> str:
-    """What the forecast's words say about tipping: "falls" (it cannot stand), "tips", "may tip", "slides"
-    (rather than tips), "rocks" or "stays"."""
+    """What the forecast's words say about tipping: "falls" (it cannot stand), "rolls" (a round rigid body),
+    "tips", "may tip", "slides" (rather than tips), "rocks" or "stays"."""
     text = " ".join(lines)
     if "cannot hold up" in text:
         return "falls"
+    if "it is round: it rolls" in text:
+        return "rolls"
     if "can tip over" in text:
         return "tips"
     if "may tip over" in text:  # a soft body's lean, or a toss-up while sliding
@@ -149,7 +151,8 @@ def before(F: float, need: float) -> str:
 
 
 def agree(forecast: str, tipped: bool) -> bool:
-    return (forecast in ("falls", "tips", "may tip")) == tipped
+    # a body that rolls turns over and over: the tilt this table counts passes TIPPED_DEG
+    return (forecast in ("falls", "tips", "may tip", "rolls")) == tipped
 
 
 def table(rows: list[dict], quality: str, machine: str, minutes: float) -> str:
@@ -205,16 +208,17 @@ NOTES = """How the forecast decides (`feedback.tipping`, `lean`, `balance`, `sta
   forecast says so before any push estimate (a pagoda whose mask ended in a spike of trees below it: its centre of
   mass 4 cm past a 6 cm foot; checked through the simulation in `test_a_drawn_table_on_a_leg_at_its_end_tips_over...`).
 
-The misses (2026-12-07, thirteenth session: 18 of 23, from 21) are all "rocks" where the run tipped. Four are soft
-bodies pushed at about half of what tips them at rest (the cup, E = 20 kPa at 39 N and 100 kPa at 58 N; the disc, 100
+The misses (2026-12-07: 19 of 23; 18 in the thirteenth session, from 21) are all "rocks" where the run tipped:
+four soft bodies pushed at about half of what tips them at rest (the cup, E = 20 kPa at 39 N and 100 kPa at 58 N; the disc, 100
 kPa at 18 N; the bar at 100 kPa, which "only just holds up", at 1 N): a push switched on at once makes an elastic
 body's base pressure overshoot (up to twice the static, like the lean), so its heel may lift from about half that
 force, and once lifted nothing holds it. Since the contact layer carries the body's spin (it dropped it before,
 docs/accuracy.md, "Rocking against a reference"), the one checked at three resolutions, the 100 kPa cup at 0.55 of
 the rigid force, tipped at draft, standard and high alike, where the old layer rocked at draft and tipped from
-standard on; so these misses look like the forecast's (its soft tipping force too high), not the run's. The fifth
-is the rigid disc at 16.5 N, which the lift now reads as a ball: it rolls, and the tilt this table counts is its
-roll; the forecast's words for a push do not say "rolls" yet (a throw's do, `rolls_along`). Also tried (2026-12-06)
+standard on; so these misses look like the forecast's (its soft tipping force too high), not the run's. The rigid
+disc, which the lift now reads as a ball, rolls at both forces, and since the fourteenth session the push forecast
+says so ("it is round: it rolls", `rolls_along`, as a throw's did; the tilt this table counts is the roll's turning,
+so "rolls" agrees with a tilt past 60°); in the thirteenth it said "rocks" at 16.5 N (a miss). Also tried (2026-12-06)
 and not taken: walking the outline over its edge tilt by tilt (the part of its hull within a lattice spacing of
 the ground) and a rigid rocking model (Housner's: the body turning about its contact point under the push and its
 weight, integrated in time); both kept the disc's base wider than its lowest layer.

@@ -585,7 +585,17 @@ def _push_line(k: int, F: np.ndarray, fmag: float, dt: float, body: BodyFacts, g
         if bend:
             notes.append(bend)
     fh = float(math.hypot(F[0], F[2]))
-    if ground is not None and not anchored and fh > 1e-12:
+    # A round rigid body (a ball, a wheel seen face-on: ``rolls_along``) on a ground that grips rolls under any
+    # sideways push: static friction turns it rather than holding it, and it does not tip over an edge.
+    rolls = (ground is not None and not anchored and fh > 1e-12 and ground.contact != "slip"
+             and material is not None and material.model == "rigid" and rolls_along(body, F))
+    if rolls:
+        grip = friction_limit / ROLL_FRICTION_SHARE
+        notes.append(f"it is round: it rolls rather than slides or tips, at about {ROLL_SPEED_SHARE * dv:.3g} m/s "
+                     f"(of Δv, {ROLL_SPEED_SHARE:.2g} goes into rolling; a ball)"
+                     + (f"; past {grip:.3g} N ({1 / ROLL_FRICTION_SHARE:.2g}·μ·m·g) it also skids"
+                        if fh > grip else ""))
+    elif ground is not None and not anchored and fh > 1e-12:
         if math.isinf(friction_limit):
             notes.append("the ground is sticky: it will not slide")
         elif fh <= friction_limit:
@@ -636,6 +646,8 @@ def _push_line(k: int, F: np.ndarray, fmag: float, dt: float, body: BodyFacts, g
         mu_g = 0.0 if ground is None or ground.contact == "slip" else (
             math.inf if ground.contact == "sticky" else float(ground.friction) * g)
         a = abs(F[0]) / m - mu_g
+        if rolls:  # friction turns it and takes no speed away: it rolls on to the clip's end
+            a, mu_g = ROLL_SPEED_SHARE * abs(F[0]) / m, 0.0
         if a > 0:
             v = a * dt
             travel = 0.5 * a * dt * dt
@@ -742,6 +754,11 @@ def forecast(conditions: Conditions, facts: BodyFacts, material: Material, *, cl
     return lines
 
 
+#: A solid ball pushed through its centre rolls off with this share of the speed the push would give it sliding
+#: freely (m·a = F - f, I·α = f·R, a = α·R, I = 2/5·m·R²: a = 5/7·F/m), and friction carries the share 2/7 of the
+#: push: past μ·m·g / (2/7) it skids as well (``_push_line``).
+ROLL_SPEED_SHARE = 5.0 / 7.0
+ROLL_FRICTION_SHARE = 2.0 / 7.0
 #: A body rolls along a direction when its outline in the plane of that direction and the vertical is a circle
 #: about its centre of mass: its largest radius in each of ROLL_BINS directions within ROLL_ROUND of their mean.
 ROLL_BINS = 16
@@ -786,7 +803,7 @@ def _throw_travel(v: np.ndarray, facts: BodyFacts, camera: Optional[Camera], gro
             flight = min(clip_s, 2 * vy / g) if vy > 0 else 0.0
             travel = vx * flight
             if flight < clip_s and rolls and ground.contact != "slip":
-                travel += 5.0 / 7.0 * vx * (clip_s - flight)  # it rolls on: friction does not stop it
+                travel += ROLL_SPEED_SHARE * vx * (clip_s - flight)  # it rolls on: friction does not stop it
             elif flight < clip_s and ground.contact != "sticky" and float(ground.friction) > 0:
                 travel += min(vx * (clip_s - flight), vx * vx / (2 * float(ground.friction) * g))
         side = room[1] if v[0] > 0 else room[0]
